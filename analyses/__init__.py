@@ -1,0 +1,1 @@
+"""Offline planners, experiments, benchmarks and the ``implantplan`` command line."""

@@ -1,0 +1,1 @@
+"""Builders that wire the MultibodyPlant, SceneGraph and the project's systems into Diagrams."""

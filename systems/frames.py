@@ -1,0 +1,102 @@
+"""Rigid transforms and rotations, batched over leading dimensions (DESIGN.md section 3, Frames).
+
+Monogram notation: ``X_AB`` is the pose of frame B in frame A as a 4x4 homogeneous matrix,
+``R_AB`` its rotation, ``p_AB`` its translation. All functions accept ``(..., 4, 4)`` /
+``(..., 3, 3)`` / ``(..., 3)`` arrays.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from systems.errors import InputError
+
+
+def transform(R: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Assemble ``X`` (..., 4, 4) from ``R`` (..., 3, 3) and ``p`` (..., 3)."""
+    R = np.asarray(R, dtype=float)
+    p = np.asarray(p, dtype=float)
+    shape = np.broadcast_shapes(R.shape[:-2], p.shape[:-1])
+    X = np.zeros(shape + (4, 4))
+    X[..., :3, :3] = R
+    X[..., :3, 3] = p
+    X[..., 3, 3] = 1.0
+    return X
+
+
+def invert(X: np.ndarray) -> np.ndarray:
+    """Inverse of rigid transforms (uses R^T, never a general 4x4 inverse)."""
+    X = np.asarray(X, dtype=float)
+    Rt = np.swapaxes(X[..., :3, :3], -1, -2)
+    return transform(Rt, -np.einsum("...ij,...j->...i", Rt, X[..., :3, 3]))
+
+
+def apply(X: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Transform points: ``p_A = X_AB @ p_B`` for points ``p`` (..., 3)."""
+    X = np.asarray(X, dtype=float)
+    return np.einsum("...ij,...j->...i", X[..., :3, :3], p) + X[..., :3, 3]
+
+
+def rot_x(a) -> np.ndarray:
+    a = np.asarray(a, dtype=float)
+    c, s = np.cos(a), np.sin(a)
+    o, z = np.ones_like(a), np.zeros_like(a)
+    return np.stack([o, z, z, z, c, -s, z, s, c], axis=-1).reshape(a.shape + (3, 3))
+
+
+def rot_y(a) -> np.ndarray:
+    a = np.asarray(a, dtype=float)
+    c, s = np.cos(a), np.sin(a)
+    o, z = np.ones_like(a), np.zeros_like(a)
+    return np.stack([c, z, s, z, o, z, -s, z, c], axis=-1).reshape(a.shape + (3, 3))
+
+
+def rot_z(a) -> np.ndarray:
+    a = np.asarray(a, dtype=float)
+    c, s = np.cos(a), np.sin(a)
+    o, z = np.ones_like(a), np.zeros_like(a)
+    return np.stack([c, -s, z, s, c, z, z, z, o], axis=-1).reshape(a.shape + (3, 3))
+
+
+def rpy_to_rotation(rpy) -> np.ndarray:
+    """URDF convention: R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    rpy = np.asarray(rpy, dtype=float)
+    return rot_z(rpy[..., 2]) @ rot_y(rpy[..., 1]) @ rot_x(rpy[..., 0])
+
+
+def rotation_angle(R: np.ndarray) -> np.ndarray:
+    """Angle (rad) of rotation matrices, robust near 0 and pi."""
+    R = np.asarray(R, dtype=float)
+    cos = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
+    skew = np.stack(
+        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]],
+        axis=-1,
+    )
+    sin = np.linalg.norm(skew, axis=-1) / 2.0
+    return np.arctan2(sin, cos)
+
+
+def unit(v, *, field: str = "vector") -> np.ndarray:
+    """Normalize vectors (..., 3); a zero or non-finite vector is an InputError naming ``field``."""
+    v = np.asarray(v, dtype=float)
+    if v.shape[-1:] != (3,):
+        raise InputError(field, f"expected 3 components, got shape {v.shape}")
+    norm = np.linalg.norm(v, axis=-1, keepdims=True)
+    if not np.all(np.isfinite(v)) or np.any(norm < 1e-12):
+        raise InputError(field, "expected a finite, non-zero direction")
+    return v / norm
+
+
+def frame_from_z(origin, z_axis, *, x_hint=None, field: str = "z_axis") -> np.ndarray:
+    """A right-handed frame with the given origin and z axis; x is ``x_hint`` made orthogonal to z
+    (default: world x, or world y when z is within 1e-6 of parallel to x)."""
+    z = unit(z_axis, field=field)
+    hint = np.array([1.0, 0.0, 0.0]) if x_hint is None else unit(x_hint, field="x_hint")
+    if abs(float(np.dot(hint, z))) > 1.0 - 1e-6:
+        if x_hint is not None:
+            raise InputError("x_hint", "must not be parallel to the z axis")
+        hint = np.array([0.0, 1.0, 0.0])
+    x = hint - np.dot(hint, z) * z
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return transform(np.stack([x, y, z], axis=-1), np.asarray(origin, dtype=float))
