@@ -131,15 +131,36 @@ def _check_pose(X, field: str) -> np.ndarray:
     X = np.asarray(X, dtype=float)
     if X.ndim < 2 or X.shape[-2:] != (4, 4):
         raise InputError(field, f"expected poses of shape (..., 4, 4), got {X.shape}")
-    if not np.all(np.isfinite(X)):
+    err, finite = _rotation_error(np.ascontiguousarray(X.reshape(-1, 4, 4)))
+    if not finite:
         raise InputError(field, "poses must be finite (found NaN or inf)")
-    R = X[..., :3, :3]
-    err = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(initial=0.0)
-    if err > 1e-6 or np.any(np.linalg.det(R) < 0):
+    if err > 1e-6:
         raise InputError(
             field, f"rotation part is not a proper rotation (orthonormality error {err:.1e})"
         )
     return X
+
+
+@numba.njit(cache=True)
+def _rotation_error(X):  # pragma: no cover - compiled
+    """max |R^T R - I| and |det R - 1| over a batch of poses, and whether all entries are finite."""
+    worst = 0.0
+    for n in range(X.shape[0]):
+        for i in range(4):
+            for j in range(4):
+                if not np.isfinite(X[n, i, j]):
+                    return np.inf, False
+        for i in range(3):
+            for j in range(i, 3):
+                d = X[n, 0, i] * X[n, 0, j] + X[n, 1, i] * X[n, 1, j] + X[n, 2, i] * X[n, 2, j]
+                worst = max(worst, abs(d - (1.0 if i == j else 0.0)))
+        det = (
+            X[n, 0, 0] * (X[n, 1, 1] * X[n, 2, 2] - X[n, 1, 2] * X[n, 2, 1])
+            - X[n, 0, 1] * (X[n, 1, 0] * X[n, 2, 2] - X[n, 1, 2] * X[n, 2, 0])
+            + X[n, 0, 2] * (X[n, 1, 0] * X[n, 2, 1] - X[n, 1, 1] * X[n, 2, 0])
+        )
+        worst = max(worst, abs(det - 1.0))
+    return worst, True
 
 
 def _tool(X_FT) -> np.ndarray | None:
@@ -391,11 +412,7 @@ def ik(X_BT, *, limits: str | np.ndarray = "175", X_FT=None) -> IkResult:
     code = np.empty((n, 8), dtype=np.int8)
     singular = np.empty((n, 8), dtype=bool)
     _ik_kernel(R, p, q, code, singular)
-    # With the solutions in (-pi, pi], a branch meets the limits if the wrapped value or one of its
-    # 2*pi copies does; for symmetric limits >= 180 deg the wrapped value itself always does.
-    within = np.all(_has_copy_within(q, lim), axis=-1)
-    code[(code == REASON_OK) & ~within] = REASON_LIMITS
-    q = np.where((code == REASON_OK)[..., None], _nearest_copy_within(q, lim), q)
+    _apply_limits(q, code, lim[0], lim[1])
     valid = code == REASON_OK
     return IkResult(
         q=q.reshape(shape + (8, 6)),
@@ -405,19 +422,25 @@ def ik(X_BT, *, limits: str | np.ndarray = "175", X_FT=None) -> IkResult:
     )
 
 
-def _has_copy_within(q, lim):
-    lo, hi = lim[0], lim[1]
-    return ((q >= lo) & (q <= hi)) | ((q + 2 * PI >= lo) & (q + 2 * PI <= hi)) | (
-        (q - 2 * PI >= lo) & (q - 2 * PI <= hi)
-    )
-
-
-def _nearest_copy_within(q, lim):
-    """The copy of q (mod 2 pi) within limits closest to 0 (q itself when it is within)."""
-    lo, hi = lim[0], lim[1]
-    inside = (q >= lo) & (q <= hi)
-    up, down = q + 2 * PI, q - 2 * PI
-    return np.where(inside, q, np.where((up >= lo) & (up <= hi), up, down))
+@numba.njit(cache=True)
+def _apply_limits(q, code, lo, hi):  # pragma: no cover - compiled
+    """Move each solution (in (-pi, pi]) to its copy within limits nearest 0, or mark it
+    REASON_LIMITS when neither it nor a 2*pi copy is within (q, code modified in place)."""
+    for n in range(q.shape[0]):
+        for b in range(8):
+            if code[n, b] != REASON_OK:
+                continue
+            for j in range(6):
+                v = q[n, b, j]
+                if lo[j] <= v <= hi[j]:
+                    continue
+                if lo[j] <= v + 2.0 * PI <= hi[j]:
+                    q[n, b, j] = v + 2.0 * PI
+                elif lo[j] <= v - 2.0 * PI <= hi[j]:
+                    q[n, b, j] = v - 2.0 * PI
+                else:
+                    code[n, b] = REASON_LIMITS
+                    break
 
 
 def joint_copies(q, *, limits: str | np.ndarray = "360") -> tuple[np.ndarray, np.ndarray]:
