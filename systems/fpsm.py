@@ -18,9 +18,14 @@ constant circulant Q = int B(theta)^T B(theta) dtheta, computed exactly (:func:`
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
+
+from systems.errors import InputError
+from systems.files import read_json, write_json
 
 TWO_PI = 2.0 * np.pi
 
@@ -138,3 +143,421 @@ def area(rho) -> np.ndarray:
     rho = np.asarray(rho, dtype=float)
     Q = area_matrix(rho.shape[-1])
     return 0.5 * np.einsum("...i,ij,...j->...", rho, Q, rho)
+
+
+# ---------------------------------------------------------------------------------------------
+# The surrogate model: M slices of such curves stacked along the Center frame's z axis.
+# ---------------------------------------------------------------------------------------------
+
+
+def _slice_values(rho: np.ndarray, slice_index: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """rho_j(theta) for per-point slice indices j (any shape, same as ``theta``); one gather."""
+    n = rho.shape[1]
+    index, weight = basis_weights(theta, n)
+    flat = rho.reshape(-1)
+    return np.sum(flat[slice_index[..., None] * n + index] * weight, axis=-1)
+
+
+@dataclass(frozen=True)
+class LineSafety:
+    """Safety of K lines/rods against the FPSM (Eq. 13), one entry per line.
+
+    Attributes:
+        f_safe: (K,) safety indicator of Eq. 13 (> 0: collision-free); +inf for a line with no
+            sample inside the model (it lies wholly above the mouth opening).
+        d_safe_min: (K,) smallest safe distance over the samples (m), +inf when no sample.
+        d_safe_mean: (K,) mean safe distance over the samples (m), +inf when no sample.
+        samples: (K,) number of samples: the m slice-plane crossings + the start point T (+ the
+            far end, see :meth:`Fpsm.line_safety`); this is the paper's m + 1.
+    """
+
+    f_safe: np.ndarray
+    d_safe_min: np.ndarray
+    d_safe_mean: np.ndarray
+    samples: np.ndarray
+
+
+def _as_array(value, field: str, shape_tail: tuple[int, ...] | None = None) -> np.ndarray:
+    try:
+        arr = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(field, "expected numbers") from None
+    if shape_tail is not None and arr.shape[arr.ndim - len(shape_tail) :] != shape_tail:
+        raise InputError(
+            field, f"expected shape (..., {', '.join(map(str, shape_tail))}), got {arr.shape}"
+        )
+    return arr
+
+
+@dataclass
+class Fpsm:
+    """Finite-parameter surrogate model of the oral cavity (paper Sec. 3).
+
+    M closed polar curves (slices) at heights ``slice_z`` along the z axis of the Center frame,
+    each with N control radii (row of ``rho``). The +Z end is the mouth opening.
+
+    Safe distance of a point P (Eq. 10-11): d_safe = rho(theta_P, z_P) - sqrt(x_P^2 + y_P^2),
+    with rho linear in z between neighbouring slices (Eq. 11 interpolates the two projections'
+    d_safe, whose radial parts are equal, so it is the radius that is interpolated). Outside the
+    slice range (a rule the paper leaves open, DESIGN.md section 4):
+
+    - below the bottom slice (throat side): collision, d_safe = min(d_safe on the bottom slice,
+      z_P - z_0 - shrink) < 0, so it grows more negative the deeper the point is;
+    - above the top slice (outside the mouth opening): no constraint, d_safe = +inf.
+
+    A shrunk model (Eq. 12, :meth:`shrink`) may have radii <= 0 where the cavity is narrower than
+    the rod; it records the amount in ``settings["shrink_m"]`` and validation checks that the
+    unshrunk radii ``rho + shrink_m`` are positive.
+
+    Attributes:
+        slice_z: (M,) strictly increasing slice heights along Center z (m).
+        rho: (M, N) control radii per slice (m), at angles 2*pi*k/N.
+        X_WC: (4, 4) pose of the Center frame in the mesh's frame (m).
+        settings: fit settings (method, N, samples, mesh path, units, margin, ...).
+        diagnostics: fit diagnostics (per-slice coverage, penetration, time, ...).
+    """
+
+    slice_z: np.ndarray
+    rho: np.ndarray
+    X_WC: np.ndarray = field(default_factory=lambda: np.eye(4))
+    settings: dict = field(default_factory=dict)
+    diagnostics: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        z = _as_array(self.slice_z, "slice_z")
+        rho = _as_array(self.rho, "rho")
+        X = _as_array(self.X_WC, "X_WC")
+        if z.ndim != 1 or z.size < 1:
+            raise InputError("slice_z", f"expected a 1-D array of slice heights, got {z.shape}")
+        if not np.all(np.isfinite(z)):
+            raise InputError("slice_z", "expected finite heights")
+        if np.any(np.diff(z) <= 0):
+            raise InputError("slice_z", "expected strictly increasing heights")
+        if rho.ndim != 2 or rho.shape[0] != z.size or rho.shape[1] < 3:
+            raise InputError(
+                "rho", f"expected shape (M={z.size}, N>=3) control radii, got {rho.shape}"
+            )
+        if not np.all(np.isfinite(rho)):
+            raise InputError("rho", "expected finite radii")
+        if not isinstance(self.settings, dict):
+            raise InputError("settings", "expected a mapping")
+        if not isinstance(self.diagnostics, dict):
+            raise InputError("diagnostics", "expected a mapping")
+        shrink = float(self.settings.get("shrink_m", 0.0))
+        if not np.isfinite(shrink) or shrink < 0:
+            raise InputError("settings.shrink_m", "expected a finite shrink >= 0 m")
+        if np.any(rho + shrink <= 0):
+            raise InputError("rho", "expected positive control radii (m)")
+        if X.shape != (4, 4) or not np.all(np.isfinite(X)):
+            raise InputError("X_WC", f"expected a finite 4x4 pose, got shape {X.shape}")
+        R = X[:3, :3]
+        if (
+            not np.allclose(R.T @ R, np.eye(3), atol=1e-6)
+            or np.linalg.det(R) < 0
+            or not np.allclose(X[3], [0, 0, 0, 1])
+        ):
+            raise InputError("X_WC", "expected a rigid transform (orthonormal, det +1)")
+        self.slice_z, self.rho, self.X_WC = z, rho, X
+        self.slice_z.setflags(write=False)
+        self.rho.setflags(write=False)
+
+    # -- construction -------------------------------------------------------------------------
+
+    @classmethod
+    def cylinder(
+        cls, radius: float, z_min: float, z_max: float, slices: int, control_points: int = 16
+    ) -> Fpsm:
+        """A circular cylinder of ``radius`` from ``z_min`` to ``z_max`` (m), for checks."""
+        radius, z_min, z_max = float(radius), float(z_min), float(z_max)
+        if not np.isfinite(radius) or radius <= 0:
+            raise InputError("radius", f"expected a positive radius in m, got {radius}")
+        if not (np.isfinite(z_min) and np.isfinite(z_max)) or z_max <= z_min:
+            raise InputError("z_max", f"expected z_min < z_max, got {z_min}, {z_max}")
+        if int(slices) != slices or slices < 2:
+            raise InputError("slices", f"expected an integer >= 2, got {slices}")
+        if int(control_points) != control_points or control_points < 3:
+            raise InputError("control_points", f"expected an integer >= 3, got {control_points}")
+        slices, control_points = int(slices), int(control_points)
+        return cls(
+            slice_z=np.linspace(z_min, z_max, slices),
+            rho=np.full((slices, control_points), radius),
+            settings={
+                "method": "cylinder",
+                "radius_m": radius,
+                "z_range_m": [z_min, z_max],
+                "slices": slices,
+                "control_points": control_points,
+                "units": "m",
+            },
+        )
+
+    def shrink(self, r: float) -> Fpsm:
+        """The model shrunk inward by ``r`` (Eq. 12: rho* = rho - r), for a rod of radius r.
+
+        Radii may become <= 0 where the cavity is narrower than 2 r; they are kept (the safe
+        distances there are simply negative), and ``settings["shrink_m"]`` adds up the shrink.
+        """
+        r = float(r)
+        if not np.isfinite(r) or r < 0:
+            raise InputError("r", f"expected a shrink radius >= 0 m, got {r}")
+        settings = dict(self.settings)
+        settings["shrink_m"] = float(settings.get("shrink_m", 0.0)) + r
+        return Fpsm(
+            self.slice_z.copy(), self.rho - r, self.X_WC.copy(), settings, dict(self.diagnostics)
+        )
+
+    # -- geometry -----------------------------------------------------------------------------
+
+    @property
+    def slices(self) -> int:
+        return int(self.slice_z.size)
+
+    @property
+    def control_points(self) -> int:
+        return int(self.rho.shape[1])
+
+    @property
+    def z_range(self) -> tuple[float, float]:
+        return float(self.slice_z[0]), float(self.slice_z[-1])
+
+    @property
+    def max_radius(self) -> float:
+        """An upper bound of rho(theta) over every slice (m): the curve stays within the convex
+        hull of the Catmull-Rom weights, |rho(theta)| <= 1.25 max|rho_k| (weights' abs sum)."""
+        return float(np.max(np.abs(self.rho)) * 1.25)
+
+    def _locate(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Lower slice index j and weight w in [0, 1] for heights inside the range."""
+        m = self.slice_z.size
+        if m == 1:
+            return np.zeros(z.shape, dtype=np.int64), np.zeros(z.shape)
+        j = np.clip(np.searchsorted(self.slice_z, z, side="right") - 1, 0, m - 2)
+        z0, z1 = self.slice_z[j], self.slice_z[j + 1]
+        w = np.clip((z - z0) / (z1 - z0), 0.0, 1.0)
+        return j, w
+
+    def _radius(self, theta: np.ndarray, z: np.ndarray) -> np.ndarray:
+        j, w = self._locate(z)
+        lo = _slice_values(self.rho, j, theta)
+        if self.slice_z.size == 1:
+            return lo
+        hi = _slice_values(self.rho, j + 1, theta)
+        return lo + w * (hi - lo)  # Eq. 11
+
+    def radius_at(self, theta, z) -> np.ndarray:
+        """rho(theta, z): the curve radius at polar angle ``theta`` (rad) and height ``z`` (m),
+        linear in z between slices (Eq. 11); NaN outside [z_0, z_{M-1}] (no curve there).
+        ``theta`` and ``z`` broadcast."""
+        theta = _as_array(theta, "theta")
+        z = _as_array(z, "z")
+        theta, z = np.broadcast_arrays(theta, z)
+        out = self._radius(theta, z)
+        z_lo, z_hi = self.z_range
+        return np.where((z >= z_lo) & (z <= z_hi), out, np.nan)
+
+    def _d_safe(self, p: np.ndarray, radius: float = 0.0) -> np.ndarray:
+        """Eq. 10-11 with the out-of-range rules, no input checks; ``radius`` shrinks (Eq. 12)."""
+        x, y, z = p[..., 0], p[..., 1], p[..., 2]
+        theta = np.arctan2(y, x)
+        d = self._radius(theta, z) - radius - np.hypot(x, y)
+        z_lo, z_hi = self.z_range
+        # throat side: collision; the shrink applies to the throat end too, so that
+        # shrink(r).d_safe == d_safe - r holds everywhere
+        throat = z - z_lo - radius - float(self.settings.get("shrink_m", 0.0))
+        d = np.where(z < z_lo, np.minimum(d, throat), d)
+        return np.where(z > z_hi, np.inf, d)  # above the mouth opening: unconstrained
+
+    def d_safe(self, points_Center_m, *, radius: float = 0.0) -> np.ndarray:
+        """Safe distance (m) of points given in the Center frame (Eq. 10-11), batched.
+
+        Args:
+            points_Center_m: (..., 3) points in Center (m).
+            radius: shrink the model by this much first (Eq. 12), i.e. the safe distance of a
+                sphere of that radius.
+
+        Returns:
+            (...,) d_safe: > 0 inside, <= 0 collision; below the bottom slice
+            min(d_safe on the bottom slice, z - z_0) < 0; above the top slice +inf.
+        """
+        p = _as_array(points_Center_m, "points_Center_m", (3,))
+        if not np.all(np.isfinite(p)):
+            raise InputError("points_Center_m", "expected finite coordinates (m)")
+        return self._d_safe(p, float(radius))
+
+    def line_safety(
+        self,
+        start,
+        direction,
+        length=np.inf,
+        *,
+        radius: float = 0.0,
+        lambda_avg: float = 0.5,
+        lambda_min: float = 0.5,
+    ) -> LineSafety:
+        """Safety of K lines (or rods of ``radius``) starting at T = ``start`` (Eq. 13), batched.
+
+        Samples along each line: its start point T, every crossing with a slice plane at
+        0 < s <= length (s = distance from T), and a far-end point:
+
+        - a finite ``length``: the end point T + length * u (unless it lies on a slice plane,
+          then the crossing already samples it). The paper samples T and the crossings only;
+          the end point closes the gap after the last crossing.
+        - an infinite ray (default) must leave through the mouth opening (+Z end). One that
+          does not (u_z <= 0, so it ends through the side or the throat) gets a far-end sample
+          where it leaves the bounding cylinder of radius :attr:`max_radius` around the axis (or
+          reaches max_radius below the bottom slice, whichever first); that sample is <= 0 by
+          construction, so the ray counts as a collision. A ray with u_z > 0 that leaves
+          through the side is caught by the crossings above its exit (outside the curves).
+
+        Samples above the top slice are outside the mouth and do not count (d_safe = +inf).
+        A rod of radius r is the line against the model shrunk by r (Eq. 12): ``radius=r``.
+
+        Args:
+            start: (K, 3) or (3,) start points T in Center (m).
+            direction: (K, 3) or (3,) directions (normalized here; non-zero).
+            length: scalar or (K,) length along the direction (m), > 0; inf for a ray.
+            radius: rod radius r (m) >= 0.
+            lambda_avg, lambda_min: weights of Eq. 13.
+
+        Returns:
+            :class:`LineSafety` with (K,) arrays.
+        """
+        p0 = _as_array(start, "start", (3,))
+        u = _as_array(direction, "direction", (3,))
+        p0, u = np.broadcast_arrays(np.atleast_2d(p0), np.atleast_2d(u))
+        if p0.ndim != 2:
+            raise InputError("start", "expected (K, 3) start points")
+        if not np.all(np.isfinite(p0)):
+            raise InputError("start", "expected finite coordinates (m)")
+        norm = np.linalg.norm(u, axis=-1)
+        if not np.all(np.isfinite(u)) or np.any(norm < 1e-12):
+            raise InputError("direction", "expected finite, non-zero directions")
+        L = np.broadcast_to(_as_array(length, "length"), norm.shape)
+        if np.any(np.isnan(L)) or np.any(L <= 0):
+            raise InputError("length", "expected lengths > 0 m (inf for a ray)")
+        radius = float(radius)
+        if not np.isfinite(radius) or radius < 0:
+            raise InputError("radius", f"expected a rod radius >= 0 m, got {radius}")
+        return self._line_safety(p0, u / norm[:, None], L, radius, lambda_avg, lambda_min)
+
+    def _line_safety(self, p0, u, L, radius, lambda_avg, lambda_min) -> LineSafety:
+        """:meth:`line_safety` without input checks; ``u`` unit (K, 3), ``L`` (K,)."""
+        K, M = p0.shape[0], self.slice_z.size
+        z_lo, z_hi = self.z_range
+        uz = u[:, 2]
+        moving = np.abs(uz) > 1e-15
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = (self.slice_z[None, :] - p0[:, 2:3]) / np.where(moving, uz, 1.0)[:, None]
+        tol = 1e-12
+        cross = moving[:, None] & (s > tol) & (s <= L[:, None] + tol)
+        s = np.where(cross, s, 0.0)
+        xy = p0[:, None, :2] + s[..., None] * u[:, None, :2]  # (K, M, 2)
+        theta = np.arctan2(xy[..., 1], xy[..., 0])
+        j = np.broadcast_to(np.arange(M), (K, M))
+        d_cross = _slice_values(self.rho, j, theta) - radius - np.hypot(xy[..., 0], xy[..., 1])
+
+        d_start = self._d_safe(p0, radius)
+        start_in = np.isfinite(d_start)
+
+        # Far end: finite segments end at T + L u; rays that never reach the opening get the
+        # point where they leave the bounding cylinder (or sink max_radius below z_0).
+        finite = np.isfinite(L)
+        R = self.max_radius
+        a = np.sum(u[:, :2] ** 2, axis=1)
+        b = np.sum(p0[:, :2] * u[:, :2], axis=1)
+        c = np.sum(p0[:, :2] ** 2, axis=1) - R * R
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s_cyl = np.where(a > 1e-30, (-b + np.sqrt(np.maximum(b * b - a * c, 0.0))) / a, np.inf)
+            s_down = np.where(uz < -1e-15, (z_lo - R - p0[:, 2]) / uz, np.inf)
+        s_ray = np.maximum(np.minimum(s_cyl, s_down), 0.0)
+        s_far = np.where(finite, L, s_ray)
+        far_needed = finite | (uz <= 1e-15)
+        on_plane = np.any(cross & (np.abs(s - L[:, None]) <= tol), axis=1) & finite
+        p_far = p0 + np.where(np.isfinite(s_far), s_far, 0.0)[:, None] * u
+        d_far = self._d_safe(p_far, radius)
+        far_in = far_needed & ~on_plane & np.isfinite(d_far) & np.isfinite(s_far)
+        # A ray that never reaches the opening is a collision even if rounding left d_far > 0.
+        d_far = np.where(~finite & far_in, np.minimum(d_far, 0.0), d_far)
+
+        # Crossings above the top slice cannot happen (planes are slices); above-top start/end
+        # points are excluded by the finiteness masks.
+        count = cross.sum(axis=1) + start_in + far_in
+        total = (
+            np.where(cross, d_cross, 0.0).sum(axis=1)
+            + np.where(start_in, d_start, 0.0)
+            + np.where(far_in, d_far, 0.0)
+        )
+        d_min = np.minimum.reduce(
+            [
+                np.where(cross, d_cross, np.inf).min(axis=1, initial=np.inf),
+                np.where(start_in, d_start, np.inf),
+                np.where(far_in, d_far, np.inf),
+            ]
+        )
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mean = np.where(count > 0, total / np.maximum(count, 1), np.inf)
+        # Eq. 13
+        f = np.where(d_min > 0, lambda_avg * mean + lambda_min * d_min, lambda_min * d_min)
+        f = np.where(count > 0, f, np.inf)
+        return LineSafety(f_safe=f, d_safe_min=d_min, d_safe_mean=mean, samples=count)
+
+    # -- files --------------------------------------------------------------------------------
+
+    def to_dict(self) -> dict:
+        """JSON-ready mapping (SI units; the frame named explicitly)."""
+        return {
+            "units": "m",
+            "frame": {
+                "name": "Center",
+                "parent": "mesh",
+                "X_WC": self.X_WC.tolist(),
+                "axis": "+z points out of the mouth; slices are planes z = const",
+            },
+            "slice_z": self.slice_z.tolist(),
+            "rho": self.rho.tolist(),
+            "settings": self.settings,
+            "diagnostics": self.diagnostics,
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict) -> Fpsm:
+        if not isinstance(data, dict):
+            raise InputError("fpsm", "expected a JSON object")
+        units = data.get("units", "m")
+        if units != "m":
+            raise InputError("fpsm.units", f"expected 'm', got {units!r}")
+        for key in ("slice_z", "rho"):
+            if key not in data:
+                raise InputError(f"fpsm.{key}", "missing")
+        frame = data.get("frame") or {}
+        if not isinstance(frame, dict):
+            raise InputError("fpsm.frame", "expected a mapping")
+        X_WC = frame.get("X_WC", np.eye(4).tolist())
+        if X_WC is None:
+            raise InputError("fpsm.frame.X_WC", "expected a 4x4 pose")
+        try:
+            slice_z = np.array(data["slice_z"], dtype=float)
+            rho = np.array(data["rho"], dtype=float)
+            X_WC = np.array(X_WC, dtype=float)
+        except (TypeError, ValueError):
+            raise InputError("fpsm", "slice_z, rho and frame.X_WC must be numeric arrays") from None
+        return cls(
+            slice_z=slice_z,
+            rho=rho,
+            X_WC=X_WC,
+            settings=dict(data.get("settings") or {}),
+            diagnostics=dict(data.get("diagnostics") or {}),
+        )
+
+    def save(self, path) -> Path:
+        """Write the model as JSON (kind "fpsm", schema_version), atomically."""
+        return write_json(path, self.to_dict(), kind="fpsm")
+
+    @classmethod
+    def load(cls, path, *, field: str = "fpsm") -> Fpsm:
+        """Read a model written by :meth:`save`; InputError naming ``field`` when it is bad."""
+        data = read_json(path, kind="fpsm", field=field)
+        try:
+            return cls.from_dict(data)
+        except InputError as exc:
+            raise InputError(field, f"{path}: {exc}") from None
