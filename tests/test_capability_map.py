@@ -1,0 +1,151 @@
+"""Capability map core: reach / no reach, index range, roll handling, blocks, HDF5 round trip."""
+
+from concurrent.futures import ThreadPoolExecutor
+
+import h5py
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from systems import capability_map as cm
+from systems.errors import InputError
+from systems.frames import rot_x, transform
+from systems.kinematics import fk, ik
+
+
+@pytest.fixture(scope="module")
+def coarse():
+    return cm.build(cm.make_params(0.15, 30), workers=1)
+
+
+def test_golden_spiral_unit_and_spread():
+    d = cm.golden_spiral(200)
+    assert d.shape == (200, 3)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-12)
+    # near-uniform: the mean vector of a uniform point set is ~0, z spacing is 2/K
+    assert np.linalg.norm(d.mean(axis=0)) < 0.02
+    np.testing.assert_allclose(np.diff(d[:, 2]), -2.0 / 200, atol=1e-12)
+
+
+@given(st.floats(-1, 1), st.floats(-np.pi, np.pi))
+@settings(max_examples=60, deadline=None)
+def test_direction_table_picks_a_nearest_direction(z, phi):
+    d = cm.golden_spiral(50)
+    table = cm.direction_table(d)
+    s = np.sqrt(1 - z * z)
+    v = np.array([s * np.cos(phi), s * np.sin(phi), z])
+    n_z, n_phi = table.shape
+    iz = min(int((z + 1) / 2 * n_z), n_z - 1)
+    ip = min(int((phi + np.pi) / (2 * np.pi) * n_phi), n_phi - 1)
+    chosen = d[table[iz, ip]] @ v
+    best = np.max(d @ v)
+    # the cell's nearest direction is within one cell size of the true nearest
+    assert np.arccos(min(1.0, chosen)) <= np.arccos(min(1.0, best)) + 2.5 * np.pi / n_z
+
+
+def test_obviously_reachable_and_unreachable(coarse):
+    full = np.flatnonzero(coarse.index == 1.0)
+    assert len(full) > 0
+    c = coarse.centres()[full[0]]
+    X = transform(rot_x(2.0), c)  # any direction in a voxel whose every direction is reachable
+    reach, index = coarse.query(X[None])
+    assert reach[0] and index[0] == 1.0
+    # 3 m away from the base: beyond the 1.65 m reach
+    reach, index = coarse.query(transform(np.eye(3), [3.0, 0.0, 0.5])[None])
+    assert not reach[0] and index[0] == 0.0
+    # a real arm pose: its voxel centre is 'reachable' in the map at the pose's direction
+    q = np.array([0.3, 0.4, 1.2, 0.2, 1.0, 0.0])
+    assert cm.reach_at(coarse.params, fk(q)[None, :3, 3], fk(q)[None, :3, 2])[0][0, 0]
+
+
+def test_index_in_unit_interval_and_matches_bits(coarse):
+    assert np.all((coarse.index > 0) & (coarse.index <= 1))
+    rows = coarse.reach_rows()
+    np.testing.assert_allclose(coarse.index, rows.mean(axis=1))
+    # stored voxels all lie within the reach sphere about the shoulder
+    assert np.all(np.linalg.norm(coarse.centres() - cm.SHOULDER, axis=1) <= cm.ARM_REACH + 0.15)
+
+
+def test_roll_free_with_360_limits():
+    p = cm.make_params(0.2, 20, limits="360")
+    m = cm.build(p, workers=1)
+    np.testing.assert_array_equal(m.reach_bits, m.all_roll_bits)
+
+
+def test_roll_with_175_limits_matches_sampled_rolls():
+    p = cm.make_params(0.2, 20, limits="175")
+    rng = np.random.default_rng(3)
+    centres = cm.SHOULDER + rng.uniform(-1.2, 1.2, (60, 3))
+    dirs = cm.golden_spiral(20)
+    some, every = cm.reach_at(p, centres, dirs)
+    # brute force: 720 rolls (0.5 deg) with the true +-175 deg limits on every joint
+    gam = np.deg2rad(np.arange(0, 360, 0.5))
+    Rz = np.zeros((len(gam), 4, 4))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1] = (
+        np.cos(gam),
+        -np.sin(gam),
+        np.sin(gam),
+        np.cos(gam),
+    )
+    Rz[:, 2, 2] = Rz[:, 3, 3] = 1
+    base = np.zeros((60, 20, 4, 4))
+    base[..., :3, :3] = cm.frames_from_z(dirs)[None]
+    base[..., :3, 3] = centres[:, None]
+    base[..., 3, 3] = 1
+    per_roll = ik(base[:, :, None] @ Rz, limits="175").valid.any(-1)  # (60, 20, 720)
+    np.testing.assert_array_equal(some, per_roll.any(-1))
+    np.testing.assert_array_equal(every, per_roll.all(-1))
+    assert some.sum() > every.sum() > 0  # the 10 deg gap matters for single-branch pairs
+
+
+def test_tool_not_coaxial_samples_roll():
+    X_FT = transform(rot_x(np.pi / 2), [0.0, 0.0, 0.1])  # tool axis perpendicular to the flange z
+    p = cm.make_params(0.2, 10, X_FT=X_FT, tool="test")
+    assert p.rolls == 12
+    assert not cm.roll_is_free(X_FT)
+    with pytest.raises(InputError, match="rolls"):
+        cm.make_params(0.2, 10, rolls=4)
+
+
+def test_blocks_through_any_executor_give_the_same_map(coarse):
+    with ThreadPoolExecutor(2) as ex:
+        m = cm.build(coarse.params, executor=ex, poses_per_block=5000)
+    np.testing.assert_array_equal(m.voxel_ids, coarse.voxel_ids)
+    np.testing.assert_array_equal(m.reach_bits, coarse.reach_bits)
+    assert sum(len(b) for b in cm.blocks_of(coarse.params, 5000)) >= len(m.voxel_ids)
+
+
+def test_hdf5_round_trip_and_parameter_check(coarse, tmp_path):
+    path = tmp_path / "map.h5"
+    coarse.save(path)
+    m = cm.load(path, expect={"limits": "175", "directions": 30, "voxel": 0.15})
+    assert m.params == coarse.params
+    np.testing.assert_array_equal(m.reach_bits, coarse.reach_bits)
+    X = cm.random_poses(2000, seed=5)
+    np.testing.assert_array_equal(m.query(X)[0], coarse.query(X)[0])
+    with pytest.raises(InputError, match="limits"):
+        cm.load(path, expect={"limits": "360"})
+    with h5py.File(path, "a") as f:
+        f.attrs["schema_version"] = 99
+    with pytest.raises(InputError, match="schema_version"):
+        cm.load(path)
+    with pytest.raises(InputError, match="does not exist"):
+        cm.load(tmp_path / "missing.h5")
+
+
+def test_accuracy_counts_add_up(coarse):
+    acc = cm.accuracy(coarse, cm.random_poses(5000, seed=2))
+    assert acc["TP"] + acc["FP"] + acc["FN"] + acc["TN"] == pytest.approx(1.0)
+    assert acc["correct"] > 0.85  # a 15 cm / 30-direction map is still mostly right
+
+
+def test_bad_params_are_input_errors():
+    with pytest.raises(InputError, match="voxel"):
+        cm.make_params(0.0, 10)
+    with pytest.raises(InputError, match="directions"):
+        cm.make_params(0.1, 0)
+    with pytest.raises(InputError, match="limits"):
+        cm.make_params(0.1, 10, limits="180")
+    with pytest.raises(InputError, match="poses"):
+        cm.build(cm.make_params(0.3, 4), workers=1).query(np.zeros((3, 3)))
