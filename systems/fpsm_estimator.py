@@ -1,0 +1,186 @@
+"""Surrogate collision estimator of the implanting actuator against the FPSM, and its LeafSystem.
+
+Seed 000 (Sec. 4, Eq. 19) models the contra-angle actuator at the feeding target by two lines in
+the Tool frame {T} (x along the rod, z along the implant axis, origin at the head):
+
+- line1, the handle rod of radius r: from P1 = [r, 0, 0] along +x, checked against the FPSM
+  shrunk by r (Eq. 12);
+- line2, the path swept by the implant tip: from P2 = [r, 0, -d12] along +x, checked against the
+  unshrunk FPSM.
+
+Both are rays leaving the mouth (the FPSM's +Z end); :meth:`systems.fpsm.Fpsm.line_safety`
+gives f_safe (Eq. 13) and the smallest safe distance of each. During the simulated feed the same
+two lines ride on the *measured* tool pose, so the estimator says, every step, how safe the
+actuator is where it actually is:
+
+    min_d_safe = min(d_safe_min(line1), d_safe_min(line2)),
+    alarm = min_d_safe <= alarm_margin.
+
+With ``alarm_margin`` > 0 the alarm fires before contact (d_safe = 0) for any motion slower than
+alarm_margin per update period. Where the paper evaluates the lines only at the planned target,
+we evaluate them at every pose of the run (that is the estimator's job in the diagram).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform
+from pydrake.systems.framework import BasicVector, LeafSystem, ValueProducer
+
+from systems.errors import InputError
+from systems.fpsm import Fpsm
+from systems.frames import apply, invert
+
+
+@dataclass(frozen=True)
+class ToolLines:
+    """The actuator's lines in the tool frame T (Eq. 19).
+
+    Attributes:
+        start_T: (2, 3) start points of line1 and line2 in T (m).
+        direction_T: (2, 3) unit directions in T.
+        radius: (2,) radius each line is checked with (line1: rod radius r; line2: 0), m.
+    """
+
+    start_T: np.ndarray
+    direction_T: np.ndarray
+    radius: np.ndarray
+
+    @classmethod
+    def contra_angle(cls, rod_radius: float = 0.006, implant_length: float = 0.031) -> ToolLines:
+        """Eq. 19 in the Tool frame: P1 = [r, 0, 0], P2 = [r, 0, -d12], both along +x."""
+        r, d12 = float(rod_radius), float(implant_length)
+        if not np.isfinite(r) or r < 0:
+            raise InputError("rod_radius", f"expected a radius >= 0 m, got {rod_radius}")
+        if not np.isfinite(d12) or d12 <= 0:
+            raise InputError("implant_length", f"expected a length > 0 m, got {implant_length}")
+        return cls(
+            start_T=np.array([[r, 0.0, 0.0], [r, 0.0, -d12]]),
+            direction_T=np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]),
+            radius=np.array([r, 0.0]),
+        )
+
+
+@dataclass(frozen=True)
+class ToolSafety:
+    """Safety of the actuator at K tool poses; every field has shape (K,).
+
+    Attributes:
+        f_safe_line1, f_safe_line2: Eq. 13 for the rod and the implant path (+inf: the line is
+            wholly outside the mouth).
+        min_d_safe: smallest safe distance over both lines (m).
+        alarm: min_d_safe <= alarm_margin.
+    """
+
+    f_safe_line1: np.ndarray
+    f_safe_line2: np.ndarray
+    min_d_safe: np.ndarray
+    alarm: np.ndarray
+
+
+def tool_safety(
+    fpsm: Fpsm,
+    X_CenterT,
+    lines: ToolLines,
+    *,
+    alarm_margin: float = 0.001,
+    lambda_avg: float = 0.5,
+    lambda_min: float = 0.5,
+) -> ToolSafety:
+    """Safety of the actuator at tool poses ``X_CenterT`` (K, 4, 4) or (4, 4) in Center (Eq. 13).
+
+    One batched :meth:`Fpsm.line_safety` call per line (the two lines use different radii).
+    """
+    X = np.asarray(X_CenterT, dtype=float)
+    if X.shape[-2:] != (4, 4):
+        raise InputError("X_CenterT", f"expected (K, 4, 4) poses, got {X.shape}")
+    X = X.reshape(-1, 4, 4)
+    if not np.isfinite(alarm_margin):
+        raise InputError("alarm_margin", "expected a finite distance (m)")
+    f, d = [], []
+    for i in range(2):
+        start = apply(X, lines.start_T[i])
+        direction = np.einsum("kij,j->ki", X[:, :3, :3], lines.direction_T[i])
+        s = fpsm.line_safety(
+            start,
+            direction,
+            radius=float(lines.radius[i]),
+            lambda_avg=lambda_avg,
+            lambda_min=lambda_min,
+        )
+        f.append(s.f_safe)
+        d.append(s.d_safe_min)
+    d_min = np.minimum(d[0], d[1])
+    return ToolSafety(
+        f_safe_line1=f[0], f_safe_line2=f[1], min_d_safe=d_min, alarm=d_min <= alarm_margin
+    )
+
+
+class FpsmEstimator(LeafSystem):
+    """Rod safety of the actuator against the FPSM at the measured tool pose, every period.
+
+    .. pydrake_system::
+
+        name: FpsmEstimator
+        input_ports:
+        - X_WT
+        output_ports:
+        - safety
+        - alarm
+
+    ``X_WT`` (abstract RigidTransform): the measured pose of the tool frame T (seed 000's {Tool},
+    the actuator TCP) in World. ``safety`` (3): [f_safe_line1, f_safe_line2, min_d_safe] (m; a
+    line wholly outside the mouth reports 1.0e3 instead of +inf so loggers stay finite).
+    ``alarm`` (1): 1.0 when min_d_safe <= alarm_margin, else 0.0.
+
+    The outputs are computed from the input on demand (direct feedthrough, no state): a logger
+    sampling at the control period evaluates it once per period.
+    """
+
+    FAR = 1.0e3  # stand-in for +inf on the output ports (m)
+
+    def __init__(
+        self,
+        fpsm: Fpsm,
+        X_WCenter,
+        lines: ToolLines | None = None,
+        *,
+        alarm_margin: float = 0.001,
+    ):
+        super().__init__()
+        self._fpsm = fpsm
+        self._X_CenterW = invert(np.asarray(X_WCenter, dtype=float))
+        self._lines = lines or ToolLines.contra_angle()
+        self._margin = float(alarm_margin)
+        self._X = self.DeclareAbstractInputPort("X_WT", AbstractValue.Make(RigidTransform()))
+        cache = self.DeclareCacheEntry(
+            description="tool_safety",
+            value_producer=ValueProducer(
+                allocate=AbstractValue.Make(np.zeros(4)).Clone, calc=self._calc_cache
+            ),
+            prerequisites_of_calc={self.input_port_ticket(self._X.get_index())},
+        )
+        self._cache = cache
+        self._safety = self.DeclareVectorOutputPort(
+            "safety", 3, self._calc_safety, prerequisites_of_calc={cache.ticket()}
+        )
+        self._alarm = self.DeclareVectorOutputPort(
+            "alarm", 1, self._calc_alarm, prerequisites_of_calc={cache.ticket()}
+        )
+
+    def _calc_cache(self, context, value):
+        X_WT = self._X.Eval(context).GetAsMatrix4()
+        s = tool_safety(self._fpsm, self._X_CenterW @ X_WT, self._lines, alarm_margin=self._margin)
+        out = np.array(
+            [s.f_safe_line1[0], s.f_safe_line2[0], s.min_d_safe[0], float(s.alarm[0])]
+        )
+        value.set_value(np.nan_to_num(out, posinf=self.FAR, neginf=-self.FAR))
+
+    def _calc_safety(self, context, output: BasicVector):
+        output.SetFromVector(self._cache.Eval(context)[:3])
+
+    def _calc_alarm(self, context, output: BasicVector):
+        output.SetFromVector(self._cache.Eval(context)[3:])

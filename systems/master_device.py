@@ -1,0 +1,339 @@
+"""Master device: the operator's commanded tool motion (scripted, recorded, mapped) + LeafSystem.
+
+Seed 001 ("Experimental validation") feeds the actuator into the mouth under master-slave control
+with a virtual fixture, ten times per layout ("10 sub-groups"), and says the master-slave strategy
+changes single runs but not the statistics. We stand in for the person with a seeded *scripted
+operator* whose randomness is the three things a hand does on a haptic stylus:
+
+- **jitter**: a slow lateral drift (smoothed Gaussian noise, correlation ~0.3 s) plus a small
+  physiological tremor (~9 Hz sine with random phase), both faded in and out with a window so the
+  script starts at the start and ends at the target;
+- **pauses**: the operator stops a few times (Poisson count, random lengths) along the way;
+- **overshoot**: the stroke passes the target by a few millimetres along the feed direction and
+  comes back.
+
+The nominal stroke is a minimum-jerk profile s(tau) = 10 tau^3 - 15 tau^4 + 6 tau^5 from the start
+to the (overshoot) point and back. The path is generated in the slave's (World) frame and turned
+into master-handle positions by the inverse of the mapping, so the same script can be replayed
+under a different scale.
+
+**Incremental mapping** (one of the strategies seed 001 lists): the slave's tool moves by the
+master handle's increments, scaled and rotated into World: dp_W = scale * R_WM dp_M; as a
+velocity command, v_W = scale * R_WM pdot_M. The operator holds the stylus orientation: the
+angular part of the command is zero (the feed is a translation along the fixture's axis).
+
+Recorded motions are CSV files with a header ``t_s,x_m,y_m,z_m`` (master handle positions, M
+frame, uniform sampling).
+
+The :class:`MasterDevice` LeafSystem replays a :class:`MasterMotion` as a zero-order hold: its
+output at time t is the sample at floor(t / dt) (zero velocity after the end).
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from pydrake.systems.framework import BasicVector, LeafSystem
+
+from systems.errors import InputError
+from systems.files import write_text_atomic
+
+
+@dataclass(frozen=True)
+class MasterMotion:
+    """Master handle positions sampled uniformly.
+
+    Attributes:
+        dt: sample period (s).
+        p_M: (n, 3) handle positions in the master device frame M (m), sample k at t = k dt.
+    """
+
+    dt: float
+    p_M: np.ndarray
+
+    def __post_init__(self):
+        dt = float(self.dt)
+        if not np.isfinite(dt) or dt <= 0:
+            raise InputError("dt", f"expected a sample period > 0 s, got {self.dt}")
+        p = np.asarray(self.p_M, dtype=float)
+        if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] < 2:
+            raise InputError("p_M", f"expected (n >= 2, 3) positions, got shape {p.shape}")
+        if not np.all(np.isfinite(p)):
+            raise InputError("p_M", "expected finite positions (m)")
+        object.__setattr__(self, "dt", dt)
+        object.__setattr__(self, "p_M", p)
+
+    @property
+    def duration(self) -> float:
+        """Time of the last sample (s)."""
+        return (self.p_M.shape[0] - 1) * self.dt
+
+    @property
+    def t(self) -> np.ndarray:
+        return np.arange(self.p_M.shape[0]) * self.dt
+
+    def velocity_M(self) -> np.ndarray:
+        """(n, 3) handle velocity (m/s): forward differences, held over each sample interval;
+        the last sample's velocity is zero (the hand stops)."""
+        v = np.zeros_like(self.p_M)
+        v[:-1] = np.diff(self.p_M, axis=0) / self.dt
+        return v
+
+
+@dataclass(frozen=True)
+class IncrementalMapping:
+    """Slave increments = ``scale`` * R_WM * master increments.
+
+    Attributes:
+        scale: motion scale (slave m per master m), > 0.
+        R_WM: (3, 3) orientation of the master device frame in World.
+    """
+
+    scale: float = 1.0
+    R_WM: np.ndarray = field(default_factory=lambda: np.eye(3))
+
+    def __post_init__(self):
+        scale = float(self.scale)
+        if not np.isfinite(scale) or scale <= 0:
+            raise InputError("scale", f"expected a motion scale > 0, got {self.scale}")
+        R = np.asarray(self.R_WM, dtype=float)
+        if R.shape != (3, 3) or not np.allclose(R.T @ R, np.eye(3), atol=1e-9) or (
+            np.linalg.det(R) < 0
+        ):
+            raise InputError("R_WM", "expected a 3x3 rotation matrix")
+        object.__setattr__(self, "scale", scale)
+        object.__setattr__(self, "R_WM", R)
+
+    def to_world(self, d_M) -> np.ndarray:
+        """Master increments or velocities (..., 3) -> slave ones in World."""
+        return self.scale * np.asarray(d_M, dtype=float) @ self.R_WM.T
+
+    def to_master(self, d_W) -> np.ndarray:
+        """Inverse of :meth:`to_world`."""
+        return np.asarray(d_W, dtype=float) @ self.R_WM / self.scale
+
+
+@dataclass(frozen=True)
+class Operator:
+    """The scripted operator's habits (SI units). Defaults: a calm feed at 10 mm/s.
+
+    Attributes:
+        speed: mean speed of the stroke (m/s).
+        drift: RMS lateral drift of the hand (m).
+        tremor: amplitude of the ~9 Hz tremor (m).
+        pauses_per_feed: mean number of pauses (Poisson).
+        pause_seconds: (min, max) length of one pause (s).
+        overshoot: (min, max) distance past the target along the feed (m).
+    """
+
+    speed: float = 0.010
+    drift: float = 0.0003
+    tremor: float = 0.00005
+    pauses_per_feed: float = 1.5
+    pause_seconds: tuple[float, float] = (0.2, 0.8)
+    overshoot: tuple[float, float] = (0.0005, 0.002)
+
+    def __post_init__(self):
+        if not np.isfinite(self.speed) or self.speed <= 0:
+            raise InputError("speed", f"expected a speed > 0 m/s, got {self.speed}")
+        for name in ("drift", "tremor", "pauses_per_feed"):
+            value = getattr(self, name)
+            if not np.isfinite(value) or value < 0:
+                raise InputError(name, f"expected a finite value >= 0, got {value}")
+        for name in ("pause_seconds", "overshoot"):
+            lo, hi = getattr(self, name)
+            if not (np.isfinite(lo) and np.isfinite(hi)) or lo < 0 or hi < lo:
+                raise InputError(name, f"expected (min, max) with 0 <= min <= max, got {(lo, hi)}")
+
+
+def _min_jerk(tau: np.ndarray) -> np.ndarray:
+    tau = np.clip(tau, 0.0, 1.0)
+    return tau**3 * (10.0 - 15.0 * tau + 6.0 * tau * tau)
+
+
+def scripted_feed(
+    start_W,
+    target_W,
+    *,
+    seed: int | np.random.Generator = 0,
+    operator: Operator | None = None,
+    mapping: IncrementalMapping | None = None,
+    dt: float = 0.005,
+    settle: float = 0.5,
+) -> MasterMotion:
+    """One scripted feed from ``start_W`` to ``target_W`` (tool positions in World, m).
+
+    The slave path is p_W(t) = start + s(t) * (target - start) + overshoot bump + jitter, where
+    s is a minimum-jerk stroke to 1 + overshoot/L and back to 1, stopped by the pauses; the jitter
+    is perpendicular to the feed direction and windowed to zero at both ends. ``settle`` seconds of
+    stillness close the script. Same seed, same motion, bit for bit.
+
+    Returns:
+        The master handle motion (M frame) that produces this slave path under ``mapping``.
+    """
+    op = operator or Operator()
+    mapping = mapping or IncrementalMapping()
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    p0 = np.asarray(start_W, dtype=float).reshape(3)
+    p1 = np.asarray(target_W, dtype=float).reshape(3)
+    if not (np.all(np.isfinite(p0)) and np.all(np.isfinite(p1))):
+        raise InputError("start_W/target_W", "expected finite positions (m)")
+    feed = p1 - p0
+    L = float(np.linalg.norm(feed))
+    if L < 1e-6:
+        raise InputError("target_W", "expected a target at least 1 um away from the start")
+    if not np.isfinite(dt) or dt <= 0:
+        raise InputError("dt", f"expected a sample period > 0 s, got {dt}")
+    u = feed / L
+
+    over = rng.uniform(*op.overshoot)
+    t_in = (L + over) / op.speed
+    t_back = max(over / op.speed * 2.0, 0.2) if over > 0 else 0.0
+    n_pause = int(rng.poisson(op.pauses_per_feed))
+    pause_at = np.sort(rng.uniform(0.1, 0.9, n_pause)) * t_in  # during the stroke in
+    pause_len = rng.uniform(*op.pause_seconds, n_pause)
+    t_motion = t_in + t_back
+    total = t_motion + pause_len.sum() + settle
+    t = np.arange(int(np.ceil(total / dt)) + 1) * dt
+
+    # Motion clock: wall time minus the pauses taken so far (vectorized over samples).
+    starts = pause_at + np.concatenate([[0.0], np.cumsum(pause_len)[:-1]])  # in wall time
+    paused = np.clip(t[:, None] - starts[None, :], 0.0, pause_len[None, :]).sum(axis=1)
+    tm = np.clip(t - paused, 0.0, t_motion)
+    s_over = 1.0 + over / L
+    s = np.where(
+        tm <= t_in,
+        s_over * _min_jerk(tm / t_in),
+        s_over - (s_over - 1.0) * _min_jerk((tm - t_in) / max(t_back, 1e-12)),
+    )
+
+    # Lateral jitter: smoothed noise (drift) + tremor, both perpendicular to the feed.
+    x_hint = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = x_hint - (x_hint @ u) * u
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(u, e1)
+    n = t.size
+    corr = max(int(round(0.3 / dt)), 1)
+    kernel = np.exp(-0.5 * (np.arange(-3 * corr, 3 * corr + 1) / corr) ** 2)
+    noise = rng.standard_normal((n + kernel.size - 1, 2))
+    drift = np.stack([np.convolve(noise[:, i], kernel, mode="valid") for i in range(2)], axis=1)
+    drift *= op.drift / max(np.sqrt(np.mean(drift**2)), 1e-12)
+    phase = rng.uniform(0.0, 2.0 * np.pi, 2)
+    freq = rng.uniform(8.0, 10.0)
+    tremor = op.tremor * np.sin(2.0 * np.pi * freq * t[:, None] + phase[None, :])
+    window = np.sin(np.pi * np.clip(tm / t_motion, 0.0, 1.0)) ** 2
+    lateral = (drift + tremor) * window[:, None]
+
+    p_W = p0 + s[:, None] * feed + lateral[:, :1] * e1 + lateral[:, 1:] * e2
+    p_M = mapping.to_master(p_W - p0)
+    return MasterMotion(dt=dt, p_M=p_M)
+
+
+def feeding_runs(
+    start_W, target_W, *, runs: int = 10, seed: int = 0, operator=None, mapping=None, dt=0.005
+) -> list[MasterMotion]:
+    """The paper's sub-groups: ``runs`` scripted feeds with independent operator randomness.
+
+    Run i uses the i-th child of ``np.random.SeedSequence(seed)``, so run i is the same whatever
+    ``runs`` is.
+    """
+    if int(runs) != runs or runs < 1:
+        raise InputError("runs", f"expected an integer >= 1, got {runs}")
+    children = np.random.SeedSequence(seed).spawn(int(runs))
+    return [
+        scripted_feed(
+            start_W,
+            target_W,
+            seed=np.random.default_rng(c),
+            operator=operator,
+            mapping=mapping,
+            dt=dt,
+        )
+        for c in children
+    ]
+
+
+def save_csv(path, motion: MasterMotion) -> Path:
+    """Write a motion as CSV (``t_s,x_m,y_m,z_m``), atomically."""
+    lines = ["t_s,x_m,y_m,z_m"]
+    lines += [
+        f"{t!r},{x!r},{y!r},{z!r}"
+        for t, (x, y, z) in zip(motion.t.tolist(), motion.p_M.tolist(), strict=True)
+    ]
+    return write_text_atomic(path, "\n".join(lines) + "\n")
+
+
+def load_csv(path, *, field: str = "csv") -> MasterMotion:
+    """Read a recorded motion (``t_s,x_m,y_m,z_m``, uniform sampling)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(field, f"file {str(path)!r} does not exist")
+    with path.open(newline="", encoding="utf-8") as fh:
+        rows = list(csv.reader(fh))
+    if not rows or [c.strip() for c in rows[0]] != ["t_s", "x_m", "y_m", "z_m"]:
+        raise InputError(field, f"{path}: expected the header t_s,x_m,y_m,z_m")
+    try:
+        data = np.array([[float(c) for c in r] for r in rows[1:] if r], dtype=float)
+    except ValueError:
+        raise InputError(field, f"{path}: expected numbers in every row") from None
+    if data.ndim != 2 or data.shape[0] < 2 or data.shape[1] != 4:
+        raise InputError(field, f"{path}: expected at least 2 rows of 4 columns")
+    dts = np.diff(data[:, 0])
+    if np.any(dts <= 0) or not np.allclose(dts, dts[0], rtol=1e-6, atol=1e-9):
+        raise InputError(field, f"{path}: expected uniformly increasing t_s")
+    return MasterMotion(dt=float(dts[0]), p_M=data[:, 1:])
+
+
+class MasterDevice(LeafSystem):
+    """Replays a master handle motion as the operator's commanded tool motion.
+
+    .. pydrake_system::
+
+        name: MasterDevice
+        output_ports:
+        - V_WE_command
+        - p_WE_offset
+        - p_M
+
+    ``V_WE_command`` (6): commanded spatial velocity of the tool, [w; v] in World (w = 0, v =
+    scale R_WM pdot_M; zero after the motion ends). ``p_WE_offset`` (3): the commanded tool
+    displacement from the start, scale R_WM (p_M(t) - p_M(0)). ``p_M`` (3): the handle position.
+    All three are zero-order holds of the samples (the value at floor(t/dt)).
+    """
+
+    def __init__(self, motion: MasterMotion, mapping: IncrementalMapping | None = None):
+        super().__init__()
+        self._motion = motion
+        self._mapping = mapping or IncrementalMapping()
+        self._v_W = self._mapping.to_world(motion.velocity_M())
+        self._d_W = self._mapping.to_world(motion.p_M - motion.p_M[0])
+        self._V = self.DeclareVectorOutputPort("V_WE_command", 6, self._calc_velocity)
+        self._offset = self.DeclareVectorOutputPort("p_WE_offset", 3, self._calc_offset)
+        self._p = self.DeclareVectorOutputPort("p_M", 3, self._calc_handle)
+
+    @property
+    def motion(self) -> MasterMotion:
+        return self._motion
+
+    @property
+    def duration(self) -> float:
+        return self._motion.duration
+
+    def _index(self, context) -> int:
+        k = int(np.floor(context.get_time() / self._motion.dt + 1e-9))
+        return min(max(k, 0), self._motion.p_M.shape[0] - 1)
+
+    def _calc_velocity(self, context, output: BasicVector):
+        out = np.zeros(6)
+        out[3:] = self._v_W[self._index(context)]
+        output.SetFromVector(out)
+
+    def _calc_offset(self, context, output: BasicVector):
+        output.SetFromVector(self._d_W[self._index(context)])
+
+    def _calc_handle(self, context, output: BasicVector):
+        output.SetFromVector(self._motion.p_M[self._index(context)])
+

@@ -1,0 +1,76 @@
+"""FPSM estimator: the actuator's lines (Eq. 19) against the FPSM (Eq. 13), core and system."""
+
+import numpy as np
+import pytest
+from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform
+
+from systems.errors import InputError
+from systems.fpsm import Fpsm
+from systems.fpsm_estimator import FpsmEstimator, ToolLines, tool_safety
+from systems.frames import transform
+
+R, D12 = 0.006, 0.031
+CYL = Fpsm.cylinder(0.05, 0.0, 0.1, slices=11)
+# Tool x (the rod) along Center +z (out of the mouth), Tool z along Center +x, Tool y = -Center y
+R_CT = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])
+
+
+def pose(origin):
+    return transform(R_CT, np.asarray(origin, dtype=float))
+
+
+def test_contra_angle_lines_are_eq19():
+    lines = ToolLines.contra_angle(R, D12)
+    np.testing.assert_allclose(lines.start_T, [[R, 0, 0], [R, 0, -D12]])
+    np.testing.assert_allclose(lines.direction_T, [[1, 0, 0], [1, 0, 0]])
+    np.testing.assert_allclose(lines.radius, [R, 0.0])
+    with pytest.raises(InputError, match="implant_length"):
+        ToolLines.contra_angle(R, 0.0)
+
+
+def test_rod_on_the_axis_by_hand():
+    # T at (0, 0, 44 mm): P1 = T + r x_T = (0, 0, 50 mm) on the axis, so every sample of line1
+    # sits at 50 - 6 = 44 mm from the shrunk wall: f_safe = 0.5*44 + 0.5*44 = 44 mm.
+    # P2 = T + r x_T - d12 z_T = (-31, 0, 50) mm: 19 mm from the wall all the way up:
+    # f_safe = 19 mm; min d_safe = 19 mm; far from the 1 mm alarm margin.
+    s = tool_safety(CYL, pose([0.0, 0.0, 0.044]), ToolLines.contra_angle(R, D12))
+    assert s.f_safe_line1[0] == pytest.approx(0.044, abs=1e-9)
+    assert s.f_safe_line2[0] == pytest.approx(0.019, abs=1e-9)
+    assert s.min_d_safe[0] == pytest.approx(0.019, abs=1e-9)
+    assert not s.alarm[0]
+
+
+def test_alarm_near_and_in_the_wall_batched():
+    # shift the tool by +x (towards the wall on line2's side is -x): line2 at x = -31 + dx mm ...
+    # move it by -dx along Center x: line2 is at 31 + dx mm from the axis, 19 - dx from the wall.
+    dx = np.array([0.0, 0.0185, 0.019, 0.025])
+    X = np.stack([pose([-d, 0.0, 0.044]) for d in dx])
+    s = tool_safety(CYL, X, ToolLines.contra_angle(R, D12), alarm_margin=0.001)
+    np.testing.assert_allclose(s.min_d_safe, 0.019 - dx, atol=1e-9)
+    assert s.alarm.tolist() == [False, True, True, True]
+    assert s.f_safe_line2[3] == pytest.approx(0.5 * (0.019 - 0.025), abs=1e-9)  # collision
+
+
+def test_tool_outside_the_mouth_is_safe():
+    s = tool_safety(CYL, pose([0.0, 0.0, 0.2]), ToolLines.contra_angle(R, D12))
+    assert np.isinf(s.f_safe_line1[0]) and np.isinf(s.min_d_safe[0]) and not s.alarm[0]
+
+
+def test_system_with_a_center_frame_offset():
+    X_WC = transform(np.eye(3), [1.0, 2.0, 0.5])
+    system = FpsmEstimator(CYL, X_WC, ToolLines.contra_angle(R, D12), alarm_margin=0.02)
+    context = system.CreateDefaultContext()
+    X_WT = X_WC @ pose([0.0, 0.0, 0.044])
+    system.GetInputPort("X_WT").FixValue(context, AbstractValue.Make(RigidTransform(X_WT)))
+    np.testing.assert_allclose(
+        system.GetOutputPort("safety").Eval(context), [0.044, 0.019, 0.019], atol=1e-9
+    )
+    # the margin is 20 mm here, so 19 mm of clearance already alarms
+    assert system.GetOutputPort("alarm").Eval(context)[0] == 1.0
+    X_out = X_WC @ pose([0.0, 0.0, 0.3])
+    system.GetInputPort("X_WT").FixValue(context, AbstractValue.Make(RigidTransform(X_out)))
+    np.testing.assert_allclose(
+        system.GetOutputPort("safety").Eval(context), [FpsmEstimator.FAR] * 3
+    )
+    assert system.GetOutputPort("alarm").Eval(context)[0] == 0.0

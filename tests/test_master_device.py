@@ -1,0 +1,128 @@
+"""Master device core (scripted operator, incremental mapping, CSV) and the MasterDevice system."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from systems.errors import InputError
+from systems.frames import rot_z
+from systems.master_device import (
+    IncrementalMapping,
+    MasterDevice,
+    MasterMotion,
+    Operator,
+    feeding_runs,
+    load_csv,
+    save_csv,
+    scripted_feed,
+)
+
+START = np.array([0.10, -0.02, 0.30])
+TARGET = np.array([0.10, -0.02, 0.25])  # a 50 mm feed along -z
+
+
+def test_incremental_mapping_by_hand():
+    # R_WM = 90 deg about z: master x -> world y; scale 0.5
+    m = IncrementalMapping(scale=0.5, R_WM=rot_z(np.pi / 2))
+    np.testing.assert_allclose(m.to_world([1.0, 0.0, 0.0]), [0.0, 0.5, 0.0], atol=1e-15)
+    np.testing.assert_allclose(m.to_world([0.0, 2.0, 0.0]), [-1.0, 0.0, 0.0], atol=1e-15)
+    np.testing.assert_allclose(m.to_master(m.to_world([0.3, -0.2, 0.7])), [0.3, -0.2, 0.7])
+    with pytest.raises(InputError, match="scale"):
+        IncrementalMapping(scale=0.0)
+    with pytest.raises(InputError, match="R_WM"):
+        IncrementalMapping(R_WM=np.diag([1.0, 1.0, -1.0]))
+
+
+def test_scripted_feed_starts_still_ends_on_target_and_overshoots():
+    op = Operator(overshoot=(0.002, 0.002))
+    motion = scripted_feed(START, TARGET, seed=3, operator=op)
+    d_W = IncrementalMapping().to_world(motion.p_M - motion.p_M[0])
+    np.testing.assert_allclose(d_W[0], 0.0, atol=1e-15)
+    np.testing.assert_allclose(START + d_W[-1], TARGET, atol=1e-12)
+    axial = d_W @ np.array([0.0, 0.0, -1.0])  # progress along the feed
+    assert axial.max() == pytest.approx(0.050 + 0.002, abs=1e-6)  # the 2 mm overshoot
+    # the jitter is lateral: bounded and zero at the ends
+    lateral = np.linalg.norm(d_W[:, :2], axis=1)
+    assert 0 < lateral.max() < 0.003
+    assert lateral[-1] < 1e-12
+    # the hand is still for the settle time at the end
+    np.testing.assert_allclose(motion.velocity_M()[-int(0.4 / motion.dt):], 0.0, atol=1e-12)
+
+
+def test_scripted_feed_is_seeded():
+    a = scripted_feed(START, TARGET, seed=11)
+    b = scripted_feed(START, TARGET, seed=11)
+    c = scripted_feed(START, TARGET, seed=12)
+    assert np.array_equal(a.p_M, b.p_M)
+    assert a.p_M.shape != c.p_M.shape or not np.array_equal(a.p_M, c.p_M)
+
+
+def test_pauses_stop_the_hand():
+    op = Operator(pauses_per_feed=30.0, pause_seconds=(0.5, 0.5), drift=0.0, tremor=0.0)
+    calm = Operator(pauses_per_feed=0.0, drift=0.0, tremor=0.0, overshoot=(0.0, 0.0))
+    paused = scripted_feed(START, TARGET, seed=1, operator=op)
+    plain = scripted_feed(START, TARGET, seed=1, operator=calm)
+    # 50 mm at 10 mm/s is a 5 s stroke; pauses of 0.5 s each add up on top of it
+    assert plain.duration == pytest.approx(5.0 + 0.5, abs=0.01)
+    assert paused.duration > plain.duration + 5.0
+    still = np.linalg.norm(paused.velocity_M(), axis=1) < 1e-9
+    assert still.sum() * paused.dt > 5.0
+
+
+def test_feeding_runs_are_independent_and_prefix_stable():
+    ten = feeding_runs(START, TARGET, runs=10, seed=5)
+    three = feeding_runs(START, TARGET, runs=3, seed=5)
+    assert len(ten) == 10
+    for a, b in zip(three, ten[:3], strict=True):
+        assert np.array_equal(a.p_M, b.p_M)
+    assert len({m.p_M.shape[0] for m in ten}) > 1  # pauses differ between runs
+    with pytest.raises(InputError, match="runs"):
+        feeding_runs(START, TARGET, runs=0)
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.lists(st.floats(-1.0, 1.0), min_size=6, max_size=30), st.floats(1e-3, 0.1))
+def test_csv_round_trip(values, dt):
+    n = len(values) // 3
+    motion = MasterMotion(dt=dt, p_M=np.array(values[: 3 * n]).reshape(n, 3))
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as tmp:
+        path = save_csv(Path(tmp) / "m.csv", motion)
+        back = load_csv(path)
+    assert back.dt == pytest.approx(dt, rel=1e-9)
+    assert np.array_equal(back.p_M, motion.p_M)
+
+
+def test_csv_errors_name_the_problem(tmp_path):
+    with pytest.raises(InputError, match="does not exist"):
+        load_csv(tmp_path / "none.csv")
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,x,y,z\n0,0,0,0\n")
+    with pytest.raises(InputError, match="header"):
+        load_csv(bad)
+    bad.write_text("t_s,x_m,y_m,z_m\n0,0,0,0\n0.1,0,0,0\n0.3,0,0,0\n")
+    with pytest.raises(InputError, match="uniformly"):
+        load_csv(bad)
+
+
+def test_master_device_system_outputs_the_mapped_samples():
+    p_M = np.array([[0.0, 0.0, 0.0], [0.001, 0.0, 0.0], [0.001, 0.002, 0.0], [0.001, 0.002, 0.0]])
+    motion = MasterMotion(dt=0.01, p_M=p_M)
+    system = MasterDevice(motion, IncrementalMapping(scale=2.0, R_WM=rot_z(np.pi / 2)))
+    context = system.CreateDefaultContext()
+    V = system.GetOutputPort("V_WE_command")
+    off = system.GetOutputPort("p_WE_offset")
+    context.SetTime(0.005)  # sample 0: master moves +1 mm in x over 10 ms -> 0.1 m/s
+    # world: scale 2, x -> y: v_W = (0, 0.2, 0)
+    np.testing.assert_allclose(V.Eval(context), [0, 0, 0, 0.0, 0.2, 0.0], atol=1e-12)
+    np.testing.assert_allclose(off.Eval(context), 0.0, atol=1e-15)
+    context.SetTime(0.015)  # sample 1: master +2 mm in y -> world -x at 0.4 m/s
+    np.testing.assert_allclose(V.Eval(context), [0, 0, 0, -0.4, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(off.Eval(context), [0.0, 0.002, 0.0], atol=1e-15)
+    context.SetTime(10.0)  # after the end: still
+    np.testing.assert_allclose(V.Eval(context), 0.0, atol=1e-15)
+    np.testing.assert_allclose(off.Eval(context), [-0.004, 0.002, 0.0], atol=1e-15)
+    np.testing.assert_allclose(system.GetOutputPort("p_M").Eval(context), p_M[-1])
