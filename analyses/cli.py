@@ -15,7 +15,7 @@ import sys
 from systems.errors import InputError, PlanningFailure
 
 # Modules that add subcommands, in the order they appear in --help.
-COMMAND_MODULES: tuple[str, ...] = ()
+COMMAND_MODULES: tuple[str, ...] = ("analyses.fpsm_commands",)
 
 
 def build_parser() -> argparse.ArgumentParser:
