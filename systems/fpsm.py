@@ -151,11 +151,27 @@ def area(rho) -> np.ndarray:
 
 
 def _slice_values(rho: np.ndarray, slice_index: np.ndarray, theta: np.ndarray) -> np.ndarray:
-    """rho_j(theta) for per-point slice indices j (any shape, same as ``theta``); one gather."""
+    """rho_j(theta) for per-point slice indices j (any shape, same as ``theta``).
+
+    The same Catmull-Rom weights as :func:`basis_weights`, written out (four gathers from the
+    flat radii, no stacking) because this is the hot path of every safety query."""
     n = rho.shape[1]
-    index, weight = basis_weights(theta, n)
+    u = np.mod(theta, TWO_PI) * (n / TWO_PI)
+    k = np.minimum(u.astype(np.int64), n - 1)  # u >= 0, so truncation is floor
+    t = u - k
+    t2 = t * t
+    t3 = t2 * t
+    base = slice_index * n
     flat = rho.reshape(-1)
-    return np.sum(flat[slice_index[..., None] * n + index] * weight, axis=-1)
+    km1 = np.where(k == 0, n - 1, k - 1)
+    k1 = np.where(k == n - 1, 0, k + 1)
+    k2 = np.where(k1 == n - 1, 0, k1 + 1)
+    return (
+        flat[base + km1] * (-0.5 * t + t2 - 0.5 * t3)
+        + flat[base + k] * (1.0 - 2.5 * t2 + 1.5 * t3)
+        + flat[base + k1] * (0.5 * t + 2.0 * t2 - 1.5 * t3)
+        + flat[base + k2] * (0.5 * t3 - 0.5 * t2)
+    )
 
 
 @dataclass(frozen=True)
@@ -441,61 +457,76 @@ class Fpsm:
         return self._line_safety(p0, u / norm[:, None], L, radius, lambda_avg, lambda_min)
 
     def _line_safety(self, p0, u, L, radius, lambda_avg, lambda_min) -> LineSafety:
-        """:meth:`line_safety` without input checks; ``u`` unit (K, 3), ``L`` (K,)."""
+        """:meth:`line_safety` without input checks; ``u`` unit (K, 3), ``L`` (K,), ``radius``
+        a scalar or (K,) (one radius per line, so rods and lines mix in one call).
+
+        All samples of all lines (crossings, start, far end) are evaluated in one gather."""
         K, M = p0.shape[0], self.slice_z.size
         z_lo, z_hi = self.z_range
+        shrink = float(self.settings.get("shrink_m", 0.0))
+        radius = np.asarray(radius, dtype=float)
+        r_col = radius[:, None] if radius.ndim else radius
         uz = u[:, 2]
-        moving = np.abs(uz) > 1e-15
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = (self.slice_z[None, :] - p0[:, 2:3]) / np.where(moving, uz, 1.0)[:, None]
         tol = 1e-12
+        moving = np.abs(uz) > 1e-15
+        inv = 1.0 / np.where(moving, uz, 1.0)
+        s = (self.slice_z[None, :] - p0[:, 2:3]) * inv[:, None]
         cross = moving[:, None] & (s > tol) & (s <= L[:, None] + tol)
-        s = np.where(cross, s, 0.0)
-        xy = p0[:, None, :2] + s[..., None] * u[:, None, :2]  # (K, M, 2)
-        theta = np.arctan2(xy[..., 1], xy[..., 0])
-        j = np.broadcast_to(np.arange(M), (K, M))
-        d_cross = _slice_values(self.rho, j, theta) - radius - np.hypot(xy[..., 0], xy[..., 1])
-
-        d_start = self._d_safe(p0, radius)
-        start_in = np.isfinite(d_start)
 
         # Far end: finite segments end at T + L u; rays that never reach the opening get the
         # point where they leave the bounding cylinder (or sink max_radius below z_0).
         finite = np.isfinite(L)
         R = self.max_radius
-        a = np.sum(u[:, :2] ** 2, axis=1)
-        b = np.sum(p0[:, :2] * u[:, :2], axis=1)
-        c = np.sum(p0[:, :2] ** 2, axis=1) - R * R
+        a = u[:, 0] * u[:, 0] + u[:, 1] * u[:, 1]
+        b = p0[:, 0] * u[:, 0] + p0[:, 1] * u[:, 1]
+        c = p0[:, 0] * p0[:, 0] + p0[:, 1] * p0[:, 1] - R * R
         with np.errstate(divide="ignore", invalid="ignore"):
             s_cyl = np.where(a > 1e-30, (-b + np.sqrt(np.maximum(b * b - a * c, 0.0))) / a, np.inf)
             s_down = np.where(uz < -1e-15, (z_lo - R - p0[:, 2]) / uz, np.inf)
-        s_ray = np.maximum(np.minimum(s_cyl, s_down), 0.0)
-        s_far = np.where(finite, L, s_ray)
+        s_far = np.where(finite, L, np.maximum(np.minimum(s_cyl, s_down), 0.0))
         far_needed = finite | (uz <= 1e-15)
-        on_plane = np.any(cross & (np.abs(s - L[:, None]) <= tol), axis=1) & finite
-        p_far = p0 + np.where(np.isfinite(s_far), s_far, 0.0)[:, None] * u
-        d_far = self._d_safe(p_far, radius)
-        far_in = far_needed & ~on_plane & np.isfinite(d_far) & np.isfinite(s_far)
-        # A ray that never reaches the opening is a collision even if rounding left d_far > 0.
-        d_far = np.where(~finite & far_in, np.minimum(d_far, 0.0), d_far)
+        on_plane = finite & np.any(cross & (np.abs(s - L[:, None]) <= tol), axis=1)
+        far_ok = far_needed & ~on_plane & np.isfinite(s_far)
 
-        # Crossings above the top slice cannot happen (planes are slices); above-top start/end
-        # points are excluded by the finiteness masks.
+        # Sample parameters along each line: M crossings, the start T, the far end.
+        S = np.empty((K, M + 2))
+        S[:, :M] = np.where(cross, s, 0.0)
+        S[:, M] = 0.0
+        S[:, M + 1] = np.where(far_ok, s_far, 0.0)
+        P = p0[:, None, :] + S[..., None] * u[:, None, :]
+        x, y, z = P[..., 0], P[..., 1], P[..., 2]
+        theta = np.arctan2(y, x)
+        j_end, w_end = self._locate(z[:, M:])
+        j_all = np.empty((K, M + 4), dtype=np.int64)
+        j_all[:, :M] = np.arange(M)
+        j_all[:, M : M + 2] = j_end
+        j_all[:, M + 2 :] = np.minimum(j_end + 1, M - 1)
+        vals = _slice_values(self.rho, j_all, np.concatenate([theta, theta[:, M:]], axis=1))
+        rad = vals[:, : M + 2].copy()
+        rad[:, M:] += w_end * (vals[:, M + 2 :] - vals[:, M : M + 2])  # Eq. 11
+        d = rad - r_col - np.hypot(x, y)
+        z_end = z[:, M:]
+        throat = z_end - z_lo - r_col - shrink
+        d_end = np.where(z_end < z_lo, np.minimum(d[:, M:], throat), d[:, M:])
+        end_in = z_end <= z_hi  # above the mouth opening: no constraint
+        start_in = end_in[:, 0]
+        far_in = far_ok & end_in[:, 1]
+        d_start = d_end[:, 0]
+        # A ray that never reaches the opening is a collision even if rounding left d_far > 0.
+        d_far = np.where(finite, d_end[:, 1], np.minimum(d_end[:, 1], 0.0))
+
+        d_cross = d[:, :M]
         count = cross.sum(axis=1) + start_in + far_in
         total = (
             np.where(cross, d_cross, 0.0).sum(axis=1)
             + np.where(start_in, d_start, 0.0)
             + np.where(far_in, d_far, 0.0)
         )
-        d_min = np.minimum.reduce(
-            [
-                np.where(cross, d_cross, np.inf).min(axis=1, initial=np.inf),
-                np.where(start_in, d_start, np.inf),
-                np.where(far_in, d_far, np.inf),
-            ]
+        d_min = np.minimum(
+            np.where(cross, d_cross, np.inf).min(axis=1, initial=np.inf),
+            np.minimum(np.where(start_in, d_start, np.inf), np.where(far_in, d_far, np.inf)),
         )
-        with np.errstate(divide="ignore", invalid="ignore"):
-            mean = np.where(count > 0, total / np.maximum(count, 1), np.inf)
+        mean = np.where(count > 0, total / np.maximum(count, 1), np.inf)
         # Eq. 13
         f = np.where(d_min > 0, lambda_avg * mean + lambda_min * d_min, lambda_min * d_min)
         f = np.where(count > 0, f, np.inf)
