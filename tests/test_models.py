@@ -1,0 +1,252 @@
+"""Model files: the AUBO-i10 URDFs, the implanting actuator, the scenes and the plant builder."""
+
+from __future__ import annotations
+
+import importlib.util
+import itertools
+
+import numpy as np
+import pytest
+from pydrake.geometry import Cylinder, Role
+from pydrake.multibody.parsing import Parser
+from pydrake.multibody.plant import MultibodyPlant
+
+import models
+from diagrams import tools
+from diagrams.plant import build_plant
+from systems import kinematics
+from systems.errors import InputError
+from systems.frames import rpy_to_rotation
+
+AUBO = models.model_path("aubo_i10/aubo_i10.urdf")
+AUBO_360 = models.model_path("aubo_i10/aubo_i10_360.urdf")
+MASSES = {  # DESIGN.md section 8, kg
+    "base_link": 2.592,
+    "shoulder_Link": 10.180,
+    "upperArm_Link": 18.096,
+    "foreArm_Link": 4.448,
+    "wrist1_Link": 1.792,
+    "wrist2_Link": 1.628,
+    "wrist3_Link": 0.198,
+}
+
+
+def _load(path) -> MultibodyPlant:
+    plant = MultibodyPlant(0.0)
+    parser = Parser(plant)
+    models.add_package(parser.package_map())
+    parser.AddModels(str(path))
+    plant.WeldFrames(plant.world_frame(), plant.GetFrameByName("base_link"))
+    plant.Finalize()
+    return plant
+
+
+def _generator():
+    spec = importlib.util.spec_from_file_location(
+        "generate_urdf", models.MODELS_DIR / "aubo_i10" / "generate_urdf.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize("path", [AUBO, AUBO_360])
+def test_urdf_parses_offline_with_names_and_actuators(path):
+    plant = _load(path)
+    assert plant.num_positions() == 6
+    assert plant.num_actuators() == 6
+    joints = [plant.get_joint(j) for j in plant.GetJointIndices()]
+    names = tuple(j.name() for j in joints if j.num_positions() == 1)
+    assert names == kinematics.JOINT_NAMES
+    for link in kinematics.LINK_NAMES:
+        assert plant.HasBodyNamed(link)
+
+
+def test_flange_at_home():
+    plant = _load(AUBO)
+    ctx = plant.CreateDefaultContext()
+    X = plant.CalcRelativeTransform(
+        ctx, plant.GetFrameByName("base_link"), plant.GetFrameByName("wrist3_Link")
+    )
+    np.testing.assert_allclose(X.translation(), [0.0, -0.2953, 1.5132], atol=1e-12)
+    # At home the flange z axis (J6) points along -y of the base (arm straight up, wrist out).
+    np.testing.assert_allclose(X.rotation().matrix()[:, 2], [0.0, -1.0, 0.0], atol=1e-12)
+
+
+def test_urdfs_differ_only_in_limits_and_match_generator():
+    gen = _generator()
+    a, b = AUBO.read_text(), AUBO_360.read_text()
+    assert a == gen.urdf("175") and b == gen.urdf("360")
+    diff = [(x, y) for x, y in zip(a.splitlines(), b.splitlines(), strict=True) if x != y]
+    limit_lines = [d for d in diff if "<limit" in d[0]]
+    assert len(limit_lines) == 6
+    assert len(diff) == 7  # plus the header comment naming the limits
+    for x, y in limit_lines:
+        # Identical apart from lower/upper.
+        assert x.split('velocity=')[1] == y.split('velocity=')[1]
+    lo175 = np.deg2rad(175.0)
+    p175, p360 = _load(AUBO), _load(AUBO_360)
+    np.testing.assert_allclose(p175.GetPositionUpperLimits(), lo175, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(p175.GetPositionLowerLimits(), -lo175, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(p360.GetPositionUpperLimits(), 2 * np.pi, rtol=0, atol=1e-15)
+    vel = np.deg2rad([180, 180, 147, 180, 180, 180])
+    np.testing.assert_allclose(p175.GetVelocityUpperLimits(), vel, rtol=1e-15)
+    np.testing.assert_allclose(p360.GetVelocityUpperLimits(), vel, rtol=1e-15)
+
+
+def test_masses_and_cylinder_inertias():
+    plant = _load(AUBO)
+    ctx = plant.CreateDefaultContext()
+    for link, mass in MASSES.items():
+        body = plant.GetBodyByName(link)
+        assert body.default_mass() == pytest.approx(mass, abs=1e-12)
+        M = body.CalcSpatialInertiaInBodyFrame(ctx)
+        assert M.IsPhysicallyValid()
+    # wrist3: solid disc r 0.0375, 0.031 thick, 0.198 kg, about its centre (hand computed).
+    M = plant.GetBodyByName("wrist3_Link").CalcSpatialInertiaInBodyFrame(ctx)
+    p_com = M.get_com()
+    np.testing.assert_allclose(p_com, [0.0, 0.0, -0.0155], atol=1e-15)
+    I_com = M.Shift(p_com).CalcRotationalInertia().CopyToFullMatrix3()
+    izz = 0.198 * 0.0375**2 / 2  # 1.3921875e-4
+    ixx = 0.198 * (3 * 0.0375**2 + 0.031**2) / 12  # 8.5466875e-5
+    np.testing.assert_allclose(np.diag(I_com), [ixx, ixx, izz], rtol=1e-9)
+    # upper arm: rod along x, length 0.647, r 0.058, 18.096 kg: I_xx = m r^2 / 2.
+    M = plant.GetBodyByName("upperArm_Link").CalcSpatialInertiaInBodyFrame(ctx)
+    I_com = M.Shift(M.get_com()).CalcRotationalInertia().CopyToFullMatrix3()
+    assert I_com[0, 0] == pytest.approx(18.096 * 0.058**2 / 2, rel=1e-9)
+    assert I_com[1, 1] == pytest.approx(18.096 * (3 * 0.058**2 + 0.647**2) / 12, rel=1e-9)
+
+
+def _collision_pairs(diagram, plant, scene_graph, q):
+    ctx = diagram.CreateDefaultContext()
+    plant.SetPositions(plant.GetMyContextFromRoot(ctx), q)
+    query = scene_graph.get_query_output_port().Eval(scene_graph.GetMyContextFromRoot(ctx))
+    inspector = scene_graph.model_inspector()
+    pairs = set()
+    for p in query.ComputePointPairPenetration():
+        a = inspector.GetName(inspector.GetFrameId(p.id_A))
+        b = inspector.GetName(inspector.GetFrameId(p.id_B))
+        pairs.add(tuple(sorted((a, b))))
+    distances = query.ComputeSignedDistancePairwiseClosestPoints(max_distance=10.0)
+    return pairs, min(d.distance for d in distances)
+
+
+@pytest.mark.parametrize("scenario", ["arm", "lying", "sitting"])
+def test_home_pose_collision_free(scenario):
+    diagram, plant, sg, _ = build_plant(scenario=scenario)
+    pairs, clearance = _collision_pairs(diagram, plant, sg, np.zeros(6))
+    assert pairs == set()
+    assert clearance > 0.0
+
+
+def test_real_collisions_are_detected():
+    diagram, plant, sg, _ = build_plant(scenario="lying")
+    # Upper arm swung down onto the cabinet below the base (condition 1 of seed 001).
+    pairs, clearance = _collision_pairs(diagram, plant, sg, [0, 2.0, 0, 0, 0, 0])
+    assert ("aubo::upperArm_Link", "cart::cart_top") in pairs
+    assert clearance < 0
+    # Elbow folded: the wrist (outboard of the forearm, in the upper arm's plane) lands on the
+    # upper arm.
+    pairs, _ = _collision_pairs(diagram, plant, sg, [0, 0, np.deg2rad(170), 0, 0, 0])
+    assert ("aubo::upperArm_Link", "aubo::wrist1_Link") in pairs
+
+
+def test_filtered_pairs_are_exactly_adjacent_links():
+    _, _, sg, _ = build_plant(scenario="arm", tool=True)
+    inspector = sg.model_inspector()
+    geoms = inspector.GetAllGeometryIds(Role.kProximity)
+    body_of = {g: inspector.GetName(inspector.GetFrameId(g)) for g in geoms}
+    chain = ["aubo::" + n for n in kinematics.LINK_NAMES] + ["actuator::actuator_base"]
+    adjacent = {tuple(sorted(p)) for p in zip(chain, chain[1:], strict=False)}
+    for g1, g2 in itertools.combinations(geoms, 2):
+        b1, b2 = body_of[g1], body_of[g2]
+        if b1 == b2:
+            continue
+        expected = tuple(sorted((b1, b2))) in adjacent
+        assert inspector.CollisionFiltered(g1, g2) == expected, (b1, b2)
+
+
+def test_actuator_tcp_where_documented():
+    diagram, plant, _, h = build_plant(scenario="arm")
+    ctx = plant.GetMyContextFromRoot(diagram.CreateDefaultContext())
+    rng = np.random.default_rng(3)
+    for q in rng.uniform(-3, 3, size=(5, 6)):
+        plant.SetPositions(ctx, q)
+        X_FT = plant.CalcRelativeTransform(ctx, h.flange, h.tcp).GetAsMatrix4()
+        np.testing.assert_allclose(X_FT, tools.X_FT(), atol=1e-14)
+        p_FTip = plant.CalcRelativeTransform(ctx, h.flange, h.implant_tip).translation()
+        np.testing.assert_allclose(p_FTip, [0.0, -0.031, 0.16], atol=1e-14)
+        # numpy kinematics with the tool transform agrees with Drake's tcp frame.
+        X_BT = plant.CalcRelativeTransform(ctx, h.base, h.tcp).GetAsMatrix4()
+        np.testing.assert_allclose(kinematics.fk(q, tools.X_FT()), X_BT, atol=1e-12)
+    # The shipped file is the default of the generator.
+    assert models.model_path("tools/implanting_actuator.urdf").read_text() == (
+        tools.actuator_urdf()
+    )
+
+
+def test_actuator_parameters_reach_the_geometry():
+    text = tools.actuator_urdf(rod_radius=0.004, implant_length=0.025, rod_length=0.2)
+    plant = MultibodyPlant(0.0)
+    from pydrake.geometry import SceneGraph
+
+    sg = SceneGraph()
+    plant.RegisterAsSourceForSceneGraph(sg)
+    Parser(plant).AddModelsFromString(text, "urdf")
+    plant.Finalize()
+    inspector = sg.model_inspector()
+    radii = {
+        inspector.GetName(g): inspector.GetShape(g).radius()
+        for g in inspector.GetAllGeometryIds(Role.kProximity)
+        if isinstance(inspector.GetShape(g), Cylinder)
+    }
+    assert radii["implanting_actuator::rod_collision"] == 0.004
+    tip = plant.GetFrameByName("implant_tip").GetFixedPoseInBodyFrame().translation()
+    np.testing.assert_allclose(tip, [0.0, -0.025, 0.2], atol=1e-15)
+    np.testing.assert_allclose(tools.X_FT(0.2)[:3, 3], [0, 0, 0.2])
+    mass, com, inertia = tools.actuator_inertia()
+    assert mass == pytest.approx(0.385)
+    assert np.all(np.linalg.eigvalsh(inertia) > 0)
+    with pytest.raises(InputError, match="rod_radius"):
+        tools.actuator_urdf(rod_radius=-0.006)
+    with pytest.raises(InputError, match="implant_length"):
+        tools.actuator_urdf(implant_length=float("nan"))
+
+
+def test_scene_frames_and_base_pose():
+    X = np.eye(4)
+    X[:3, :3] = rpy_to_rotation(np.array([0.0, 0.0, 0.7]))
+    X[:3, 3] = [0.3, 0.7, 0.6]
+    diagram, plant, _, h = build_plant(scenario="sitting", X_WBase=X, limits="360")
+    ctx = plant.GetMyContextFromRoot(diagram.CreateDefaultContext())
+    X_WB = plant.CalcRelativeTransform(ctx, plant.world_frame(), h.base).GetAsMatrix4()
+    np.testing.assert_allclose(X_WB, X, atol=1e-14)
+    np.testing.assert_allclose(h.X_WBase, X, atol=1e-14)
+    np.testing.assert_allclose(plant.GetPositionUpperLimits(), 2 * np.pi)
+    R_WM = plant.CalcRelativeTransform(ctx, plant.world_frame(), h.mouth).rotation().matrix()
+    np.testing.assert_allclose(R_WM[:, 2], [1, 0, 0], atol=1e-12)  # out of the mouth: forward
+    np.testing.assert_allclose(R_WM[:, 0], [0, 0, 1], atol=1e-12)  # towards the head top: up
+    diagram, plant, _, h = build_plant(scenario="lying")
+    ctx = plant.GetMyContextFromRoot(diagram.CreateDefaultContext())
+    R_WM = plant.CalcRelativeTransform(ctx, plant.world_frame(), h.mouth).rotation().matrix()
+    np.testing.assert_allclose(R_WM[:, 2], [0, 0, 1], atol=1e-12)  # out of the mouth: up
+    # The cart's top carries the base (welded to it).
+    X_BC = plant.CalcRelativeTransform(
+        ctx, h.base, plant.GetFrameByName("cart_top", h.cart)
+    ).GetAsMatrix4()
+    np.testing.assert_allclose(X_BC, np.eye(4), atol=1e-15)
+
+
+def test_build_plant_rejects_bad_input():
+    with pytest.raises(InputError, match="scenario"):
+        build_plant(scenario="standing")
+    with pytest.raises(InputError, match="limits"):
+        build_plant(limits="180")
+    bad = np.eye(4)
+    bad[0, 0] = 2.0
+    with pytest.raises(InputError, match="X_WBase"):
+        build_plant(X_WBase=bad)
+    with pytest.raises(InputError, match="X_WBase"):
+        build_plant(X_WBase=np.full((4, 4), np.nan))
+    with pytest.raises(InputError, match="X_WBase"):
+        build_plant(X_WBase=np.eye(3))
