@@ -248,8 +248,8 @@ def _cavity_radius(theta: np.ndarray, z: np.ndarray, p: dict) -> np.ndarray:
     s = np.clip(z / p["length"], 0.0, 1.0)
     c, sn = np.cos(theta), np.sin(theta)
     # arch: elliptic section, wider at the back (s = 0) than at the front
-    a = p["half_width"] * (1.0 - 0.35 * s)  # half width along X
-    b_up = p["dome_height"] * (1.0 - 0.25 * s)  # palate dome height along +Y
+    a = p["half_width"] * (1.0 - p["arch_taper"] * s)  # half width along X
+    b_up = p["dome_height"] * (1.0 - p["dome_taper"] * s)  # palate dome height along +Y
     b_down = p["floor_depth"]  # tongue floor along -Y
     b = np.where(sn >= 0, b_up, b_down)
     r = 1.0 / np.sqrt((c / a) ** 2 + (sn / b) ** 2)
@@ -277,6 +277,8 @@ def procedural_oral_cavity(
     half_width: float = 0.025,
     dome_height: float = 0.02,
     floor_depth: float = 0.015,
+    arch_taper: float = 0.35,
+    dome_taper: float = 0.25,
     tongue_bulge: float = 0.005,
     ridge_height: float = 0.002,
     ridges: int = 4,
@@ -291,7 +293,8 @@ def procedural_oral_cavity(
     """A watertight procedural oral cavity around the Z axis, z in [0, ``length``] (m).
 
     The wall radius (see :meth:`ProceduralCavity.radius`) is an arch-shaped section (elliptic,
-    wider at the back), a palate dome above (+Y), a tongue floor below (-Y) with a bulge, teeth
+    narrowing by ``arch_taper`` in width and ``dome_taper`` in height from back to front), a
+    palate dome above (+Y), a tongue floor below (-Y) with a bulge, teeth
     ridges on the sides repeating ``ridges`` times along z, and a smooth narrowing to
     ``opening_ratio`` over the last ``lip_fraction`` of the length (the mouth opening, +Z end).
     Both ends are closed by flat fan caps. ``noise`` (relative) adds a smooth seeded irregularity;
@@ -306,6 +309,9 @@ def procedural_oral_cavity(
     }.items():
         if not np.isfinite(value) or value <= 0:
             raise InputError(name, f"expected a positive length in m, got {value}")
+    for name, value in {"arch_taper": arch_taper, "dome_taper": dome_taper}.items():
+        if not 0 <= value < 1:
+            raise InputError(name, f"expected a fraction in [0, 1), got {value}")
     if not 0 < opening_ratio <= 1:
         raise InputError("opening_ratio", f"expected a ratio in (0, 1], got {opening_ratio}")
     if not 0 < lip_fraction <= 1:
@@ -318,6 +324,8 @@ def procedural_oral_cavity(
         "half_width": float(half_width),
         "dome_height": float(dome_height),
         "floor_depth": float(floor_depth),
+        "arch_taper": float(arch_taper),
+        "dome_taper": float(dome_taper),
         "tongue_bulge": float(tongue_bulge),
         "ridge_height": float(ridge_height),
         "ridges": int(ridges),
