@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from systems.errors import InputError
@@ -172,6 +173,117 @@ def _slice_values(rho: np.ndarray, slice_index: np.ndarray, theta: np.ndarray) -
         + flat[base + k1] * (0.5 * t + 2.0 * t2 - 1.5 * t3)
         + flat[base + k2] * (0.5 * t3 - 0.5 * t2)
     )
+
+
+@numba.njit(cache=True)
+def _rho_on_slice(rho, j, theta):
+    """rho_j(theta), the Catmull-Rom weights of :func:`basis_weights` for one angle."""
+    n = rho.shape[1]
+    u = (theta % TWO_PI) * (n / TWO_PI)
+    k = min(int(u), n - 1)
+    t = u - k
+    t2 = t * t
+    t3 = t2 * t
+    km1 = n - 1 if k == 0 else k - 1
+    k1 = 0 if k == n - 1 else k + 1
+    k2 = 0 if k1 == n - 1 else k1 + 1
+    return (
+        rho[j, km1] * (-0.5 * t + t2 - 0.5 * t3)
+        + rho[j, k] * (1.0 - 2.5 * t2 + 1.5 * t3)
+        + rho[j, k1] * (0.5 * t + 2.0 * t2 - 1.5 * t3)
+        + rho[j, k2] * (0.5 * t3 - 0.5 * t2)
+    )
+
+
+@numba.njit(cache=True)
+def _point_d_safe(rho, slice_z, shrink, x, y, z, r):
+    """Eq. 10-11 with the throat rule for one point inside or below the slices."""
+    m = slice_z.size
+    theta = np.arctan2(y, x)
+    if m == 1:
+        radius = _rho_on_slice(rho, 0, theta)
+    else:
+        j = np.searchsorted(slice_z, z, side="right") - 1
+        j = min(max(j, 0), m - 2)
+        w = (z - slice_z[j]) / (slice_z[j + 1] - slice_z[j])
+        w = min(max(w, 0.0), 1.0)
+        lo = _rho_on_slice(rho, j, theta)
+        hi = _rho_on_slice(rho, j + 1, theta)
+        radius = lo + w * (hi - lo)
+    d = radius - r - np.hypot(x, y)
+    if z < slice_z[0]:
+        d = min(d, z - slice_z[0] - r - shrink)
+    return d
+
+
+@numba.njit(cache=True)
+def _line_kernel(
+    p0, u, L, radius, rho, slice_z, shrink, R, lambda_avg, lambda_min, f, d_min, mean, count
+):
+    """Eq. 13 for K lines; the sampling rules of :meth:`Fpsm.line_safety`, one line at a time."""
+    m = slice_z.size
+    z_lo = slice_z[0]
+    z_hi = slice_z[m - 1]
+    tol = 1e-12
+    for k in range(p0.shape[0]):
+        x0, y0, z0 = p0[k, 0], p0[k, 1], p0[k, 2]
+        ux, uy, uz = u[k, 0], u[k, 1], u[k, 2]
+        r = radius[k]
+        length = L[k]
+        finite = np.isfinite(length)
+        a = ux * ux + uy * uy
+        b = x0 * ux + y0 * uy
+        c = x0 * x0 + y0 * y0 - R * R
+        s_cyl = (-b + np.sqrt(max(b * b - a * c, 0.0))) / a if a > 1e-30 else np.inf
+        s_down = (z_lo - R - z0) / uz if uz < -1e-15 else np.inf
+        s_top = (z_hi - z0) / uz if uz > 1e-15 else np.inf
+        s_side = max(min(s_cyl, s_down), 0.0)
+        leaves = (not finite) and s_side < s_top
+        if leaves:
+            length = s_side
+        total = 0.0
+        n = 0
+        lowest = np.inf
+        on_plane = False
+        if abs(uz) > 1e-15:
+            for j in range(m):
+                s = (slice_z[j] - z0) / uz
+                if s > tol and s <= length + tol:
+                    if abs(s - length) <= tol:
+                        on_plane = True
+                    x = x0 + s * ux
+                    y = y0 + s * uy
+                    d = _rho_on_slice(rho, j, np.arctan2(y, x)) - r - np.hypot(x, y)
+                    total += d
+                    n += 1
+                    lowest = min(lowest, d)
+        if z0 <= z_hi:  # the start point T (above the opening it does not count)
+            d = _point_d_safe(rho, slice_z, shrink, x0, y0, z0, r)
+            total += d
+            n += 1
+            lowest = min(lowest, d)
+        if (finite or leaves) and not on_plane:
+            x = x0 + length * ux
+            y = y0 + length * uy
+            z = z0 + length * uz
+            if z <= z_hi:
+                d = _point_d_safe(rho, slice_z, shrink, x, y, z, r)
+                if leaves:
+                    d = min(d, 0.0)
+                total += d
+                n += 1
+                lowest = min(lowest, d)
+        count[k] = n
+        d_min[k] = lowest
+        if n == 0:
+            mean[k] = np.inf
+            f[k] = np.inf
+        else:
+            mean[k] = total / n
+            if lowest > 0:  # Eq. 13
+                f[k] = lambda_avg * mean[k] + lambda_min * lowest
+            else:
+                f[k] = lambda_min * lowest
 
 
 @dataclass(frozen=True)
@@ -419,11 +531,13 @@ class Fpsm:
           then the crossing already samples it). The paper samples T and the crossings only;
           the end point closes the gap after the last crossing.
         - an infinite ray (default) must leave through the mouth opening (+Z end). One that
-          does not (u_z <= 0, so it ends through the side or the throat) gets a far-end sample
-          where it leaves the bounding cylinder of radius :attr:`max_radius` around the axis (or
-          reaches max_radius below the bottom slice, whichever first); that sample is <= 0 by
-          construction, so the ray counts as a collision. A ray with u_z > 0 that leaves
-          through the side is caught by the crossings above its exit (outside the curves).
+          leaves the model's bounding cylinder (radius :attr:`max_radius` about the axis, down
+          to max_radius below the bottom slice) through its side or bottom before it reaches
+          the top slice is cut there and gets a far-end sample at that exit point, <= 0 by
+          construction (and clamped to <= 0): it counts as a collision, with crossings beyond
+          the exit dropped so that the collision measure stays bounded for near-horizontal rays.
+          A ray that leaves the curves through the side but stays within the bounding cylinder
+          is caught by the crossings above its exit (outside the curves).
 
         Samples above the top slice are outside the mouth and do not count (d_safe = +inf).
         A rod of radius r is the line against the model shrunk by r (Eq. 12): ``radius=r``.
@@ -457,10 +571,38 @@ class Fpsm:
         return self._line_safety(p0, u / norm[:, None], L, radius, lambda_avg, lambda_min)
 
     def _line_safety(self, p0, u, L, radius, lambda_avg, lambda_min) -> LineSafety:
-        """:meth:`line_safety` without input checks; ``u`` unit (K, 3), ``L`` (K,), ``radius``
-        a scalar or (K,) (one radius per line, so rods and lines mix in one call).
+        """:meth:`line_safety` without input checks (compiled kernel); ``u`` unit (K, 3),
+        ``L`` (K,), ``radius`` a scalar or (K,) (rods and lines mix in one call)."""
+        K = p0.shape[0]
+        p0 = np.ascontiguousarray(p0, dtype=float)
+        u = np.ascontiguousarray(u, dtype=float)
+        L = np.ascontiguousarray(np.broadcast_to(L, (K,)), dtype=float)
+        radius = np.ascontiguousarray(np.broadcast_to(radius, (K,)), dtype=float)
+        f = np.empty(K)
+        d_min = np.empty(K)
+        mean = np.empty(K)
+        count = np.empty(K, dtype=np.int64)
+        _line_kernel(
+            p0,
+            u,
+            L,
+            radius,
+            np.ascontiguousarray(self.rho),
+            np.ascontiguousarray(self.slice_z),
+            float(self.settings.get("shrink_m", 0.0)),
+            self.max_radius,
+            float(lambda_avg),
+            float(lambda_min),
+            f,
+            d_min,
+            mean,
+            count,
+        )
+        return LineSafety(f_safe=f, d_safe_min=d_min, d_safe_mean=mean, samples=count)
 
-        All samples of all lines (crossings, start, far end) are evaluated in one gather."""
+    def _line_safety_numpy(self, p0, u, L, radius, lambda_avg, lambda_min) -> LineSafety:
+        """The same as :meth:`_line_safety` in vectorized numpy (all samples of all lines in
+        one gather): the reference the compiled kernel is tested and timed against."""
         K, M = p0.shape[0], self.slice_z.size
         z_lo, z_hi = self.z_range
         shrink = float(self.settings.get("shrink_m", 0.0))
@@ -471,10 +613,11 @@ class Fpsm:
         moving = np.abs(uz) > 1e-15
         inv = 1.0 / np.where(moving, uz, 1.0)
         s = (self.slice_z[None, :] - p0[:, 2:3]) * inv[:, None]
-        cross = moving[:, None] & (s > tol) & (s <= L[:, None] + tol)
 
-        # Far end: finite segments end at T + L u; rays that never reach the opening get the
-        # point where they leave the bounding cylinder (or sink max_radius below z_0).
+        # Far end: a finite segment ends at T + L u. A ray that leaves the model's bounding
+        # cylinder (radius max_radius, from max_radius below z_0 up to the top slice) through
+        # its side or bottom before reaching the top slice ends there, with a sample that is
+        # <= 0 by construction; one that reaches the top slice needs no far sample.
         finite = np.isfinite(L)
         R = self.max_radius
         a = u[:, 0] * u[:, 0] + u[:, 1] * u[:, 1]
@@ -483,16 +626,20 @@ class Fpsm:
         with np.errstate(divide="ignore", invalid="ignore"):
             s_cyl = np.where(a > 1e-30, (-b + np.sqrt(np.maximum(b * b - a * c, 0.0))) / a, np.inf)
             s_down = np.where(uz < -1e-15, (z_lo - R - p0[:, 2]) / uz, np.inf)
-        s_far = np.where(finite, L, np.maximum(np.minimum(s_cyl, s_down), 0.0))
-        far_needed = finite | (uz <= 1e-15)
-        on_plane = finite & np.any(cross & (np.abs(s - L[:, None]) <= tol), axis=1)
-        far_ok = far_needed & ~on_plane & np.isfinite(s_far)
+            s_top = np.where(uz > 1e-15, (z_hi - p0[:, 2]) / uz, np.inf)
+        s_side = np.maximum(np.minimum(s_cyl, s_down), 0.0)
+        leaves_side = ~finite & (s_side < s_top)
+        L = np.where(leaves_side, s_side, L)
+        cross = moving[:, None] & (s > tol) & (s <= L[:, None] + tol)
+        on_plane = np.any(cross & (np.abs(s - L[:, None]) <= tol), axis=1)
+        far_ok = (finite | leaves_side) & ~on_plane
+        s_far = np.where(far_ok, L, 0.0)
 
         # Sample parameters along each line: M crossings, the start T, the far end.
         S = np.empty((K, M + 2))
         S[:, :M] = np.where(cross, s, 0.0)
         S[:, M] = 0.0
-        S[:, M + 1] = np.where(far_ok, s_far, 0.0)
+        S[:, M + 1] = s_far
         P = p0[:, None, :] + S[..., None] * u[:, None, :]
         x, y, z = P[..., 0], P[..., 1], P[..., 2]
         theta = np.arctan2(y, x)
@@ -512,8 +659,9 @@ class Fpsm:
         start_in = end_in[:, 0]
         far_in = far_ok & end_in[:, 1]
         d_start = d_end[:, 0]
-        # A ray that never reaches the opening is a collision even if rounding left d_far > 0.
-        d_far = np.where(finite, d_end[:, 1], np.minimum(d_end[:, 1], 0.0))
+        # A ray that leaves through the side or throat is a collision even if rounding left
+        # d_far > 0 at its exit point.
+        d_far = np.where(leaves_side, np.minimum(d_end[:, 1], 0.0), d_end[:, 1])
 
         d_cross = d[:, :M]
         count = cross.sum(axis=1) + start_in + far_in

@@ -99,9 +99,16 @@ def test_mouth_opening_rule(cyl):
     ls = cyl.line_safety(np.broadcast_to(start, dirs.shape), dirs)
     assert ls.f_safe[0] > 0
     assert np.all(ls.f_safe[1:] <= 0)
-    # [2, 0, 1]: at z = 100 mm, x = 100 mm -> d = -50 mm is the worst sample; f = 0.5 * min.
-    np.testing.assert_allclose(ls.d_safe_min[4], -0.05, atol=1e-15)
-    np.testing.assert_allclose(ls.f_safe[4], -0.025, atol=1e-15)
+    # [2, 0, 1]: the bounding cylinder has radius 1.25 * 50 = 62.5 mm (max_radius); the ray
+    # reaches it at x = 62.5 mm, z = 81.25 mm, below the top slice, so it is cut there.
+    # Samples: T (50), z = 60 (x = 20: 30), z = 70 (x = 40: 10), z = 80 (x = 60: -10) and the
+    # exit point (50 - 62.5 = -12.5 mm); d_min = -12.5 mm and f = 0.5 * d_min.
+    np.testing.assert_allclose(ls.d_safe_min[4], -0.0125, atol=1e-15)
+    np.testing.assert_allclose(ls.f_safe[4], -0.00625, atol=1e-15)
+    assert ls.samples[4] == 5
+    # horizontal: T and the exit point at x = 62.5 mm only
+    np.testing.assert_allclose(ls.d_safe_min[1], -0.0125, atol=1e-15)
+    assert ls.samples[1] == 2
 
 
 def test_segments_and_lines_above_the_mouth(cyl):
@@ -199,3 +206,27 @@ def test_bad_queries_and_files(cyl, tmp_path):
     bad.write_text(json.dumps({"schema_version": 1, "kind": "placement"}))
     with pytest.raises(InputError, match="expected 'fpsm'"):
         Fpsm.load(bad)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    starts=arrays(float, (25, 3), elements=st.floats(-0.08, 0.13)),
+    dirs=arrays(float, (25, 3), elements=st.floats(-1, 1)),
+    lengths=arrays(float, (25,), elements=st.one_of(st.just(np.inf), st.floats(1e-3, 0.2))),
+    radii=arrays(float, (25,), elements=st.floats(0.0, 0.02)),
+    shrink=st.floats(0.0, 0.01),
+)
+def test_compiled_kernel_matches_numpy_reference(starts, dirs, lengths, radii, shrink):
+    dirs = dirs + np.array([0, 0, 1e-3])
+    u = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    rho = np.random.default_rng(2).uniform(0.03, 0.05, (5, 7))
+    f = Fpsm(np.array([0.0, 0.02, 0.05, 0.06, 0.1]), rho).shrink(shrink)
+    a = f._line_safety(starts, u, lengths, radii, 0.4, 0.6)
+    b = f._line_safety_numpy(starts, u, lengths, radii, 0.4, 0.6)
+    np.testing.assert_array_equal(a.samples, b.samples)
+    for x, y in (
+        (a.f_safe, b.f_safe),
+        (a.d_safe_min, b.d_safe_min),
+        (a.d_safe_mean, b.d_safe_mean),
+    ):
+        np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-14)
