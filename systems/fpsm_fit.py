@@ -6,8 +6,11 @@ wall distance R(phi, z) is the distance from the axis point (0, 0, z) along the 
 Embree's (package ``embreex``) when installed, else trimesh's pure-numpy engine.
 
 Pre-assignment (paper Sec. 3.3): the triangles are bucketed by slab, the stretch [z_j, z_j+1]
-between neighbouring slices; a ray cast at a height inside a slab is tested only against that
-slab's triangles (those whose z-extent overlaps it), one small Embree scene per slab.
+between neighbouring slices; a ray cast at a height inside a slab is then tested only against
+that slab's triangles (those whose z-extent overlaps it), one small scene per slab. Embree's
+BVH already skips far triangles, so with Embree this pays only when many rays share each slab
+scene: it is used for the dense check, not for the fit's few thousand rays (see
+:func:`cast_walls`); with trimesh's numpy engine always. Both give the same distances (tested).
 
 Conservative between slices: the FPSM's radius is linear in z between slices (Eq. 11), so if
 both rho_j(phi) and rho_j+1(phi) stay below the nearest wall over the slab between them, so does
@@ -60,6 +63,7 @@ from systems.fpsm import TWO_PI, area, area_matrix, basis_matrix
 from systems.frames import apply
 
 METHODS = ("exact", "paper")
+PRE_ASSIGN_RAYS = 100_000  # with Embree, pre-assign by slab from this many rays on
 PAPER_SETTINGS = {"lambda_pene": 30000.0, "alpha_mm": 0.1, "max_iterations": 1000}
 
 
@@ -113,6 +117,12 @@ def slab_levels(slice_z: np.ndarray, per_gap: int) -> tuple[np.ndarray, np.ndarr
     return np.append(levels, z[-1]), np.append(gap, z.size - 2)
 
 
+def _uses_embree(engine: str) -> bool:
+    from trimesh.ray import has_embree
+
+    return engine == "embree" or (engine == "auto" and has_embree)
+
+
 def cast_walls(
     mesh: trimesh.Trimesh,
     X_WC: np.ndarray,
@@ -121,8 +131,9 @@ def cast_walls(
     *,
     per_gap: int,
     engine: str = "auto",
+    pre_assign: bool | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Wall distances R(phi, z) at ``per_gap`` heights per slab, with pre-assignment by slab.
+    """Wall distances R(phi, z) at ``per_gap`` heights per slab.
 
     Args:
         mesh: the oral mesh (m), in the frame X_WC refers to.
@@ -131,48 +142,62 @@ def cast_walls(
         angles: (Z,) ray angles phi (rad) in the Center XY plane.
         per_gap: heights per slab (>= 1).
         engine: see :func:`ray_engine`.
+        pre_assign: bucket triangles by slab and cast each slab's rays against its own triangles
+            (paper Sec. 3.3). ``None`` (default): always with the numpy engine; with Embree only
+            for at least PRE_ASSIGN_RAYS rays (measured in analyses/bench_fpsm.py on the
+            default mesh: for the fit's 6,450 rays one whole-mesh scene is faster, for the
+            dense check's 404,400 rays the slab scenes are about 2x faster).
 
     Returns:
         ``(levels (L,), R (L, Z), info)``; ``R`` is inf where a ray hits nothing; info holds ray
-        count, casting seconds and the triangles per slab.
+        count, casting seconds and the triangles per slab (when pre-assigned).
     """
     levels, gap = slab_levels(slice_z, per_gap)
     angles = np.asarray(angles, float)
-    # Pre-assignment: each triangle's extent along Center z, bucketed by slab.
-    z_axis, origin = X_WC[:3, 2], X_WC[:3, 3]
-    zv = (np.asarray(mesh.vertices) - origin) @ z_axis
-    zf = zv[np.asarray(mesh.faces)]
-    f_lo, f_hi = zf.min(axis=1), zf.max(axis=1)
-    order = np.argsort(f_lo)
-    f_lo_sorted = f_lo[order]
-    z = np.asarray(slice_z, float)
-    gaps = max(z.size - 1, 1)
-    bounds = np.stack([z[:-1], z[1:]], 1) if z.size > 1 else np.array([[z[0], z[0]]])
+    if pre_assign is None:
+        pre_assign = not _uses_embree(engine) or levels.size * angles.size >= PRE_ASSIGN_RAYS
     dirs_C = np.stack([np.cos(angles), np.sin(angles), np.zeros_like(angles)], axis=1)
     dirs_W = dirs_C @ X_WC[:3, :3].T
-    R = np.full((levels.size, angles.size), np.inf)
-    triangles = []
-    t0 = time.perf_counter()
-    for g in range(gaps):
-        lo, hi = bounds[g]
-        cand = order[: np.searchsorted(f_lo_sorted, hi, side="right")]
-        faces = cand[f_hi[cand] >= lo]
-        triangles.append(int(faces.size))
-        rows = np.nonzero(gap == g)[0]
-        if faces.size == 0:
-            continue
-        sub = trimesh.Trimesh(mesh.vertices, np.asarray(mesh.faces)[faces], process=False)
-        intersector = ray_engine(sub, engine)
+
+    def cast(intersector, rows):
         origins_C = np.zeros((rows.size, angles.size, 3))
         origins_C[..., 2] = levels[rows, None]
         origins = apply(X_WC, origins_C.reshape(-1, 3))
         dirs = np.broadcast_to(dirs_W, (rows.size,) + dirs_W.shape).reshape(-1, 3)
-        R[rows] = first_hits(intersector, origins, np.ascontiguousarray(dirs)).reshape(
-            rows.size, angles.size
-        )
+        d = first_hits(intersector, origins, np.ascontiguousarray(dirs))
+        return d.reshape(rows.size, angles.size)
+
+    R = np.full((levels.size, angles.size), np.inf)
+    triangles = None
+    t0 = time.perf_counter()
+    if not pre_assign:
+        R[:] = cast(ray_engine(mesh, engine), np.arange(levels.size))
+    else:
+        # Pre-assignment: each triangle's extent along Center z, bucketed by slab.
+        zv = (np.asarray(mesh.vertices) - X_WC[:3, 3]) @ X_WC[:3, 2]
+        zf = zv[np.asarray(mesh.faces)]
+        f_lo, f_hi = zf.min(axis=1), zf.max(axis=1)
+        order = np.argsort(f_lo)
+        f_lo_sorted = f_lo[order]
+        z = np.asarray(slice_z, float)
+        bounds = np.stack([z[:-1], z[1:]], 1) if z.size > 1 else np.array([[z[0], z[0]]])
+        triangles = []
+        for g, (lo, hi) in enumerate(bounds):
+            cand = order[: np.searchsorted(f_lo_sorted, hi, side="right")]
+            faces = cand[f_hi[cand] >= lo]
+            triangles.append(int(faces.size))
+            rows = np.nonzero(gap == g)[0]
+            if faces.size == 0:
+                continue
+            used, local = np.unique(np.asarray(mesh.faces)[faces], return_inverse=True)
+            sub = trimesh.Trimesh(
+                np.asarray(mesh.vertices)[used], local.reshape(-1, 3), process=False
+            )  # only the slab's own vertices: the scene build is proportional to them
+            R[rows] = cast(ray_engine(sub, engine), rows)
     info = {
         "rays": int(R.size),
         "seconds": time.perf_counter() - t0,
+        "pre_assigned": bool(pre_assign),
         "triangles_per_slab": triangles,
         "triangles_total": int(len(mesh.faces)),
     }
@@ -363,6 +388,7 @@ def fit_fpsm(
     slab_levels_per_gap: int = 3,
     check_factor: int = 8,
     engine: str = "auto",
+    pre_assign: bool | None = None,
     workers: int = 1,
     progress=None,
 ):
@@ -387,6 +413,8 @@ def fit_fpsm(
         slab_levels_per_gap: heights per slab at which walls are cast (conservative slabs).
         check_factor: the dense check's factor on angles and heights (0 = no check).
         engine: ray engine, see :func:`ray_engine`.
+        pre_assign: bucket triangles by slab (see :func:`cast_walls`; default: only without
+            Embree).
         workers: threads for the per-slice ``exact`` solves.
         progress: optional :class:`analyses.progress.Progress`-like object with ``say``.
 
@@ -441,7 +469,7 @@ def fit_fpsm(
     # Wall distances, conservative over the slabs
     say(f"casting {((M - 1) * per_gap + 1) * Z} rays ({M} slices x {Z} angles x slabs)")
     levels, R_levels, cast_info = cast_walls(
-        mesh, X_WC, slice_z, angles, per_gap=per_gap, engine=engine
+        mesh, X_WC, slice_z, angles, per_gap=per_gap, engine=engine, pre_assign=pre_assign
     )
     no_hit = ~np.isfinite(R_levels)
     if no_hit.any():
@@ -522,6 +550,7 @@ def fit_fpsm(
         "seconds": {"cast": t_cast, "solve": t_solve},
         "axis_extent_m": list(found_range) if found_range is not None else None,
         "closed_open_cuts": closed_info,
+        "pre_assigned": cast_info["pre_assigned"],
         "triangles_per_slab": cast_info["triangles_per_slab"],
         **{f"solver_{k}": v for k, v in solver_info.items()},
     }
@@ -537,6 +566,7 @@ def fit_fpsm(
                 per_gap * check_factor,
                 cap_radius=cap_radius,
                 engine=engine,
+                pre_assign=pre_assign,
             )
         )
     diagnostics["seconds"]["total"] = time.perf_counter() - t_start
@@ -559,7 +589,7 @@ def fit_fpsm(
 
 
 def dense_check(
-    mesh, X_WC, slice_z, rho, samples, per_gap, *, cap_radius=None, engine="auto"
+    mesh, X_WC, slice_z, rho, samples, per_gap, *, cap_radius=None, engine="auto", pre_assign=None
 ) -> dict:
     """Penetration of the FPSM (radius linear in z, Eq. 11) into the walls on a dense grid.
 
@@ -569,7 +599,9 @@ def dense_check(
     """
     t0 = time.perf_counter()
     angles = np.arange(samples) * (TWO_PI / samples)
-    levels, R, _ = cast_walls(mesh, X_WC, slice_z, angles, per_gap=per_gap, engine=engine)
+    levels, R, _ = cast_walls(
+        mesh, X_WC, slice_z, angles, per_gap=per_gap, engine=engine, pre_assign=pre_assign
+    )
     no_hit = ~np.isfinite(R)
     if cap_radius is not None:
         R = np.where(no_hit, cap_radius, R)

@@ -85,7 +85,8 @@ def test_pre_assignment_gives_the_same_walls_as_the_whole_mesh(cavity):
     X = centre_pose(0.0)
     slice_z = np.linspace(0.01, 0.07, 4)
     angles = np.arange(40) * TWO_PI / 40
-    levels, R, info = cast_walls(cavity.mesh, X, slice_z, angles, per_gap=3)
+    levels, R, info = cast_walls(cavity.mesh, X, slice_z, angles, per_gap=3, pre_assign=True)
+    assert info["pre_assigned"]
     assert len(levels) == 3 * 3 + 1
     assert max(info["triangles_per_slab"]) < info["triangles_total"] / 3
     o = np.repeat(np.stack([np.zeros_like(levels)] * 2 + [levels], 1), angles.size, axis=0)
