@@ -184,7 +184,11 @@ class DrakeIk:
             if np.abs(err).max() < 1e-14:
                 break
             J = self.plant.CalcJacobianSpatialVelocity(
-                self.plant_context, JacobianWrtVariable.kQDot, self.tool, p_FT, self.base,
+                self.plant_context,
+                JacobianWrtVariable.kQDot,
+                self.tool,
+                p_FT,
+                self.base,
                 self.base,
             )
             q = q + np.linalg.lstsq(J, err, rcond=None)[0]
@@ -244,9 +248,7 @@ class DrakeIk:
             p_BQ = p_target + R_target @ p_T
             ik.AddPositionConstraint(self.tool, p_FQ, self.base, p_BQ, p_BQ)
         if self.min_distance is not None:
-            ik.AddMinimumDistanceLowerBoundConstraint(
-                self.min_distance, self.influence_distance
-            )
+            ik.AddMinimumDistanceLowerBoundConstraint(self.min_distance, self.influence_distance)
         prog = ik.prog()
         if not np.all(self.revolute):
             fixed = ~self.revolute

@@ -174,9 +174,7 @@ def build_plant(
         base=plant.GetFrameByName("base_link", arm),
         flange=plant.GetFrameByName("wrist3_Link", arm),
         tcp=plant.GetFrameByName("tcp", actuator) if actuator is not None else None,
-        implant_tip=plant.GetFrameByName("implant_tip", actuator)
-        if actuator is not None
-        else None,
+        implant_tip=plant.GetFrameByName("implant_tip", actuator) if actuator is not None else None,
         mouth=plant.GetFrameByName("mouth", patient) if patient is not None else None,
         X_WBase=np.asarray(X_used.GetAsMatrix4()),
         scenario=scenario,

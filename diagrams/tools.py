@@ -126,13 +126,27 @@ def actuator_urdf(
     shaft = d12 - head_height / 2.0  # implant + drive shaft below the head
     half_pi = "1.5707963267948966"
     parts = [
-        ("rod", f'<cylinder radius="{rod_radius!r}" length="{rod_len!r}"/>',
-         f"0 0 {rod_len / 2.0!r}", "0 0 0", "0.75 0.75 0.78 1"),
-        ("head", f'<cylinder radius="{head_radius!r}" length="{head_height!r}"/>',
-         f"0 0 {L!r}", f"{half_pi} 0 0", "0.55 0.55 0.60 1"),
-        ("implant", f'<cylinder radius="{implant_radius!r}" length="{shaft!r}"/>',
-         f"0 {-(head_height / 2.0 + shaft / 2.0)!r} {L!r}", f"{half_pi} 0 0",
-         "0.85 0.70 0.30 1"),
+        (
+            "rod",
+            f'<cylinder radius="{rod_radius!r}" length="{rod_len!r}"/>',
+            f"0 0 {rod_len / 2.0!r}",
+            "0 0 0",
+            "0.75 0.75 0.78 1",
+        ),
+        (
+            "head",
+            f'<cylinder radius="{head_radius!r}" length="{head_height!r}"/>',
+            f"0 0 {L!r}",
+            f"{half_pi} 0 0",
+            "0.55 0.55 0.60 1",
+        ),
+        (
+            "implant",
+            f'<cylinder radius="{implant_radius!r}" length="{shaft!r}"/>',
+            f"0 {-(head_height / 2.0 + shaft / 2.0)!r} {L!r}",
+            f"{half_pi} 0 0",
+            "0.85 0.70 0.30 1",
+        ),
     ]
     out = [
         '<?xml version="1.0"?>',

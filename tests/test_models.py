@@ -83,7 +83,7 @@ def test_urdfs_differ_only_in_limits_and_match_generator():
     assert len(diff) == 7  # plus the header comment naming the limits
     for x, y in limit_lines:
         # Identical apart from lower/upper.
-        assert x.split('velocity=')[1] == y.split('velocity=')[1]
+        assert x.split("velocity=")[1] == y.split("velocity=")[1]
     lo175 = np.deg2rad(175.0)
     p175, p360 = _load(AUBO), _load(AUBO_360)
     np.testing.assert_allclose(p175.GetPositionUpperLimits(), lo175, rtol=0, atol=1e-15)
@@ -149,6 +149,29 @@ def test_real_collisions_are_detected():
     # upper arm.
     pairs, _ = _collision_pairs(diagram, plant, sg, [0, 0, np.deg2rad(170), 0, 0, 0])
     assert ("aubo::upperArm_Link", "aubo::wrist1_Link") in pairs
+
+
+def task_at_mouth(plant, handles) -> np.ndarray:
+    """X_WT of the scenes' documented task: TCP at the mouth frame, implant axis (End y) along
+    the mouth's z, the rod coming from the robot's side (+y of World, End z = -y)."""
+    ctx = plant.CreateDefaultContext()
+    X_WM = plant.CalcRelativeTransform(ctx, plant.world_frame(), handles.mouth).GetAsMatrix4()
+    y = X_WM[:3, 2]
+    z = np.array([0.0, -1.0, 0.0])
+    X = np.eye(4)
+    X[:3, :3] = np.column_stack([np.cross(y, z), y, z])
+    X[:3, 3] = X_WM[:3, 3]
+    return X
+
+
+@pytest.mark.parametrize("scenario", ["lying", "sitting"])
+def test_default_layout_reaches_the_mouth_without_collision(scenario):
+    diagram, plant, sg, h = build_plant(scenario=scenario)
+    X_BT = np.linalg.solve(h.X_WBase, task_at_mouth(plant, h))
+    sol = kinematics.ik(X_BT, X_FT=tools.X_FT())
+    assert sol.valid.any()
+    free = [q for q in sol.q[sol.valid] if not _collision_pairs(diagram, plant, sg, q)[0]]
+    assert len(free) >= 1
 
 
 def test_filtered_pairs_are_exactly_adjacent_links():

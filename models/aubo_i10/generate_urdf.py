@@ -23,8 +23,15 @@ HALF_PI = "1.5707963267948966"
 # name, parent, child, xyz, rpy, velocity limit (deg/s, written in rad/s), effort limit (N m)
 JOINTS = [
     ("shoulder_joint", "base_link", "shoulder_Link", "0 0 0.1632", f"0 0 {PI}", 180, 207),
-    ("upperArm_joint", "shoulder_Link", "upperArm_Link", "0 0.2013 0",
-     f"-{HALF_PI} -{HALF_PI} 0", 180, 207),
+    (
+        "upperArm_joint",
+        "shoulder_Link",
+        "upperArm_Link",
+        "0 0.2013 0",
+        f"-{HALF_PI} -{HALF_PI} 0",
+        180,
+        207,
+    ),
     ("foreArm_joint", "upperArm_Link", "foreArm_Link", "0.647 0 0", f"{PI} 0 0", 147, 207),
     ("wrist1_joint", "foreArm_Link", "wrist1_Link", "0.6005 0 0", f"{PI} 0 {HALF_PI}", 180, 34),
     ("wrist2_joint", "wrist1_Link", "wrist2_Link", "0 0.1025 0", f"-{HALF_PI} 0 0", 180, 34),
@@ -160,8 +167,9 @@ def urdf(limits: str = "175") -> str:
         out.append(f'  <transmission name="{name}_trans">')
         out.append("    <type>transmission_interface/SimpleTransmission</type>")
         out.append(f'    <joint name="{name}">')
-        out.append("      <hardwareInterface>hardware_interface/EffortJointInterface"
-                   "</hardwareInterface>")
+        out.append(
+            "      <hardwareInterface>hardware_interface/EffortJointInterface</hardwareInterface>"
+        )
         out.append("    </joint>")
         out.append(f'    <actuator name="{motor}">')
         out.append("      <mechanicalReduction>1</mechanicalReduction>")
