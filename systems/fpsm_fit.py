@@ -22,14 +22,16 @@ Methods (both kept, compared in analyses/bench_fpsm.py):
 
 - ``exact`` (default): the constraints rho(phi_i) = B(phi_i) rho <= R_j(phi_i) - margin are
   linear in rho. The area S = 1/2 rho^T Q rho (Eq. 6) is convex in rho, so its maximum over the
-  constraint polytope is at a vertex; we start from the LP maximizing the mean radius (HiGHS)
-  and then solve successive LPs on the linearized area, max (Q rho_k)^T rho, each of which can
-  only increase S (convexity: S(x) >= S(rho_k) + (Q rho_k)^T (x - rho_k)), until it stalls.
-  Departure from DESIGN.md's "polish with SLSQP": SLSQP from a vertex of the polytope mostly
-  stays there; the linearized LPs are the standard ascent for a convex maximization. Zero
-  penetration at the sample angles holds by construction: after the solve the curve is lowered
-  by its largest residual violation (the basis weights sum to one, so subtracting c from every
-  control radius lowers the whole curve by exactly c).
+  constraint polytope is at a vertex; we start from the LP maximizing the mean radius (HiGHS),
+  then solve successive LPs on the linearized area, max (Q rho_k)^T rho, each of which can only
+  increase S (convexity: S(x) >= S(rho_k) + (Q rho_k)^T (x - rho_k)), until it stalls.
+  Departure from DESIGN.md's "polish with SLSQP": an SLSQP polish from that point under the same
+  constraints gained nothing on the default mesh (15 x 15 x 150) and took 5x longer, so it is
+  not done. The constraints include rho(phi_i) >= 0: without them SLSQP "gains" area by
+  negative radii (a negative rho counts as area on the opposite side). Zero penetration at the
+  sample angles holds by construction: after the solve the curve is lowered by its largest
+  residual violation (the basis weights sum to one, so subtracting c from every control radius
+  lowers the whole curve by exactly c).
 - ``paper``: F_aim = -S + lambda f_pene^2 (Eq. 7), f_pene = share of the Z sample points beyond
   the wall; normalized gradient descent (Eq. 8) with central differences (Eq. 9); Sec. 5.1
   settings: lambda 30000, alpha 0.1 mm, at most 1000 iterations (S in mm^2, as the paper).
