@@ -36,6 +36,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, LeafSystem
 
 from systems.errors import InputError
@@ -299,17 +301,53 @@ class MasterDevice(LeafSystem):
         - p_M
 
     ``V_WE_command`` (6): commanded spatial velocity of the tool, [w; v] in World (w = 0, v =
-    scale R_WM pdot_M; zero after the motion ends). ``p_WE_offset`` (3): the commanded tool
-    displacement from the start, scale R_WM (p_M(t) - p_M(0)). ``p_M`` (3): the handle position.
-    All three are zero-order holds of the samples (the value at floor(t/dt)).
+    scale R_WM pdot_M). ``p_WE_offset`` (3): the commanded tool displacement from the start,
+    scale R_WM (p_M(t) - p_M(0)). ``p_M`` (3): the handle position. All three are zero-order
+    holds of the samples (the value at floor(t/dt)).
+
+    After the motion ends the hand is still (zero command) unless ``target_W`` is given: then the
+    system has the optional input ``X_WE_measured`` (abstract RigidTransform) and the operator
+    *finishes by eye*: v = finish_gain (target_W - p_WE), its norm capped at ``finish_speed``
+    (a person watching the tool closes the last millimetres that incremental mapping and the
+    fixture's stop at the target leave open; the script alone is open loop).
+
+    .. pydrake_system::
+
+        name: MasterDevice (finishing)
+        input_ports:
+        - X_WE_measured
+        output_ports:
+        - V_WE_command
+        - p_WE_offset
+        - p_M
     """
 
-    def __init__(self, motion: MasterMotion, mapping: IncrementalMapping | None = None):
+    def __init__(
+        self,
+        motion: MasterMotion,
+        mapping: IncrementalMapping | None = None,
+        *,
+        target_W=None,
+        finish_gain: float = 2.0,
+        finish_speed: float = 0.005,
+    ):
         super().__init__()
         self._motion = motion
         self._mapping = mapping or IncrementalMapping()
         self._v_W = self._mapping.to_world(motion.velocity_M())
         self._d_W = self._mapping.to_world(motion.p_M - motion.p_M[0])
+        self._target = None
+        if target_W is not None:
+            target = np.asarray(target_W, dtype=float).reshape(-1)
+            if target.shape != (3,) or not np.all(np.isfinite(target)):
+                raise InputError("target_W", "expected 3 finite coordinates (m)")
+            if not (finish_gain > 0 and finish_speed > 0):
+                raise InputError("finish_gain/finish_speed", "expected positive values")
+            self._target = target
+            self._gain, self._speed = float(finish_gain), float(finish_speed)
+            self._X_meas = self.DeclareAbstractInputPort(
+                "X_WE_measured", AbstractValue.Make(RigidTransform())
+            )
         self._V = self.DeclareVectorOutputPort("V_WE_command", 6, self._calc_velocity)
         self._offset = self.DeclareVectorOutputPort("p_WE_offset", 3, self._calc_offset)
         self._p = self.DeclareVectorOutputPort("p_M", 3, self._calc_handle)
@@ -328,7 +366,12 @@ class MasterDevice(LeafSystem):
 
     def _calc_velocity(self, context, output: BasicVector):
         out = np.zeros(6)
-        out[3:] = self._v_W[self._index(context)]
+        if self._target is not None and context.get_time() > self._motion.duration:
+            v = self._gain * (self._target - self._X_meas.Eval(context).translation())
+            norm = float(np.linalg.norm(v))
+            out[3:] = v if norm <= self._speed else v * (self._speed / norm)
+        else:
+            out[3:] = self._v_W[self._index(context)]
         output.SetFromVector(out)
 
     def _calc_offset(self, context, output: BasicVector):

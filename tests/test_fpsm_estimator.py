@@ -74,3 +74,21 @@ def test_system_with_a_center_frame_offset():
         system.GetOutputPort("safety").Eval(context), [FpsmEstimator.FAR] * 3
     )
     assert system.GetOutputPort("alarm").Eval(context)[0] == 0.0
+
+
+def test_periodic_estimator_holds_the_last_estimate():
+    system = FpsmEstimator(CYL, np.eye(4), ToolLines.contra_angle(R, D12), period=0.02)
+    context = system.CreateDefaultContext()
+    system.GetInputPort("X_WT").FixValue(
+        context, AbstractValue.Make(RigidTransform(pose([0.0, 0.0, 0.044])))
+    )
+    # before the first update the state says "far, no alarm"
+    np.testing.assert_allclose(system.GetOutputPort("safety").Eval(context), [1e3] * 3)
+    update = system.EvalUniquePeriodicDiscreteUpdate(context)
+    context.SetDiscreteState(0, update.get_vector(0).get_value())
+    np.testing.assert_allclose(
+        system.GetOutputPort("safety").Eval(context), [0.044, 0.019, 0.019], atol=1e-9
+    )
+    assert system.GetOutputPort("alarm").Eval(context)[0] == 0.0
+    with pytest.raises(InputError, match="period"):
+        FpsmEstimator(CYL, np.eye(4), period=0.0)

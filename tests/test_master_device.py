@@ -126,3 +126,24 @@ def test_master_device_system_outputs_the_mapped_samples():
     np.testing.assert_allclose(V.Eval(context), 0.0, atol=1e-15)
     np.testing.assert_allclose(off.Eval(context), [-0.004, 0.002, 0.0], atol=1e-15)
     np.testing.assert_allclose(system.GetOutputPort("p_M").Eval(context), p_M[-1])
+
+
+def test_operator_finishes_by_eye_after_the_script():
+    from pydrake.common.value import AbstractValue
+    from pydrake.math import RigidTransform
+
+    motion = MasterMotion(dt=0.01, p_M=np.zeros((3, 3)))
+    target = np.array([0.1, 0.2, 0.3])
+    system = MasterDevice(motion, target_W=target, finish_gain=2.0, finish_speed=0.005)
+    context = system.CreateDefaultContext()
+    port = system.GetInputPort("X_WE_measured")
+    V = system.GetOutputPort("V_WE_command")
+    # 1 mm short along x: v = 2 * 0.001 = 2 mm/s towards the target (below the 5 mm/s cap)
+    port.FixValue(context, AbstractValue.Make(RigidTransform(target - [0.001, 0.0, 0.0])))
+    context.SetTime(0.01)  # during the script: the script's (zero) velocity
+    np.testing.assert_allclose(V.Eval(context), 0.0)
+    context.SetTime(1.0)
+    np.testing.assert_allclose(V.Eval(context), [0, 0, 0, 0.002, 0.0, 0.0], atol=1e-15)
+    # 10 mm away: capped at 5 mm/s
+    port.FixValue(context, AbstractValue.Make(RigidTransform(target - [0.0, 0.01, 0.0])))
+    np.testing.assert_allclose(V.Eval(context), [0, 0, 0, 0.0, 0.005, 0.0], atol=1e-15)
