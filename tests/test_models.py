@@ -80,7 +80,7 @@ def test_urdfs_differ_only_in_limits_and_match_generator():
     diff = [(x, y) for x, y in zip(a.splitlines(), b.splitlines(), strict=True) if x != y]
     limit_lines = [d for d in diff if "<limit" in d[0]]
     assert len(limit_lines) == 6
-    assert len(diff) == 7  # plus the header comment naming the limits
+    assert len(diff) == 6
     for x, y in limit_lines:
         # Identical apart from lower/upper.
         assert x.split("velocity=")[1] == y.split("velocity=")[1]
@@ -273,3 +273,14 @@ def test_build_plant_rejects_bad_input():
         build_plant(X_WBase=np.full((4, 4), np.nan))
     with pytest.raises(InputError, match="X_WBase"):
         build_plant(X_WBase=np.eye(3))
+
+
+def test_meshcat_is_optional_and_works_on_an_ephemeral_port():
+    from pydrake.geometry import Meshcat, MeshcatParams
+
+    meshcat = Meshcat(MeshcatParams(port=0))
+    diagram, _, _, h = build_plant(scenario="sitting", meshcat=meshcat)
+    assert h.visualizer is not None
+    diagram.ForcedPublish(diagram.CreateDefaultContext())
+    assert meshcat.HasPath("/drake/visualizer/aubo/wrist3_Link")
+    assert build_plant(scenario="sitting")[3].visualizer is None
