@@ -23,7 +23,7 @@ from pydrake.geometry import MeshcatVisualizer, MeshcatVisualizerParams, Role, S
 from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.multibody.parsing import LoadModelDirectives, Parser, ProcessModelDirectives
 from pydrake.multibody.plant import AddMultibodyPlantSceneGraph, MultibodyPlant
-from pydrake.multibody.tree import Frame, ModelInstanceIndex
+from pydrake.multibody.tree import Frame, JacobianWrtVariable, ModelInstanceIndex
 from pydrake.systems.framework import Diagram, DiagramBuilder
 
 import models
@@ -182,3 +182,41 @@ def build_plant(
         visualizer=visualizer,
     )
     return diagram, plant, scene_graph, handles
+
+
+def fk_jacobian_loop(
+    plant: MultibodyPlant, context, base: Frame, frame: Frame, q, X_FT=None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Drake's FK and Jacobians over a batch of configurations, one SetPositions at a time.
+
+    The MultibodyPlant reference for ``systems.kinematics`` (tests, benchmarks): the same
+    quantities and conventions as ``fk``, ``jacobian_space`` and ``jacobian_body``.
+
+    Args:
+        plant, context: a finalized plant whose positions are the 6 arm joints, and its context.
+        base, frame: base_link and the flange (wrist3_Link) frames.
+        q: (n, 6) configurations.
+        X_FT: 4x4 pose of the tool frame in ``frame`` (None = the flange itself).
+
+    Returns:
+        ``(X_BT (n,4,4), J_space (n,6,6), J_body (n,6,6))``: CalcRelativeTransform, and
+        CalcJacobianSpatialVelocity(kQDot) at the tool origin measured in ``base``, expressed
+        in ``base`` and in the tool frame (rows [w; v]).
+    """
+    q = np.asarray(q, dtype=float).reshape(-1, plant.num_positions())
+    X_FT = np.eye(4) if X_FT is None else np.asarray(X_FT, dtype=float)
+    p_FT, R_FT = X_FT[:3, 3], X_FT[:3, :3]
+    n = len(q)
+    X = np.empty((n, 4, 4))
+    Js = np.empty((n, 6, 6))
+    Jb = np.empty((n, 6, 6))
+    wrt = JacobianWrtVariable.kQDot
+    for i, qi in enumerate(q):
+        plant.SetPositions(context, qi)
+        X[i] = plant.CalcRelativeTransform(context, base, frame).GetAsMatrix4()
+        Js[i] = plant.CalcJacobianSpatialVelocity(context, wrt, frame, p_FT, base, base)
+        Jb[i] = plant.CalcJacobianSpatialVelocity(context, wrt, frame, p_FT, base, frame)
+    X = X @ X_FT
+    Jb[:, :3] = R_FT.T @ Jb[:, :3]  # re-express from the flange's axes in the tool's
+    Jb[:, 3:] = R_FT.T @ Jb[:, 3:]
+    return X, Js, Jb

@@ -14,11 +14,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from pydrake.multibody.tree import JacobianWrtVariable
 
 from diagrams import tools
-from diagrams.plant import build_plant
+from diagrams.plant import build_plant, fk_jacobian_loop
 from systems import kinematics
+from systems.frames import rpy_to_rotation
 
 N = 10_000
 
@@ -26,19 +26,7 @@ N = 10_000
 def _drake_batch(q: np.ndarray, X_FT: np.ndarray | None):
     diagram, plant, _, h = build_plant(scenario="arm", tool=True, limits="360")
     ctx = plant.GetMyMutableContextFromRoot(diagram.CreateDefaultContext())
-    p_FT = np.zeros(3) if X_FT is None else X_FT[:3, 3]
-    X = np.empty((len(q), 4, 4))
-    Js = np.empty((len(q), 6, 6))
-    Jb = np.empty((len(q), 6, 6))
-    wrt = JacobianWrtVariable.kQDot
-    for i, qi in enumerate(q):
-        plant.SetPositions(ctx, qi)
-        X[i] = plant.CalcRelativeTransform(ctx, h.base, h.flange).GetAsMatrix4()
-        Js[i] = plant.CalcJacobianSpatialVelocity(ctx, wrt, h.flange, p_FT, h.base, h.base)
-        Jb[i] = plant.CalcJacobianSpatialVelocity(ctx, wrt, h.flange, p_FT, h.base, h.flange)
-    if X_FT is not None:
-        X = X @ X_FT
-    return X, Js, Jb
+    return fk_jacobian_loop(plant, ctx, h.base, h.flange, q, X_FT)
 
 
 @pytest.fixture(scope="module")
@@ -64,6 +52,18 @@ def test_fk_and_jacobians_agree_with_drake(configurations, with_tool):
     assert err_X < 1e-9
     assert err_Js < 1e-9
     assert err_Jb < 1e-9
+
+
+def test_tool_with_a_rotation():
+    """A tool frame turned relative to the flange: the body Jacobian is expressed in it."""
+    X_FT = np.eye(4)
+    X_FT[:3, :3] = rpy_to_rotation(np.array([0.3, -0.5, 1.1]))
+    X_FT[:3, 3] = [0.01, -0.02, 0.15]
+    q = np.random.default_rng(8).uniform(-3, 3, size=(200, 6))
+    X_d, Js_d, Jb_d = _drake_batch(q, X_FT)
+    np.testing.assert_allclose(kinematics.fk(q, X_FT), X_d, atol=1e-12)
+    np.testing.assert_allclose(kinematics.jacobian_space(q, X_FT), Js_d, atol=1e-12)
+    np.testing.assert_allclose(kinematics.jacobian_body(q, X_FT), Jb_d, atol=1e-12)
 
 
 def test_tcp_frame_of_the_plant_matches_fk_with_tool():
