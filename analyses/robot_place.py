@@ -1,0 +1,466 @@
+"""``implantplan robot place``: MOPRP robot base placement (seed 001, DESIGN.md section 5).
+
+    implantplan robot place --scenario lying|sitting|FILE.yaml [--plan plan.json] [--pop P]
+        [--gen G] [--seed S] [--ik closed-form|drake] [--weights WD WE WJ]
+        [--percentile-samples N] [--no-plots] --out DIR
+
+Runs NSGA-II (systems.nsga2) on the vectorized problem of systems.moprp and writes
+``DIR/placement.json`` (kind ``robot_placement``):
+
+- ``pareto``: the feasible non-dominated bases, each {base_xyz (m, in Oral), indices {dexterity,
+  error_range (m), joint_variation (rad)}, branch, q (rad, at the target), q_pre (rad, pre-feed)};
+- ``selected``: the knee point (or the smallest weighted sum with ``--weights``), same fields plus
+  ``percentiles`` (% of ``--percentile-samples`` random feasible bases it beats or ties, per
+  index; the paper reports about 80-90, 99, 80-90) and ``X_WBase`` (the base pose in World);
+- ``gii``: General Isotropy Index over 100 random poses about Oral on the selected branch;
+- ``angular_error_range``: eps sigma_max(J_w) over every surviving candidate seen in the
+  percentile sample (the paper's Eq. 20 claims it is constant);
+- ``evaluations``, ``seconds`` (``seconds_evaluation``, ``seconds_optimizer``), ``generations``,
+  ``stopped`` (hypervolume stagnation or the generation cap), the scenario and its source.
+
+Plots (unless ``--no-plots``): ``pareto_design.png`` and ``pareto_objectives.png`` (3-D scatter,
+the selection marked), ``layout_after.png`` / ``layout_before.png`` (the selected layout at the
+target and at the pre-feed pose: arm capsules, cart, patient and chair, three views each).
+
+``--plan``: a JSON file giving the feeding target in the world: a top-level ``X_WT`` (4x4, m),
+or ``X_CT`` (feeding target in the FPSM Center frame, as ``implantplan instrument place``
+writes) together with ``X_WC`` (Center in World). The Oral frame is that feeding target (seed
+000's Tool frame has Oral's axes: x along the rod away from the head, z along the implant axis);
+it replaces the scenario's ``oral`` pose.
+
+``--ik drake``: the same evaluation with Drake's multi-start IK (diagrams.ik_drake) instead of the
+closed form; branches are followed along the feed by matching each sample's solutions to the
+previous sample's (assignment on the wrapped joint distance). Slow: use a small --pop/--gen.
+
+Exit 2 on bad input (bounds inverted or empty, malformed YAML, ...), exit 3 when no feasible
+base exists in the bounds (the reason names the most common rejection).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+from pathlib import Path
+
+import numpy as np
+
+from analyses.progress import Progress
+from systems import moprp
+from systems.errors import InputError, PlanningFailure
+from systems.files import read_json, write_json
+from systems.nsga2 import non_dominated_sort, nsga2
+
+
+def register(subparsers) -> None:
+    robot = subparsers.add_parser("robot", help="robot base placement (MOPRP, seed 001)")
+    sub = robot.add_subparsers(dest="robot_command", required=True, metavar="SUBCOMMAND")
+    p = sub.add_parser("place", help="Pareto front of base positions by NSGA-II, and a selection")
+    p.add_argument("--scenario", required=True,
+                   help="bundled scenario (lying, sitting) or a scenario YAML file")
+    p.add_argument("--plan", type=Path, default=None,
+                   help="JSON with the feeding target (X_WT, or X_CT + X_WC) = the Oral pose")
+    p.add_argument("--pop", type=int, default=None, help="population size (scenario: 500)")
+    p.add_argument("--gen", type=int, default=None, help="max generations (scenario: 500)")
+    p.add_argument("--seed", type=int, default=None, help="seed (scenario's seed by default)")
+    p.add_argument("--ik", choices=("closed-form", "drake"), default="closed-form")
+    p.add_argument("--drake-starts", type=int, default=16,
+                   help="multi-start budget per pose for --ik drake")
+    p.add_argument("--weights", nargs=3, type=float, default=None, metavar=("WD", "WE", "WJ"),
+                   help="select by weighted normalized indices instead of the knee point")
+    p.add_argument("--percentile-samples", type=int, default=None,
+                   help="random feasible bases for the percentile ranks (scenario: 2000)")
+    p.add_argument("--full", action="store_true",
+                   help="run all generations (no hypervolume-stagnation stop)")
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--out", type=Path, required=True, help="output directory")
+    p.set_defaults(func=_place)
+
+
+# --------------------------------------------------------------------------------------------
+# inputs
+# --------------------------------------------------------------------------------------------
+
+
+def _matrix(value, field: str) -> np.ndarray:
+    try:
+        X = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(field, "expected a 4x4 matrix of numbers") from None
+    if X.shape != (4, 4) or not np.all(np.isfinite(X)):
+        raise InputError(field, f"expected a finite 4x4 matrix, got shape {X.shape}")
+    R = X[:3, :3]
+    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or abs(np.linalg.det(R) - 1) > 1e-6:
+        raise InputError(field, "rotation part is not a proper rotation")
+    return X
+
+
+def oral_pose_from_plan(path: Path) -> tuple[np.ndarray, str]:
+    """The Oral pose in World from a plan/placement JSON (see module docstring)."""
+    data = read_json(path, field="--plan")
+    if "X_WT" in data:
+        return _matrix(data["X_WT"], "--plan: X_WT"), "X_WT"
+    if "X_CT" in data:
+        if "X_WC" not in data:
+            raise InputError("--plan", f"{path} has X_CT (target in Center) but no X_WC (Center "
+                             "in World) to place it in the world; add X_WC or give X_WT")
+        X_CT = _matrix(data["X_CT"], "--plan: X_CT")
+        X_WC = _matrix(data["X_WC"], "--plan: X_WC")
+        return X_WC @ X_CT, "X_WC @ X_CT"
+    raise InputError("--plan", f"{path} has no feeding target: expected X_WT or X_CT with X_WC")
+
+
+def _tool_pose(sc: moprp.Scenario) -> np.ndarray:
+    """TCP in the flange frame from the modelled actuator (diagrams.tools), one place for it."""
+    try:
+        from diagrams.tools import X_FT
+    except ImportError:  # the diagrams package needs pydrake only for other modules
+        return sc.actuator.X_FT()
+    return X_FT(sc.actuator.rod_length)
+
+
+def scenario_for(args) -> tuple[moprp.Scenario, dict]:
+    sc = moprp.load_scenario(args.scenario)
+    info = {"scenario": str(args.scenario), "oral_from": "scenario"}
+    changes = {"X_FT": _tool_pose(sc)}
+    if args.plan is not None:
+        X_WO, how = oral_pose_from_plan(args.plan)
+        changes["X_WO"] = X_WO
+        info["oral_from"] = f"{args.plan} ({how})"
+    for name, value, lo in (("pop", args.pop, 4), ("gen", args.gen, 1), ("seed", args.seed, 0),
+                            ("percentile_samples", args.percentile_samples, 1)):
+        if value is not None:
+            if value < lo:
+                raise InputError(f"--{name.replace('_', '-')}", f"expected >= {lo}, got {value}")
+            changes[name] = int(value)
+    if args.full:
+        changes["patience"] = None
+    return dataclasses.replace(sc, **changes), info
+
+
+# --------------------------------------------------------------------------------------------
+# Drake IK adapter
+# --------------------------------------------------------------------------------------------
+
+
+def drake_ik_solver(*, starts: int, seed: int, limits: str, X_FT):
+    """An ``ik_solver`` for :func:`systems.moprp.evaluate_bases` backed by diagrams.ik_drake.
+
+    Each pose is solved by multi-start Drake IK; along the feed (axis -3 of the input), each
+    sample's solutions are assigned to the previous sample's slots by minimum total wrapped joint
+    distance, so slot b follows one branch continuously (a jump shows as a large step and is
+    rejected by the continuity check). Slots are labelled by the closed-form branch nearest to the
+    slot's solution at the target, so branch indices compare with the fast path.
+    """
+    from scipy.optimize import linear_sum_assignment
+
+    from diagrams.ik_drake import DrakeIk
+
+    solver = DrakeIk(X_FT=X_FT, limits=limits)
+    rng = np.random.default_rng(seed)
+    stats = {"poses": 0, "seconds": 0.0}
+
+    def solve(X_BT, *, limits, X_FT):
+        X_BT = np.asarray(X_BT, dtype=float)
+        P, K = X_BT.shape[:2]
+        q = np.zeros((P, K, 8, 6))
+        ok = np.zeros((P, K, 8), dtype=bool)
+        t0 = time.perf_counter()
+        for p in range(P):
+            prev = None
+            for k in range(K):
+                sols, _ = solver.solve(X_BT[p, k], starts=starts, seed=rng)
+                sols = sols[:8]
+                if prev is None:
+                    q[p, k, : len(sols)] = sols
+                    ok[p, k, : len(sols)] = True
+                else:
+                    slots = np.flatnonzero(prev[1])
+                    if len(sols) and slots.size:
+                        d = np.abs(np.mod(prev[0][slots, None, :] - sols[None, :, :] + np.pi,
+                                          2 * np.pi) - np.pi).sum(-1)
+                        r, c = linear_sum_assignment(d)
+                        q[p, k, slots[r]] = sols[c]
+                        ok[p, k, slots[r]] = True
+                prev = (q[p, k], ok[p, k])
+        stats["poses"] += P * K
+        stats["seconds"] += time.perf_counter() - t0
+        # relabel slots by the nearest closed-form branch at the target
+        cf_q, cf_ok = moprp.ik_closed_form(X_BT[:, -1], limits=limits, X_FT=X_FT)
+        d = np.abs(np.mod(q[:, -1, :, None, :] - cf_q[:, None, :, :] + np.pi, 2 * np.pi)
+                   - np.pi).sum(-1)
+        d = np.where(cf_ok[:, None, :], d, np.inf)
+        q_out = np.zeros_like(q)
+        ok_out = np.zeros_like(ok)
+        for p in range(P):
+            used = set()
+            for s in np.flatnonzero(ok[p, -1]):
+                b = int(np.argmin(d[p, s]))
+                if np.isfinite(d[p, s, b]) and b not in used:
+                    used.add(b)
+                    q_out[p, :, b] = q[p, :, s]
+                    ok_out[p, :, b] = ok[p, :, s]
+        return q_out, ok_out
+
+    solve.stats = stats
+    return solve
+
+
+# --------------------------------------------------------------------------------------------
+# the run
+# --------------------------------------------------------------------------------------------
+
+
+def initial_population(sc: moprp.Scenario, evaluate, rng, pop: int):
+    """Seed the GA sensibly: 4 * pop uniform samples, the feasible ones first (then the least
+    violating), so the first generation already spans the feasible region."""
+    X = sc.lower + rng.random((4 * pop, 3)) * (sc.upper - sc.lower)
+    F, cv = evaluate(X, rng)
+    order = np.lexsort((F[:, 0], cv))
+    return X[order[:pop]], X.shape[0], (X, cv)
+
+
+def _entry(xyz, ev: moprp.BaseEvaluation, i: int) -> dict:
+    return {
+        "base_xyz": xyz[i],
+        "indices": dict(zip(moprp.INDEX_NAMES, ev.objectives[i].tolist(), strict=True)),
+        "branch": int(ev.branch[i]),
+        "q": ev.q[i],
+        "q_pre": ev.q_pre[i],
+    }
+
+
+def run_placement(sc: moprp.Scenario, *, ik: str = "closed-form", weights=None,
+                  drake_starts: int = 16, progress: Progress | None = None) -> dict:
+    """Run MOPRP on a scenario; returns the placement dict (raises PlanningFailure)."""
+    progress = progress or Progress("robot place", quiet=True)
+    t_start = time.perf_counter()
+    ik_solver = moprp.ik_closed_form
+    if ik == "drake":
+        ik_solver = drake_ik_solver(starts=drake_starts, seed=sc.seed, limits=sc.limits,
+                                    X_FT=sc.X_FT)
+    elif ik != "closed-form":
+        raise InputError("--ik", f"expected closed-form or drake, got {ik!r}")
+    evaluate = moprp.problem(sc, ik_solver=ik_solver)
+    rng = np.random.default_rng(sc.seed)
+    t0 = time.perf_counter()
+    X0, n0, (Xs, cvs) = initial_population(sc, evaluate, rng, sc.pop)
+    t_init = time.perf_counter() - t0
+    if not np.any(cvs <= 0):
+        ev = moprp.evaluate_bases(Xs, sc, rng, ik_solver=ik_solver)
+        codes = ev.reason[ev.reason > 0]
+        common = np.bincount(codes, minlength=7).argmax() if codes.size else moprp.DROP_IK
+        raise PlanningFailure(
+            f"no feasible base among {Xs.shape[0]} samples of the bounds "
+            f"x {sc.lower[0]:.3f}..{sc.upper[0]:.3f}, y {sc.lower[1]:.3f}..{sc.upper[1]:.3f}, "
+            f"z {sc.lower[2]:.3f}..{sc.upper[2]:.3f} m (in Oral); most branches rejected because: "
+            f"{moprp.DROP_REASONS[int(common)]}"
+        )
+    progress.say(f"{sc.name}: seeded population from {n0} samples "
+                 f"({int(np.sum(cvs <= 0))} feasible); NSGA-II pop {sc.pop}, gen <= {sc.gen}")
+
+    def on_gen(g, n_front, hv):
+        progress.step(g - 1, sc.gen, f"generations, front {n_front}, hypervolume {hv:.4g}")
+
+    res = nsga2(evaluate, sc.lower, sc.upper, pop=sc.pop, gen=sc.gen, seed=sc.seed + 1,
+                initial=X0, patience=sc.patience, hv_tol=sc.hv_tol, on_generation=on_gen)
+    progress.say(f"stopped after {res.generations} generations ({res.stopped}), "
+                 f"{res.evaluations + n0} evaluations, {res.seconds_total:.1f} s")
+
+    # re-evaluate the front once (fixed generator) to get branches and q; keep non-dominated
+    Xf = res.X[res.front]
+    ev = moprp.evaluate_bases(Xf, sc, np.random.default_rng(sc.seed), ik_solver=ik_solver)
+    keep = np.flatnonzero(ev.feasible)
+    rank = non_dominated_sort(ev.objectives[keep])
+    keep = keep[rank == 0]
+    if keep.size == 0:
+        raise PlanningFailure("the optimizer found no feasible base in the bounds")
+    Xf = Xf[keep]
+    ev = moprp.evaluate_bases(Xf, sc, np.random.default_rng(sc.seed), ik_solver=ik_solver)
+    pareto = [_entry(Xf, ev, i) for i in range(Xf.shape[0])]
+    sel = moprp.knee_point(ev.objectives, weights)
+
+    # percentile ranks against random feasible bases (closed form: the reference population)
+    t0 = time.perf_counter()
+    rng_pct = np.random.default_rng(sc.seed + 2)
+    X_rand, F_rand = moprp.random_feasible(sc, sc.percentile_samples, rng_pct)
+    pct = moprp.percentiles(ev.objectives[sel], F_rand)
+    ev_rand = moprp.evaluate_bases(X_rand, sc, np.random.default_rng(sc.seed + 3))
+    ang = ev_rand.angular_error_range[np.isfinite(ev_rand.angular_error_range)]
+    g = moprp.gii(Xf[sel], int(ev.branch[sel]), sc, np.random.default_rng(sc.seed + 4))
+    t_post = time.perf_counter() - t0
+
+    selected = _entry(Xf, ev, sel)
+    selected["percentiles"] = dict(zip(moprp.INDEX_NAMES, pct.tolist(), strict=True))
+    selected["percentile_samples"] = int(X_rand.shape[0])
+    selected["X_WBase"] = sc.X_WO @ moprp.base_pose(Xf[sel])
+    selected["rule"] = "weights" if weights is not None else "knee"
+    if weights is not None:
+        selected["weights"] = list(weights)
+    up = (sc.X_WO @ moprp.base_pose(np.zeros(3)))[:3, 2]
+    tilt = float(np.degrees(np.arccos(np.clip(up[2], -1, 1))))
+    out = {
+        "scenario": {"name": sc.name, "posture": sc.posture, "X_WO": sc.X_WO,
+                     "base_bounds_m": {"lower": sc.lower, "upper": sc.upper},
+                     "joint_error_rad": sc.eps, "feed_length_m": sc.feed_length,
+                     "feed_samples": sc.feed_samples, "X_FT": sc.X_FT, "limits": sc.limits,
+                     "base_tilt_deg": tilt},
+        "ik": ik,
+        "pareto": pareto,
+        "selected": selected,
+        "gii": g,
+        "angular_error_range": {
+            "min_rad": float(ang.min()) if ang.size else None,
+            "max_rad": float(ang.max()) if ang.size else None,
+            "candidates": int(ang.size),
+            "over_eps": [float(ang.min() / sc.eps), float(ang.max() / sc.eps)] if ang.size
+            else None,
+        },
+        "evaluations": int(res.evaluations + n0),
+        "generations": int(res.generations),
+        "stopped": res.stopped,
+        "pop": int(sc.pop),
+        "seed": int(sc.seed),
+        "seconds": time.perf_counter() - t_start,
+        "seconds_evaluation": res.seconds_eval + t_init,
+        "seconds_optimizer": res.seconds_total - res.seconds_eval,
+        "seconds_percentiles_gii": t_post,
+    }
+    if ik == "drake":
+        out["drake_ik"] = dict(ik_solver.stats)
+    return out
+
+
+def _place(args: argparse.Namespace) -> int:
+    progress = Progress("robot place", quiet=args.quiet)
+    sc, info = scenario_for(args)
+    if args.weights is not None:
+        w = np.asarray(args.weights, dtype=float)
+        if not np.all(np.isfinite(w)) or np.any(w < 0) or not np.any(w > 0):
+            raise InputError("--weights", "expected three weights >= 0, not all 0")
+    out = run_placement(sc, ik=args.ik, weights=args.weights, drake_starts=args.drake_starts,
+                        progress=progress)
+    out["inputs"] = info
+    path = write_json(args.out / "placement.json", out, kind="robot_placement")
+    progress.say(f"wrote {path}")
+    print(summary_table(out))
+    if not args.no_plots:
+        paths = plot_placement(sc, out, args.out)
+        progress.say("plots: " + ", ".join(p.name for p in paths))
+    return 0
+
+
+def summary_table(out: dict) -> str:
+    s = out["selected"]
+    ind, pct = s["indices"], s["percentiles"]
+    x, y, z = (1000 * np.asarray(s["base_xyz"])).tolist()
+    lines = [
+        f"front {len(out['pareto'])} bases, {out['generations']} generations "
+        f"({out['stopped']}), {out['evaluations']} evaluations, {out['seconds']:.1f} s",
+        f"selected base_xyz_mm ({x:.0f}, {y:.0f}, {z:.0f}) branch {s['branch']}",
+        "index             value        percentile",
+        f"dexterity         {ind['dexterity']:<12.4g} {pct['dexterity']:.1f}%",
+        f"error_range_mm    {1000 * ind['error_range']:<12.4g} {pct['error_range']:.1f}%",
+        f"joint_var_deg     {np.degrees(ind['joint_variation']):<12.4g} "
+        f"{pct['joint_variation']:.1f}%",
+        f"GII {out['gii']['gii']:.4g} ({out['gii']['reached']}/{out['gii']['poses']} poses)",
+    ]
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------
+# plots
+# --------------------------------------------------------------------------------------------
+
+
+def plot_placement(sc: moprp.Scenario, out: dict, out_dir: Path) -> list[Path]:
+    """Pareto front in design and objective space, and the selected layout before/after feed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    P = np.array([e["base_xyz"] for e in out["pareto"]])
+    F = np.array([[e["indices"][n] for n in moprp.INDEX_NAMES] for e in out["pareto"]])
+    s = out["selected"]
+    ps = np.asarray(s["base_xyz"])
+    fs = np.array([s["indices"][n] for n in moprp.INDEX_NAMES])
+
+    fig = plt.figure(figsize=(6.5, 5.5))
+    ax = fig.add_subplot(projection="3d")
+    sc_ = ax.scatter(*(1000 * P.T), c=F[:, 0], cmap="viridis", s=8)
+    ax.scatter(*(1000 * ps), c="red", s=60, marker="*", label="selected")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_zlabel("z (mm)")
+    ax.set_title(f"{sc.name}: Pareto set in design space (base in Oral)")
+    fig.colorbar(sc_, ax=ax, shrink=0.6, label="dexterity I_d")
+    ax.legend()
+    paths.append(out_dir / "pareto_design.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+
+    fig = plt.figure(figsize=(6.5, 5.5))
+    ax = fig.add_subplot(projection="3d")
+    ax.scatter(F[:, 0], 1000 * F[:, 1], np.degrees(F[:, 2]), s=8, c="tab:blue")
+    ax.scatter(fs[0], 1000 * fs[1], np.degrees(fs[2]), c="red", s=60, marker="*",
+               label="selected")
+    ax.set_xlabel("dexterity I_d")
+    ax.set_ylabel("error range I_e (mm)")
+    ax.set_zlabel("joint variation I_j (deg)")
+    ax.set_title(f"{sc.name}: Pareto front in objective space")
+    ax.legend()
+    paths.append(out_dir / "pareto_objectives.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+
+    for label, key in (("after", "q"), ("before", "q_pre")):
+        paths.append(_plot_layout(sc, ps, np.asarray(s[key]), out_dir / f"layout_{label}.png",
+                                  f"{sc.name}: selected layout {label} feeding"))
+    return paths
+
+
+def _plot_layout(sc, xyz, q, path, title) -> Path:
+    import matplotlib.pyplot as plt
+
+    from systems import collision_primitives as cp
+
+    model = moprp.CollisionModel.for_scenario(sc)
+    seg_B, rad = cp.arm_capsules(q, model.capsules)
+    X_WB = sc.X_WO @ moprp.base_pose(xyz)
+    seg = seg_B @ X_WB[:3, :3].T + X_WB[:3, 3]
+    corners = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], float)
+    boxes = [(X_WB @ sc.X_BC, sc.cabinet_half, "tab:gray")]
+    boxes += [(o.X_WB, o.half_size, "tan") for o in sc.obstacles if o.kind == "box"]
+    caps = [(np.array([o.p0, o.p1]), o.radius) for o in sc.obstacles if o.kind == "capsule"]
+    edges = [(a, b) for a in range(8) for b in range(a + 1, 8)
+             if np.sum(corners[a] != corners[b]) == 1]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4.6))
+    views = ((0, 1, "top (World x-y)"), (0, 2, "front (World x-z)"), (1, 2, "side (World y-z)"))
+    for ax, (i, j, name) in zip(axes, views, strict=True):
+        for X, half, color in boxes:
+            pts = (corners * half) @ X[:3, :3].T + X[:3, 3]
+            pts[:, 2] = np.maximum(pts[:, 2], 0.0)  # drawn down to the floor only
+            for a, b in edges:
+                ax.plot(pts[[a, b], i], pts[[a, b], j], color=color, lw=1)
+        for c, r in caps:
+            ax.plot(c[:, i], c[:, j], color="peachpuff", lw=max(2.0, 300 * r), alpha=0.7,
+                    solid_capstyle="round")
+        for k in range(seg.shape[0]):
+            ax.plot(seg[k, :, i], seg[k, :, j], color="tab:blue", lw=max(1.5, 300 * rad[k]),
+                    alpha=0.6, solid_capstyle="round")
+        o = sc.X_WO[:3, 3]
+        ax.plot(o[i], o[j], "r+", ms=12, mew=2)
+        ax.set_aspect("equal")
+        ax.set_title(name)
+        ax.set_xlabel("xyz"[i] + " (m)")
+        ax.set_ylabel("xyz"[j] + " (m)")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return Path(path)

@@ -1,0 +1,130 @@
+"""``implantplan robot place`` (analyses.robot_place): outputs, exit codes, --plan."""
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from analyses.cli import main
+from systems import moprp
+from systems.files import read_json, read_yaml, write_json
+from systems.nsga2 import domination_matrix
+
+SMALL = ["--pop", "24", "--gen", "6", "--percentile-samples", "60", "--quiet"]
+
+
+def _scenario_file(tmp_path, **changes):
+    d = read_yaml(moprp.scenario_path("lying"))
+    for key, value in changes.items():
+        node = d
+        parts = key.split(".")
+        for k in parts[:-1]:
+            node = node[k]
+        node[parts[-1]] = value
+    path = tmp_path / "scenario.yaml"
+    path.write_text(yaml.safe_dump(d))
+    return path
+
+
+def test_small_run_writes_the_placement(tmp_path):
+    out = tmp_path / "run"
+    assert main(["robot", "place", "--scenario", "lying", *SMALL, "--out", str(out)]) == 0
+    data = read_json(out / "placement.json", kind="robot_placement")
+    for key in ("pareto", "selected", "gii", "evaluations", "seconds"):
+        assert key in data
+    F = np.array([[e["indices"][n] for n in moprp.INDEX_NAMES] for e in data["pareto"]])
+    assert F.shape[0] >= 3
+    assert not domination_matrix(F).any()  # the front is non-dominated
+    sel = data["selected"]
+    assert set(sel["percentiles"]) == set(moprp.INDEX_NAMES)
+    assert all(0 <= v <= 100 for v in sel["percentiles"].values())
+    assert len(sel["q"]) == 6 and 0 <= sel["branch"] < 8
+    assert data["gii"]["poses"] == 100 and 0 < data["gii"]["gii"] < 1
+    assert data["evaluations"] == 4 * 24 + 24 * (data["generations"] + 1)
+    # the selection is on the front and reproduces its own indices
+    sc = moprp.load_scenario("lying")
+    ev = moprp.evaluate_bases(np.array([sel["base_xyz"]]), sc, np.random.default_rng(0))
+    assert ev.feasible[0]
+    for png in ("pareto_design", "pareto_objectives", "layout_after", "layout_before"):
+        assert (out / f"{png}.png").stat().st_size > 1000
+
+
+def test_same_seed_same_front(tmp_path):
+    args = ["robot", "place", "--scenario", "sitting", *SMALL, "--no-plots", "--seed", "5"]
+    assert main([*args, "--out", str(tmp_path / "a")]) == 0
+    assert main([*args, "--out", str(tmp_path / "b")]) == 0
+    a = json.loads((tmp_path / "a" / "placement.json").read_text())
+    b = json.loads((tmp_path / "b" / "placement.json").read_text())
+    assert a["pareto"] == b["pareto"] and a["selected"] == b["selected"]
+
+
+def test_unreachable_bounds_exit_3(tmp_path, capsys):
+    path = _scenario_file(tmp_path, **{"base_bounds_m.x": [4.0, 5.0]})
+    code = main(["robot", "place", "--scenario", str(path), *SMALL, "--out", str(tmp_path / "o")])
+    assert code == 3
+    err = capsys.readouterr().err
+    assert "no feasible base" in err and "no IK solution" in err
+
+
+def test_inverted_bounds_exit_2(tmp_path, capsys):
+    path = _scenario_file(tmp_path, **{"base_bounds_m.z": [0.5, -0.5]})
+    code = main(["robot", "place", "--scenario", str(path), *SMALL, "--out", str(tmp_path / "o")])
+    assert code == 2
+    assert "base_bounds_m.z" in capsys.readouterr().err
+
+
+def test_malformed_yaml_exit_2(tmp_path, capsys):
+    path = tmp_path / "bad.yaml"
+    path.write_text("name: [unclosed\nbase_bounds_m: {x: [0, 1]\n")
+    code = main(["robot", "place", "--scenario", str(path), *SMALL, "--out", str(tmp_path / "o")])
+    assert code == 2
+    assert "not valid YAML" in capsys.readouterr().err
+
+
+def test_missing_scenario_exit_2(tmp_path):
+    code = main(["robot", "place", "--scenario", str(tmp_path / "nope.yaml"), *SMALL,
+                 "--out", str(tmp_path / "o")])
+    assert code == 2
+
+
+def test_plan_gives_the_oral_pose(tmp_path):
+    sc = moprp.load_scenario("lying")
+    X_WT = sc.X_WO.copy()
+    X_WT[:3, 3] += [0.05, -0.02, 0.03]
+    plan = tmp_path / "plan.json"
+    write_json(plan, {"X_WT": X_WT}, kind="placement")
+    out = tmp_path / "run"
+    assert main(["robot", "place", "--scenario", "lying", "--plan", str(plan), *SMALL,
+                 "--no-plots", "--out", str(out)]) == 0
+    data = read_json(out / "placement.json")
+    np.testing.assert_allclose(data["scenario"]["X_WO"], X_WT)
+    assert "X_WT" in data["inputs"]["oral_from"]
+    np.testing.assert_allclose(
+        data["selected"]["X_WBase"], X_WT @ moprp.base_pose(data["selected"]["base_xyz"]))
+
+
+def test_plan_without_a_target_exit_2(tmp_path, capsys):
+    plan = tmp_path / "plan.json"
+    write_json(plan, {"X_CT": np.eye(4)}, kind="placement")
+    code = main(["robot", "place", "--scenario", "lying", "--plan", str(plan), *SMALL,
+                 "--out", str(tmp_path / "o")])
+    assert code == 2
+    assert "X_WC" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("flag", [["--pop", "2"], ["--weights", "0", "0", "0"]])
+def test_bad_flags_exit_2(tmp_path, flag):
+    args = ["robot", "place", "--scenario", "lying", *SMALL, *flag, "--out", str(tmp_path / "o")]
+    assert main(args) == 2
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scenario", ["lying", "sitting"])
+def test_paper_setting_500_by_500(tmp_path, scenario):
+    out = tmp_path / scenario
+    assert main(["robot", "place", "--scenario", scenario, "--full", "--no-plots", "--quiet",
+                 "--out", str(out)]) == 0
+    data = read_json(out / "placement.json")
+    assert data["generations"] == 500 and data["pop"] == 500
+    assert len(data["pareto"]) >= 50
