@@ -53,6 +53,7 @@ rays that met no real wall (capped by ``cap_radius``). Lengths in metres through
 
 from __future__ import annotations
 
+import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -391,7 +392,7 @@ def fit_fpsm(
     check_factor: int = 8,
     engine: str = "auto",
     pre_assign: bool | None = None,
-    workers: int = 1,
+    workers: int | None = None,
     progress=None,
 ):
     """Fit the FPSM (stage 1) to an oral mesh.
@@ -417,7 +418,9 @@ def fit_fpsm(
         engine: ray engine, see :func:`ray_engine`.
         pre_assign: bucket triangles by slab (see :func:`cast_walls`; default: only without
             Embree).
-        workers: threads for the per-slice ``exact`` solves.
+        workers: threads for the per-slice ``exact`` solves (HiGHS releases the GIL); default
+            the number of CPUs. On the default case with 2 busy cores 2 threads cut the solve
+            from ~0.16-0.19 s to ~0.10-0.15 s; the result does not depend on it.
         progress: optional :class:`analyses.progress.Progress`-like object with ``say``.
 
     Returns:
@@ -521,6 +524,7 @@ def fit_fpsm(
             r, info = fit_slice_exact(B, wall[j] * scale)
             return r / scale, info, time.perf_counter() - ts
 
+        workers = (os.cpu_count() or 1) if workers is None else int(workers)
         if workers > 1:
             with ThreadPoolExecutor(max_workers=int(workers)) as pool:
                 results = list(pool.map(one, range(M)))
