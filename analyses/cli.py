@@ -15,7 +15,12 @@ import sys
 from systems.errors import InputError, PlanningFailure
 
 # Modules that add subcommands, in the order they appear in --help.
-COMMAND_MODULES: tuple[str, ...] = ("analyses.fpsm_commands",)
+COMMAND_MODULES: tuple[str, ...] = (
+    "analyses.fpsm_commands",
+    "analyses.instrument",
+    "analyses.capmap",
+    "analyses.robot_place",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

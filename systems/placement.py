@@ -22,7 +22,13 @@ Departure: Eq. 22 as printed squares away the sign of f, so a deep collision (la
 would score as very safe and the PSO runs into it; we keep the sign, as Eq. 14 does. On
 collision-free placements (both f > 0, e.g. the paper's cylinder check) it is Eq. 22 exactly.
 A line with no sample (it lies wholly above the mouth opening) constrains nothing and has weight
-0; F = 0 if neither line has one.
+0; F = 0 if neither line has one. The feeding target itself must be inside the cavity (the paper's
+VF ends in a cylinder inside the mouth): when the Tool origin, P1 or P2 lies h above the top
+slice the placement is infeasible and scored as a collision, f_safe = -lambda_min h for both
+lines (so every line of a feasible placement is sampled at least at its start and at the top
+slice) (a rule the paper does not need,
+since its search never leaves the mouth; without it a target floating outside the mouth would
+score F = 0, better than any colliding placement).
 
 PSO (Eq. 20): v <- c0 v + r1 c1 (x_best_i - x) + r2 c2 (x_best_glb - x); x <- x + v, with r1, r2
 uniform in [0, 1) drawn per particle and per coordinate. Positions that leave the bounds are
@@ -136,7 +142,7 @@ def combine(f1, n1, f2, n2, objective: str = "eq14") -> np.ndarray:
         t1, t2 = f1 * np.abs(f1), f2 * np.abs(f2)  # signed squares, see the module notes
     else:
         raise InputError("objective", f"expected one of {', '.join(OBJECTIVES)}, got {objective!r}")
-    num = np.where(w1 > 0, w1 * t1, 0.0) + np.where(w2 > 0, w2 * t2, 0.0)
+    num = w1 * np.where(w1 > 0, t1, 0.0) + w2 * np.where(w2 > 0, t2, 0.0)
     den = w1 + w2
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(den > 0, -num / np.maximum(den, 1.0), 0.0)
@@ -167,8 +173,21 @@ class PlacementProblem:
         )
         f1, f2 = ls.f_safe[:K], ls.f_safe[K:]
         n1, n2 = ls.samples[:K], ls.samples[K:]
+        d1, d2 = ls.d_safe_min[:K], ls.d_safe_min[K:]
+        # The feeding target must be inside the cavity: a Tool origin or line start above the
+        # top slice (the mouth opening) is infeasible, scored as a collision as deep as it is
+        # high.
+        above = _height_above(lines, self.fpsm)
+        out = above > 0
+        if np.any(out):
+            f1 = np.where(out, np.minimum(f1, -self.lambda_min * above), f1)
+            f2 = np.where(out, np.minimum(f2, -self.lambda_min * above), f2)
+            d1 = np.where(out, np.minimum(d1, -above), d1)
+            d2 = np.where(out, np.minimum(d2, -above), d2)
+            n1 = np.where(out, np.maximum(n1, 1), n1)
+            n2 = np.where(out, np.maximum(n2, 1), n2)
         F = combine(f1, n1, f2, n2, self.objective)
-        return Evaluation(F, f1, f2, n1, n2, ls.d_safe_min[:K], ls.d_safe_min[K:])
+        return Evaluation(F, f1, f2, n1, n2, d1, d2)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         return self.evaluate(x).F
@@ -361,6 +380,31 @@ class Placement:
         return out
 
 
+def _height_above(lines: FeedingLines, fpsm: Fpsm) -> np.ndarray:
+    """(K,) height (m) of the highest of the Tool origin, P1 and P2 above the top slice."""
+    z = np.maximum(np.maximum(lines.tool[:, 2], lines.start1[:, 2]), lines.start2[:, 2])
+    return z - fpsm.z_range[1]
+
+
+def _invalid_reasons(problem: PlacementProblem, x: np.ndarray) -> list[str]:
+    """Why the placement x is not acceptable (empty when both lines are collision-free)."""
+    ev = problem.evaluate(x[None])
+    f1, f2 = float(ev.f_safe_line1[0]), float(ev.f_safe_line2[0])
+    lines = feeding_lines(problem.X_CH, x[0], x[1], problem.rod_radius, problem.implant_length)
+    h = float(_height_above(lines, problem.fpsm)[0])
+    reasons = []
+    if h > 0:
+        reasons.append(
+            f"the feeding target (tool origin, rod start or implant tip) is {h * 1e3:.3f} mm "
+            "above the mouth opening (top slice)"
+        )
+    if not f1 > 0:
+        reasons.append(f"line1 (rod) collides: f_safe = {f1 * 1e3:.3f} mm <= 0")
+    if not f2 > 0:
+        reasons.append(f"line2 (implant tip path) collides: f_safe = {f2 * 1e3:.3f} mm <= 0")
+    return reasons
+
+
 def default_bounds(fpsm: Fpsm, implant_length: float) -> np.ndarray:
     """d_T from d12 (the implant tip at the hole) to d12 + twice the largest control radius;
     theta_T over a full turn [-pi, pi]."""
@@ -401,6 +445,7 @@ def place_instrument(
     lambda_avg: float = 0.5,
     lambda_min: float = 0.5,
     hole_tolerance: float = 0.005,
+    restarts: int = 3,
     verify: bool = True,
     vf_options: dict | None = None,
 ) -> Placement:
@@ -419,6 +464,8 @@ def place_instrument(
         bounds: ((d_T_min, theta_min), (d_T_max, theta_max)) in (m, rad); default
             :func:`default_bounds`.
         seed: PSO seed.
+        restarts: further PSO runs (seeds spawned from ``seed``) while the optimum is not
+            collision-free; the best optimum of all runs is kept. 0 = the paper's single run.
         verify: also run the exhaustive grid check (:func:`verify_by_grid`).
         vf_options: keyword arguments for :meth:`VirtualFixture.from_placement`.
 
@@ -435,6 +482,9 @@ def place_instrument(
     rod_radius = _check_scalar(rod_radius, "rod_radius")
     implant_length = _check_scalar(implant_length, "implant_length", positive=True)
     hole_tolerance = _check_scalar(hole_tolerance, "hole_tolerance")
+    if int(restarts) != restarts or restarts < 0:
+        raise InputError("restarts", f"expected an integer >= 0, got {restarts!r}")
+    restarts = int(restarts)
     X_CH = hole_frame(hole_Center_m, axis_Center)
     t = X_CH[:3, 3]
     z_lo, z_hi = fpsm.z_range
@@ -462,25 +512,37 @@ def place_instrument(
     problem = PlacementProblem(
         fpsm, X_CH, rod_radius, implant_length, objective, lambda_avg, lambda_min
     )
-    res = pso(
-        problem,
-        bounds[0],
-        bounds[1],
-        particles=particles,
-        c0=c0,
-        c1=c1,
-        c2=c2,
-        stall_iterations=stall_iterations,
-        max_iterations=max_iterations,
-        seed=seed,
-    )
+    # The paper runs the PSO once. A swarm can stall on an infeasible plateau (3 of 80 runs on
+    # the bundled cavity), so when its optimum is not collision-free we run it again with
+    # seeds spawned from ``seed`` (at most ``restarts`` more runs) and keep the best optimum.
+    seeds = np.random.SeedSequence(seed if isinstance(seed, int) else 0).spawn(restarts)
+    runs, total_it, total_ev, total_s = 0, 0, 0, 0.0
+    best = None
+    for attempt in range(restarts + 1):
+        res = pso(
+            problem,
+            bounds[0],
+            bounds[1],
+            particles=particles,
+            c0=c0,
+            c1=c1,
+            c2=c2,
+            stall_iterations=stall_iterations,
+            max_iterations=max_iterations,
+            seed=seed if attempt == 0 else np.random.default_rng(seeds[attempt - 1]),
+        )
+        runs += 1
+        total_it += res.iterations
+        total_ev += res.evaluations
+        total_s += res.seconds
+        if best is None or res.F < best.F:
+            best = res
+        reasons = _invalid_reasons(problem, best.x)
+        if not reasons:
+            break
+    res = best
     ev = problem.evaluate(res.x[None])
     f1, f2 = float(ev.f_safe_line1[0]), float(ev.f_safe_line2[0])
-    reasons = []
-    if not f1 > 0:
-        reasons.append(f"line1 (rod) collides: f_safe = {f1 * 1e3:.3f} mm <= 0")
-    if not f2 > 0:
-        reasons.append(f"line2 (implant tip path) collides: f_safe = {f2 * 1e3:.3f} mm <= 0")
     lines = feeding_lines(X_CH, res.x[0], res.x[1], rod_radius, implant_length)
     X_CT = tool_frames(X_CH, res.x[0], res.x[1])
     grid = None
@@ -506,9 +568,9 @@ def place_instrument(
         samples_line2=int(ev.samples_line2[0]),
         valid=not reasons,
         reason="; ".join(reasons),
-        iterations=res.iterations,
-        evaluations=res.evaluations,
-        seconds=res.seconds,
+        iterations=total_it,
+        evaluations=total_ev,
+        seconds=total_s,
         stopped=res.stopped,
         history=res.history,
         X_CH=X_CH,
@@ -531,6 +593,9 @@ def place_instrument(
             "lambda_avg": lambda_avg,
             "lambda_min": lambda_min,
             "hole_tolerance": hole_tolerance,
+            "restarts": restarts,
+            "pso_runs": runs,
+            "iterations_last_run": res.iterations,
             "bounds_rule": "positions clipped to the bounds, clipped velocity zeroed",
         },
     )
