@@ -7,6 +7,8 @@ import itertools
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from pydrake.geometry import Cylinder, Role
 from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import MultibodyPlant
@@ -284,3 +286,23 @@ def test_meshcat_is_optional_and_works_on_an_ephemeral_port():
     diagram.ForcedPublish(diagram.CreateDefaultContext())
     assert meshcat.HasPath("/drake/visualizer/aubo/wrist3_Link")
     assert build_plant(scenario="sitting")[3].visualizer is None
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    rod_radius=st.floats(0.002, 0.012),
+    implant_length=st.floats(0.012, 0.05),
+    rod_length=st.floats(0.05, 0.3),
+)
+def test_actuator_frames_follow_parameters(rod_radius, implant_length, rod_length):
+    text = tools.actuator_urdf(rod_radius, implant_length, rod_length=rod_length)
+    plant = MultibodyPlant(0.0)
+    Parser(plant).AddModelsFromString(text, "urdf")
+    plant.Finalize()
+    tcp = plant.GetFrameByName("tcp").GetFixedPoseInBodyFrame().GetAsMatrix4()
+    tip = plant.GetFrameByName("implant_tip").GetFixedPoseInBodyFrame().translation()
+    np.testing.assert_allclose(tcp, tools.X_FT(rod_length), atol=1e-15)
+    np.testing.assert_allclose(tip, tools.p_FTip(rod_length, implant_length), atol=1e-15)
+    # Eq. 19: the tip lies d12 from the rod axis, on the implant axis through the TCP.
+    assert np.linalg.norm(tip - tcp[:3, 3]) == pytest.approx(implant_length, abs=1e-15)
+    assert plant.GetBodyByName("actuator_base").default_mass() == pytest.approx(0.385)
