@@ -149,3 +149,15 @@ def test_real_oral_mesh_end_to_end(tmp_path):
     assert main([*args, *paper_tool, "--out", str(tmp_path / "q.json")]) == 3
     data = json.loads((tmp_path / "q.json").read_text())
     assert not data["valid"] and data["settings"]["pso_runs"] == 4  # 1 + 3 restarts
+
+
+def test_bench_placement_runs_small(cyl_file, capsys):
+    from analyses.bench_placement import main as bench
+
+    assert (
+        bench(["--fpsm", str(cyl_file), "--repeats", "1", "--rods", "500", "--loop-rods", "20"])
+        == 0
+    )
+    out = capsys.readouterr().out
+    assert "cylinder (Sec. 5.3)" in out and "rods/s" in out
+    assert out.count("True") >= 4  # both cases valid, both batches agree with numpy
