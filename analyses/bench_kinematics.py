@@ -5,7 +5,8 @@ Prints:
   - Drake multi-start IK (diagrams.ik_drake, the cross-check path) poses/s on a few poses;
   - their ratio (target: closed form >= 200,000 poses/s and >= 1000x Drake's path);
   - FK + Jacobian batch throughput of the numpy core vs a MultibodyPlant loop
-    (SetPositions, CalcRelativeTransform, CalcJacobianSpatialVelocity per configuration).
+    (diagrams.plant.fk_jacobian_loop: SetPositions, CalcRelativeTransform and two
+    CalcJacobianSpatialVelocity per configuration).
 
 Run: ``python -m analyses.bench_kinematics [--batch 100000] [--drake-poses 5] [--starts 64]``.
 """
@@ -31,13 +32,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--batch", type=int, default=100_000)
     parser.add_argument("--drake-poses", type=int, default=5)
-    parser.add_argument("--starts", type=int, default=64, help="Drake multi-start guesses per pose")
+    parser.add_argument("--starts", type=int, default=128, help="Drake multi-start guesses per pose")
     parser.add_argument("--plant-configs", type=int, default=2000)
     args = parser.parse_args(argv)
 
-    from pydrake.multibody.tree import JacobianWrtVariable
-
     from diagrams.ik_drake import DrakeIk
+    from diagrams.plant import fk_jacobian_loop
     from systems import kinematics as kin
 
     rng = np.random.default_rng(0)
@@ -67,17 +67,12 @@ def main(argv: list[str] | None = None) -> int:
 
     n = args.plant_configs
     qs = q[:n]
-    t_np = _best_of(lambda: (kin.fk(qs), kin.jacobian_space(qs)), 3)
+    t_np = _best_of(lambda: (kin.fk(qs), kin.jacobian_space(qs), kin.jacobian_body(qs)), 3)
     plant, context = solver.plant, solver.plant_context
     base, flange = plant.GetFrameByName("base_link"), plant.GetFrameByName("wrist3_Link")
 
     def plant_loop():
-        for qi in qs:
-            plant.SetPositions(context, qi)
-            plant.CalcRelativeTransform(context, base, flange)
-            plant.CalcJacobianSpatialVelocity(
-                context, JacobianWrtVariable.kQDot, flange, np.zeros(3), base, base
-            )
+        fk_jacobian_loop(plant, context, base, flange, qs)
 
     t_plant = _best_of(plant_loop, 1)
     print(f"FK+Jacobian    : numpy {n / t_np:12,.0f} configs/s, MultibodyPlant loop "
