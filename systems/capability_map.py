@@ -451,6 +451,16 @@ class CapabilityMap:
         reach, index = self.query_points(flat[:, :3, 3], flat[:, :3, 2])
         return reach.reshape(shape), index.reshape(shape)
 
+    def nearest_direction(self, v: np.ndarray) -> np.ndarray:
+        """Index of the map direction nearest to each vector (n, 3) (the query's lookup table)."""
+        v = np.asarray(v, dtype=float).reshape(-1, 3)
+        v = v / np.linalg.norm(v, axis=1, keepdims=True)
+        n_z, n_phi = self._table.shape
+        iz = np.clip(((v[:, 2] + 1.0) * 0.5 * n_z).astype(np.int64), 0, n_z - 1)
+        phi = np.arctan2(v[:, 1], v[:, 0])
+        ip = np.clip(((phi + np.pi) / (2.0 * np.pi) * n_phi).astype(np.int64), 0, n_phi - 1)
+        return self._table[iz, ip].astype(np.int64)
+
     def voxel_index(self, p: np.ndarray) -> np.ndarray:
         """Reachability index of the voxel holding each position (n, 3) (0 outside the map)."""
         p = np.asarray(p, dtype=float).reshape(-1, 3)

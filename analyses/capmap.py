@@ -1,0 +1,445 @@
+"""``implantplan capmap``: build / query capability maps, plan a RASSCMAP setup (seed 004).
+
+Subcommands:
+
+- ``capmap build [--voxel-mm V] [--directions K] [--limits 175|360] [--tool actuator]
+  [--rolls R] [--workers W] --out map.h5`` (without ``--tool`` the mapped frame is the flange,
+  wrist3_Link; with ``--tool actuator`` it is the actuator's implant tip, z along the implant
+  axis, drilling direction). Progress on stderr; a summary on stdout.
+- ``capmap query map.h5 --poses FILE.npy --out q.json``: poses N x 4 x 4 in base_link; JSON with
+  ``reachable`` (bool) and ``index`` (float), one per pose.
+- ``capmap accuracy map.h5 [--samples N] [--seed S]``: TP/FP/FN against direct IK.
+- ``capmap plan --patient P.yaml --task T.yaml --robot R.yaml --out DIR [--method
+  auto|exhaustive|ga] [--seed S] [--map M] [--store DIR] [--meshcat]``: best base (and access
+  point), cost, maps used; writes ``plan.json``, ``best_vs_worst.png``, ``cmap_slices.png`` (and
+  ``rasscmap_best.html`` with ``--meshcat``). If the robot YAML's map file is missing and the
+  YAML has a ``build`` block, the map is built first and saved there.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from analyses.progress import Progress
+from systems import capability_map as cm
+from systems import rasscmap as rm
+from systems.errors import InputError
+from systems.files import write_json, write_text_atomic
+from systems.frames import invert, rot_x, transform
+
+
+def actuator_map_frame() -> np.ndarray:
+    """X_FA: the implant tip of the actuator, z = drilling direction (flange -y), x = flange x.
+
+    The actuator is a contra-angle piece: its implant axis is the TCP's y axis, perpendicular to
+    the flange z, so roll about the approach axis is not free for this frame (it is sampled).
+    """
+    from diagrams.tools import p_FTip
+
+    return transform(rot_x(np.pi / 2), p_FTip())
+
+
+def tool_frame(tool: str | None) -> tuple[np.ndarray, str]:
+    if tool in (None, "flange"):
+        return np.eye(4), "flange"
+    if tool == "actuator":
+        return actuator_map_frame(), "actuator"
+    raise InputError("tool", f"expected 'actuator' (or no --tool for the flange), got {tool!r}")
+
+
+def build_map(
+    voxel_mm: float,
+    directions: int,
+    limits: str,
+    tool: str | None,
+    rolls: int | None,
+    workers: int | None,
+    *,
+    quiet: bool = False,
+) -> cm.CapabilityMap:
+    X_FT, name = tool_frame(tool)
+    params = cm.make_params(
+        voxel_mm / 1000.0, directions, limits=limits, X_FT=X_FT, tool=name, rolls=rolls
+    )
+    grid = cm.make_grid(params)
+    prog = Progress("capmap build", quiet=quiet)
+    n_vox = len(cm.candidate_voxels(params, grid))
+    prog.say(
+        f"{name}, {voxel_mm:g} mm voxels, {directions} directions, {params.rolls} roll(s), "
+        f"limits +-{limits} deg: {n_vox} voxels x {directions * params.rolls} = "
+        f"{n_vox * directions * params.rolls:,} IK poses"
+    )
+    cmap = cm.build(params, workers=workers, progress=lambda i, n: prog.step(i - 1, n, "blocks"))
+    prog.say(f"done: {cmap.stats()['voxels_reachable']} reachable voxels")
+    return cmap
+
+
+def _cmd_build(args) -> int:
+    if args.workers is not None and args.workers < 1:
+        raise InputError("--workers", f"expected >= 1, got {args.workers}")
+    t0 = time.perf_counter()
+    cmap = build_map(
+        args.voxel_mm, args.directions, args.limits, args.tool, args.rolls, args.workers
+    )
+    cmap.save(args.out)
+    summary = {
+        "out": str(args.out),
+        "params": cmap.params.as_dict(),
+        "seconds": round(time.perf_counter() - t0, 3),
+        **cmap.stats(),
+    }
+    print(json.dumps(summary))
+    return 0
+
+
+def _load_poses(path) -> np.ndarray:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("--poses", f"file {str(path)!r} does not exist")
+    try:
+        X = np.load(path, allow_pickle=False)
+    except (ValueError, OSError) as exc:
+        raise InputError("--poses", f"{path} is not a .npy array ({exc})") from None
+    if X.ndim != 3 or X.shape[1:] != (4, 4):
+        raise InputError("--poses", f"expected an N x 4 x 4 array, got shape {X.shape}")
+    if not np.all(np.isfinite(X)):
+        raise InputError("--poses", "poses must be finite")
+    return X.astype(float)
+
+
+def _cmd_query(args) -> int:
+    cmap = cm.load(args.map)
+    X = _load_poses(args.poses)
+    reach, index = cmap.query(X)
+    write_json(
+        args.out,
+        {"map": str(args.map), "reachable": reach.tolist(), "index": index.tolist()},
+        kind="capmap_query",
+    )
+    return 0
+
+
+def _cmd_accuracy(args) -> int:
+    cmap = cm.load(args.map)
+    if args.samples < 1:
+        raise InputError("--samples", f"expected >= 1, got {args.samples}")
+    X = cm.random_poses(args.samples, seed=args.seed, radius=cm.reach_radius(cmap.params))
+    out = {"exact_roll": cm.accuracy(cmap, X), "some_roll": cm.accuracy(cmap, X, exact_roll=False)}
+    print(json.dumps(out))
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# plan
+# ---------------------------------------------------------------------------------------------
+
+
+def resolve_map(robot: rm.Robot, override: str | None, *, quiet: bool = False) -> cm.CapabilityMap:
+    """Load the robot's CMAP (or ``override``); build and save it first if missing + buildable."""
+    path = Path(override) if override else robot.map_path
+    expect = {"limits": robot.limits} if robot.limits else None
+    if path.is_file():
+        return cm.load(path, expect=expect)
+    if override or not robot.build:
+        raise InputError(
+            "robot.map", f"{path} does not exist; build it with `implantplan capmap build`"
+        )
+    b = robot.build
+    for key in b:
+        if key not in ("voxel_mm", "directions", "limits", "tool", "rolls", "workers"):
+            raise InputError(f"robot.build.{key}", "unknown key")
+    cmap = build_map(
+        float(b.get("voxel_mm", 50)),
+        int(b.get("directions", 100)),
+        str(b.get("limits", robot.limits or "175")),
+        b.get("tool"),
+        b.get("rolls"),
+        b.get("workers"),
+        quiet=quiet,
+    )
+    cmap.save(path)
+    return cmap
+
+
+def hsv_index_cmap():
+    """Matplotlib colormap: HSV hue from red (index 0) to blue (index 1), Sec. 3."""
+    import matplotlib.colors as mcolors
+    import matplotlib.pyplot as plt
+
+    return mcolors.ListedColormap(plt.get_cmap("hsv")(np.linspace(0.0, 2.0 / 3.0, 256)))
+
+
+def plot_map_slices(cmap: cm.CapabilityMap, path, *, n_slices: int = 6) -> None:
+    """PNG: horizontal slices (xy) of the map at evenly spaced heights, voxels coloured by index."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    g = cmap.grid
+    dense = np.full(g.size, np.nan)
+    dense[cmap.voxel_ids] = cmap.index
+    dense = dense.reshape(g.shape)
+    ks = np.flatnonzero(np.any(np.isfinite(dense), axis=(0, 1)))
+    if len(ks) == 0:
+        raise InputError("map", "the map has no reachable voxel to draw")
+    pick = ks[np.linspace(0, len(ks) - 1, n_slices).round().astype(int)]
+    cols = 3
+    rows = int(np.ceil(len(pick) / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3.8 * rows), squeeze=False)
+    ext = [
+        g.origin[0],
+        g.origin[0] + g.shape[0] * g.voxel,
+        g.origin[1],
+        g.origin[1] + g.shape[1] * g.voxel,
+    ]
+    im = None
+    for ax, k in zip(axes.ravel(), pick, strict=False):
+        z = g.origin[2] + (k + 0.5) * g.voxel
+        im = ax.imshow(
+            dense[:, :, k].T, origin="lower", extent=ext, cmap=hsv_index_cmap(), vmin=0, vmax=1
+        )
+        ax.set_title(f"z = {z:.3f} m")
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+        ax.set_aspect("equal")
+    for ax in axes.ravel()[len(pick) :]:
+        ax.axis("off")
+    fig.colorbar(im, ax=axes.ravel().tolist(), label="reachability index")
+    p = cmap.params
+    fig.suptitle(
+        f"capability map ({p.tool}, {p.voxel * 1000:g} mm, {p.directions} dirs, +-{p.limits} deg)"
+    )
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _map_points(problem: rm.SetupProblem, cand: int) -> tuple[np.ndarray, np.ndarray]:
+    b, a = problem.split(np.array([cand]))
+    if problem.patient.access == "unconstrained":
+        idx = rm.unconstrained_index(problem.cmap, problem.bases[b], problem.points_W)[0]
+        return problem.points_W, idx
+    r = problem.rasscmap(int(b[0]), int(a[0]))
+    return r.centres, r.index
+
+
+def plot_best_worst(problem: rm.SetupProblem, best: int, worst: int, path) -> None:
+    """PNG: best vs worst setup side by side (top and side views), RASSCMAP coloured by index."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 2, figsize=(12, 10))
+    cmap = hsv_index_cmap()
+    for col, (label, cand) in enumerate((("best", best), ("worst", worst))):
+        pts, idx = _map_points(problem, cand)
+        b, a = problem.split(np.array([cand]))
+        X_WB = problem.bases[b[0]]
+        for row, (i, j, names) in enumerate(((0, 1, ("x", "y")), (0, 2, ("x", "z")))):
+            ax = axes[row, col]
+            ax.scatter(pts[:, i], pts[:, j], c=idx, cmap=cmap, vmin=0, vmax=1, s=12, alpha=0.7)
+            t = problem.task.poses[:, :3, 3]
+            ax.scatter(t[:, i], t[:, j], marker="x", c="k", s=30, label="task poses")
+            allb = problem.bases[:, :3, 3]
+            ax.scatter(allb[:, i], allb[:, j], c="0.8", s=4, label="base candidates")
+            ax.scatter([X_WB[i, 3]], [X_WB[j, 3]], marker="s", c="k", s=80, label="base")
+            ax.arrow(
+                X_WB[i, 3], X_WB[j, 3], 0.15 * X_WB[i, 0], 0.15 * X_WB[j, 0], width=0.008, color="k"
+            )
+            if problem.patient.access == "constrained":
+                X_WA = problem.patient.access_points[a[0]][1]
+                ax.scatter(
+                    [X_WA[i, 3]], [X_WA[j, 3]], marker="v", c="m", s=80, label="access point"
+                )
+            ax.set_xlabel(f"{names[0]} (m)")
+            ax.set_ylabel(f"{names[1]} (m)")
+            ax.set_aspect("equal")
+            if row == 0:
+                ax.set_title(f"{label}: cost {problem.cost[cand]:.3f}, c_s {problem.c_s[cand]:.3f}")
+        axes[0, col].legend(loc="best", fontsize=7)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def meshcat_html(points: np.ndarray, index: np.ndarray, path, *, voxel: float) -> bool:
+    """Static Meshcat HTML of voxels coloured by index (headless, port chosen by Drake).
+
+    Returns False (and writes nothing) when Meshcat cannot start here.
+    """
+    try:
+        from pydrake.geometry import Meshcat, MeshcatParams
+        from pydrake.perception import BaseField, Fields, PointCloud
+    except ImportError:
+        return False
+    import matplotlib
+
+    matplotlib.use("Agg")
+    try:
+        meshcat = Meshcat(MeshcatParams(host="localhost"))
+    except RuntimeError:
+        return False
+    cloud = PointCloud(len(points), Fields(BaseField.kXYZs | BaseField.kRGBs))
+    cloud.mutable_xyzs()[:] = np.asarray(points, dtype=np.float32).T
+    rgb = (hsv_index_cmap()(np.asarray(index))[:, :3] * 255).astype(np.uint8)
+    cloud.mutable_rgbs()[:] = rgb.T
+    meshcat.SetObject("/rasscmap", cloud, point_size=voxel * 0.8)
+    write_text_atomic(path, meshcat.StaticHtml())
+    return True
+
+
+def plan(
+    patient_path,
+    task_path,
+    robot_path,
+    out_dir,
+    *,
+    method: str = "auto",
+    seed: int = 0,
+    map_override: str | None = None,
+    store_dir: str | None = None,
+    meshcat: bool = False,
+    quiet: bool = False,
+) -> dict:
+    """The ``capmap plan`` pipeline; returns the plan dict written to ``out_dir/plan.json``."""
+    patient = rm.load_patient(patient_path)
+    task = rm.load_task(task_path)
+    robot = rm.load_robot(robot_path)
+    prog = Progress("capmap plan", quiet=quiet)
+    cmap = resolve_map(robot, map_override, quiet=quiet)
+    store_root = Path(store_dir) if store_dir else robot.store
+    if store_root is None:
+        store_root = Path(str(map_override or robot.map_path) + ".rasscmaps")
+    store = rm.RasscmapStore(store_root)
+    problem = rm.SetupProblem(cmap, patient, task, robot, store=store)
+    prog.say(f"{problem.n} candidates ({len(problem.bases)} bases x {problem.n_access} access)")
+    res = rm.optimize(problem, method=method, seed=seed)
+    prog.say(f"{res.method}: best cost {res.cost:.4f} in {res.seconds:.3f} s")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+
+    def describe(cand: int) -> dict:
+        b, a = problem.split(np.array([cand]))
+        X_WB = problem.bases[b[0]]
+        d = {
+            "candidate": int(cand),
+            "base_xyz_m": X_WB[:3, 3],
+            "base_yaw_deg": float(np.degrees(np.arctan2(X_WB[1, 0], X_WB[0, 0]))),
+            "X_WB": X_WB,
+            "cost": float(problem.cost[cand]),
+            "c_s": float(problem.c_s[cand]),
+            "mean_task_index": float(problem.mean_c_t[cand]),
+            "all_task_poses_reachable": bool(problem.all_reached[cand]),
+        }
+        if patient.access == "constrained":
+            d["access_point"] = patient.access_points[a[0]][0]
+        return d
+
+    X_BT = invert(problem.bases[problem.split(np.array([res.best]))[0][0]])[None] @ task.poses
+    data = {
+        "patient": patient.id,
+        "task": task.id,
+        "robot": robot.name,
+        "access": patient.access,
+        "method": res.method,
+        "seed": seed,
+        "candidates": problem.n,
+        "evaluations": res.evaluations,
+        "generations": res.generations,
+        "seconds": res.seconds,
+        "cost_formula": "0 if any task pose unreachable else (mean task index + c_s) / 2",
+        "best": describe(res.best),
+        "worst": describe(res.worst),
+        "task_poses_in_best_base": X_BT,
+        "maps_used": {
+            "cmap": str(Path(map_override) if map_override else robot.map_path),
+            "cmap_params": cmap.params.as_dict(),
+            "cmap_key": cmap.params.key(),
+            "rasscmap_store": str(store_root),
+            "store_hits": store.hits,
+            "store_misses": store.misses,
+        },
+    }
+    plot_best_worst(problem, res.best, res.worst, out / "best_vs_worst.png")
+    plot_map_slices(cmap, out / "cmap_slices.png")
+    files = ["plan.json", "best_vs_worst.png", "cmap_slices.png"]
+    if meshcat:
+        pts, idx = _map_points(problem, res.best)
+        if meshcat_html(pts, idx, out / "rasscmap_best.html", voxel=patient.voxel):
+            files.append("rasscmap_best.html")
+        else:
+            prog.say("Meshcat could not start here; no HTML written")
+    data["files"] = files
+    write_json(out / "plan.json", data, kind="capmap_plan")
+    return data
+
+
+def _cmd_plan(args) -> int:
+    data = plan(
+        args.patient, args.task, args.robot, args.out, method=args.method, seed=args.seed,
+        map_override=args.map, store_dir=args.store, meshcat=args.meshcat,
+    )  # fmt: skip
+    best = data["best"]
+    line = {
+        "best_base_xyz_m": [round(float(v), 4) for v in best["base_xyz_m"]],
+        "best_base_yaw_deg": round(best["base_yaw_deg"], 2),
+        "access_point": best.get("access_point"),
+        "cost": round(best["cost"], 4),
+        "worst_cost": round(data["worst"]["cost"], 4),
+        "method": data["method"],
+        "seconds": round(data["seconds"], 4),
+        "out": str(args.out),
+    }
+    print(json.dumps(line))
+    return 0
+
+
+def register(subparsers) -> None:
+    """Add ``capmap build|query|accuracy|plan`` to the implantplan CLI."""
+    p = subparsers.add_parser("capmap", help="capability maps and RASSCMAP setup planning")
+    sub = p.add_subparsers(dest="capmap_command", required=True, metavar="SUBCOMMAND")
+
+    b = sub.add_parser("build", help="build a capability map (HDF5)")
+    b.add_argument("--voxel-mm", type=float, default=50.0, help="voxel edge in mm (default 50)")
+    b.add_argument("--directions", type=int, default=100, help="approach directions (default 100)")
+    b.add_argument("--limits", choices=("175", "360"), default="175", help="joint limits, deg")
+    b.add_argument("--tool", choices=("actuator",), default=None, help="map the actuator's tip")
+    b.add_argument("--rolls", type=int, default=None, help="roll samples (off-axis tools only)")
+    b.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    b.add_argument("--out", required=True, help="output .h5")
+    b.set_defaults(func=_cmd_build)
+
+    q = sub.add_parser("query", help="query a map with poses (N x 4 x 4 .npy in base_link)")
+    q.add_argument("map")
+    q.add_argument("--poses", required=True)
+    q.add_argument("--out", required=True)
+    q.set_defaults(func=_cmd_query)
+
+    a = sub.add_parser("accuracy", help="TP/FP/FN of a map against direct IK")
+    a.add_argument("map")
+    a.add_argument("--samples", type=int, default=100_000)
+    a.add_argument("--seed", type=int, default=0)
+    a.set_defaults(func=_cmd_accuracy)
+
+    pl = sub.add_parser("plan", help="best base pose / access point from patient, task, robot")
+    pl.add_argument("--patient", required=True)
+    pl.add_argument("--task", required=True)
+    pl.add_argument("--robot", required=True)
+    pl.add_argument("--out", required=True, help="output directory")
+    pl.add_argument("--method", choices=("auto", "exhaustive", "ga"), default="auto")
+    pl.add_argument("--seed", type=int, default=0)
+    pl.add_argument("--map", default=None, help="use this map instead of the robot YAML's")
+    pl.add_argument("--store", default=None, help="RASSCMAP store directory")
+    pl.add_argument("--meshcat", action="store_true", help="also write a static Meshcat HTML")
+    pl.set_defaults(func=_cmd_plan)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    from analyses.cli import main
+
+    sys.exit(main(["capmap", *sys.argv[1:]]))

@@ -1,0 +1,88 @@
+"""``implantplan capmap``: build / query / accuracy / plan through the CLI, exit codes."""
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from analyses.cli import main
+from systems import capability_map as cm
+from systems.files import read_json
+from systems.frames import rot_x, transform
+
+CASES = "models/capmap_cases"
+
+
+@pytest.fixture(scope="module")
+def map_path(tmp_path_factory):
+    path = tmp_path_factory.mktemp("maps") / "m.h5"
+    code = main(["capmap", "build", "--voxel-mm", "100", "--directions", "40", "--workers", "1",
+                 "--out", str(path)])  # fmt: skip
+    assert code == 0
+    return path
+
+
+def test_build_writes_a_loadable_map(map_path, capsys):
+    m = cm.load(map_path, expect={"voxel": 0.1, "directions": 40, "limits": "175"})
+    assert m.params.tool == "flange" and len(m.voxel_ids) > 0
+
+
+def test_query_json(map_path, tmp_path):
+    m = cm.load(map_path)
+    full = m.centres()[np.flatnonzero(m.index == 1.0)[0]]
+    poses = np.stack([transform(rot_x(0.7), full), transform(np.eye(3), [4.0, 0.0, 0.0])])
+    np.save(tmp_path / "p.npy", poses)
+    code = main(["capmap", "query", str(map_path), "--poses", str(tmp_path / "p.npy"),
+                 "--out", str(tmp_path / "q.json")])  # fmt: skip
+    assert code == 0
+    q = read_json(tmp_path / "q.json", kind="capmap_query")
+    assert q["reachable"] == [True, False]
+    assert q["index"] == [1.0, 0.0]
+
+
+def test_query_bad_input_exit_2(map_path, tmp_path):
+    np.save(tmp_path / "bad.npy", np.zeros((3, 3)))
+    args = ["capmap", "query", str(map_path), "--poses", str(tmp_path / "bad.npy"), "--out",
+            str(tmp_path / "q.json")]  # fmt: skip
+    assert main(args) == 2
+    assert (
+        main(["capmap", "query", str(tmp_path / "none.h5"), "--poses", "x.npy", "--out", "q"]) == 2
+    )
+    assert main(["capmap", "build", "--voxel-mm", "0", "--out", str(tmp_path / "x.h5")]) == 2
+
+
+def test_accuracy_command(map_path, capsys):
+    assert main(["capmap", "accuracy", str(map_path), "--samples", "3000", "--seed", "4"]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    acc = out["exact_roll"]
+    assert acc["TP"] + acc["FP"] + acc["FN"] + acc["TN"] == pytest.approx(1.0)
+
+
+def test_plan_pedicle_case(map_path, tmp_path, capsys):
+    args = ["capmap", "plan", "--patient", f"{CASES}/pedicle_patient.yaml",
+            "--task", f"{CASES}/pedicle_task.yaml", "--robot", f"{CASES}/pedicle_robot.yaml",
+            "--out", str(tmp_path / "plan"), "--map", str(map_path),
+            "--store", str(tmp_path / "store")]  # fmt: skip
+    assert main(args) == 0
+    plan = read_json(tmp_path / "plan" / "plan.json", kind="capmap_plan")
+    assert plan["candidates"] == 800 and plan["method"] == "exhaustive"
+    assert 0.0 < plan["best"]["cost"] <= 1.0
+    assert plan["best"]["all_task_poses_reachable"]
+    assert plan["worst"]["cost"] <= plan["best"]["cost"]
+    assert (tmp_path / "plan" / "best_vs_worst.png").stat().st_size > 10_000
+    assert (tmp_path / "plan" / "cmap_slices.png").stat().st_size > 10_000
+
+
+def test_plan_unreachable_exit_3_and_missing_map_exit_2(map_path, tmp_path):
+    robot = {"robot": {"name": "aubo_i10", "map": str(map_path),
+                       "base_ranges": [{"x": [5.0, 5.1], "y": 0.0}]}}  # fmt: skip
+    (tmp_path / "far.yaml").write_text(yaml.safe_dump(robot))
+    args = ["capmap", "plan", "--patient", f"{CASES}/pedicle_patient.yaml",
+            "--task", f"{CASES}/pedicle_task.yaml", "--robot", str(tmp_path / "far.yaml"),
+            "--out", str(tmp_path / "plan")]  # fmt: skip
+    assert main(args) == 3
+    robot["robot"]["map"] = "missing.h5"
+    (tmp_path / "nomap.yaml").write_text(yaml.safe_dump(robot))
+    args[args.index("--robot") + 1] = str(tmp_path / "nomap.yaml")
+    assert main(args) == 2
