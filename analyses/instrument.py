@@ -198,20 +198,29 @@ def summary_table(p: Placement) -> str:
 
 
 def _mesh_in_center(fpsm: Fpsm):
-    """Vertices and faces of the FPSM's mesh in Center (m), or None when it is not available."""
+    """Vertices and faces of the FPSM's mesh in Center (m), or None when it is not available.
+
+    The FPSM records the mesh path but (so far) not the file's units: ``settings["mesh_units"]``
+    is used when present, else mm (scans); if the mesh then lands at a scale 30x off the model's
+    own size, the other unit is tried, and the mesh is left out when neither fits."""
     source = fpsm.settings.get("mesh")
     if not source or not Path(str(source)).is_file():
         return None
     from systems.oral_mesh import load_oral_mesh
 
-    units = fpsm.settings.get("mesh_units", "mm")
-    try:
-        mesh = load_oral_mesh(source, units=units)
-    except InputError:
-        return None
+    first = fpsm.settings.get("mesh_units", "mm")
+    size = max(float(np.max(np.abs(fpsm.rho))), fpsm.z_range[1] - fpsm.z_range[0])
     X_CW = invert(fpsm.X_WC)
-    v = mesh.vertices @ X_CW[:3, :3].T + X_CW[:3, 3]
-    return v, np.asarray(mesh.faces)
+    for units in (first, "m" if first == "mm" else "mm"):
+        try:
+            mesh = load_oral_mesh(source, units=units)
+        except InputError:
+            return None
+        v = mesh.vertices @ X_CW[:3, :3].T + X_CW[:3, 3]
+        ratio = float(np.median(np.linalg.norm(v, axis=1))) / size
+        if 1 / 30 < ratio < 30:
+            return v, np.asarray(mesh.faces)
+    return None
 
 
 def _slice_curves(fpsm: Fpsm, samples: int = 180) -> np.ndarray:

@@ -230,3 +230,16 @@ def test_compiled_kernel_matches_numpy_reference(starts, dirs, lengths, radii, s
         (a.d_safe_mean, b.d_safe_mean),
     ):
         np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-14)
+
+
+def test_single_slice_model():
+    # One slice of radius 20 mm at z = 10 mm: a point on it 5 mm from the axis has 15 mm;
+    # a vertical ray from there crosses nothing above (the slice is the top), so only T counts.
+    f = Fpsm(np.array([0.01]), np.full((1, 5), 0.02))
+    np.testing.assert_allclose(f.d_safe([[0.005, 0, 0.01], [0, 0, 0.0]]), [0.015, -0.01])
+    ls = f.line_safety([0.005, 0, 0.01], [0, 0, 1])
+    assert ls.samples[0] == 1 and ls.f_safe[0] == pytest.approx(0.015)
+    ref = f._line_safety_numpy(
+        np.array([[0.005, 0, 0.01]]), np.array([[0, 0, 1.0]]), np.array([np.inf]), 0.0, 0.5, 0.5
+    )
+    assert ref.f_safe[0] == pytest.approx(0.015)

@@ -145,6 +145,15 @@ def test_real_oral_mesh_end_to_end(tmp_path):
     start, u = np.array(line1["start"]), np.array(line1["direction"])
     s = np.linspace(0, (fpsm.z_range[1] - start[2]) / u[2], 400)
     assert np.all(fpsm.d_safe(start + s[:, None] * u, radius=0.002) > -1e-4)
+    # the plots find the fit's mesh and put it in Center, whatever units the settings claim
+    from analyses.instrument import _mesh_in_center
+
+    v, _ = _mesh_in_center(fpsm)
+    d = fpsm.to_dict()
+    d["settings"]["mesh_units"] = "m"  # wrong: the file is in mm
+    np.testing.assert_array_equal(_mesh_in_center(Fpsm.from_dict(d))[0], v)
+    # the open cavity surrounds the slices: ~all slice-curve points are inside the mesh's box
+    assert np.all(v.min(axis=0)[:2] < -0.02) and np.all(v.max(axis=0)[:2] > 0.02)
     paper_tool = ["--rod-radius-mm", "6", "--implant-length-mm", "31"]
     assert main([*args, *paper_tool, "--out", str(tmp_path / "q.json")]) == 3
     data = json.loads((tmp_path / "q.json").read_text())
