@@ -27,9 +27,9 @@ Roll about the approach axis (the rotation of the mapped frame about its own z):
 Queries (:meth:`CapabilityMap.query`) take a batch of poses in base_link and return, per pose,
 whether the voxel holding its position has the direction nearest to the pose's z axis reachable,
 and that voxel's index; a compiled kernel does >2 M queries/s. Nearest direction uses a lookup
-table over equal-area (z, azimuth) cells (cell centre -> nearest spiral direction); the cells are
-~40x finer than the direction spacing, so only poses within a cell of a Voronoi border can be
-assigned the neighbouring direction.
+table over (polar angle, azimuth) cells (cell centre -> nearest spiral direction), at least 128 x
+256 cells: a cell's half-diagonal is <= 0.71 pi / 128 = 0.017 rad, ~20x below the direction
+spacing even at K = 200, so only poses that close to a Voronoi border can get the neighbour.
 
 The map is built in independent voxel blocks through any ``concurrent.futures.Executor``
 (:func:`build`; a ``ProcessPoolExecutor`` by default): :func:`build_block` is a pure top-level
@@ -93,13 +93,13 @@ def frames_from_z(d: np.ndarray) -> np.ndarray:
     return np.stack([x, y, d], axis=-1)
 
 
-def direction_table(directions: np.ndarray, n_z: int | None = None) -> np.ndarray:
-    """Nearest-direction lookup (n_z, 2 n_z) int16 over equal-area cells in (z, azimuth)."""
+def direction_table(directions: np.ndarray, n_theta: int | None = None) -> np.ndarray:
+    """Nearest-direction lookup (n_theta, 2 n_theta) int16 over cells uniform in polar angle and
+    azimuth (cell half-diagonal <= 0.71 pi / n_theta everywhere, poles included)."""
     k = len(directions)
-    if n_z is None:
-        n_z = int(min(512, max(64, 24 * np.sqrt(k))))
+    n_z = int(min(512, max(128, 24 * np.sqrt(k)))) if n_theta is None else int(n_theta)
     n_phi = 2 * n_z
-    z = -1.0 + (np.arange(n_z) + 0.5) * 2.0 / n_z
+    z = np.cos((np.arange(n_z) + 0.5) * np.pi / n_z)
     phi = -np.pi + (np.arange(n_phi) + 0.5) * 2.0 * np.pi / n_phi
     s = np.sqrt(1.0 - z * z)
     cells = np.stack(
@@ -382,8 +382,8 @@ def _query_kernel(p, zax, origin, voxel, shape, row_of, table, bits, index, reac
             continue
         zx, zy, zz = zax[n, 0], zax[n, 1], zax[n, 2]
         norm = np.sqrt(zx * zx + zy * zy + zz * zz)
-        zz = zz / norm
-        iz = int((zz + 1.0) * 0.5 * n_z)
+        zz = min(1.0, max(-1.0, zz / norm))
+        iz = int(np.arccos(zz) / np.pi * n_z)
         iz = min(max(iz, 0), n_z - 1)
         ip = int((np.arctan2(zy, zx) + np.pi) / (2.0 * np.pi) * n_phi)
         ip = min(max(ip, 0), n_phi - 1)
@@ -456,7 +456,8 @@ class CapabilityMap:
         v = np.asarray(v, dtype=float).reshape(-1, 3)
         v = v / np.linalg.norm(v, axis=1, keepdims=True)
         n_z, n_phi = self._table.shape
-        iz = np.clip(((v[:, 2] + 1.0) * 0.5 * n_z).astype(np.int64), 0, n_z - 1)
+        iz = np.arccos(np.clip(v[:, 2], -1.0, 1.0)) / np.pi * n_z
+        iz = np.clip(iz.astype(np.int64), 0, n_z - 1)
         phi = np.arctan2(v[:, 1], v[:, 0])
         ip = np.clip(((phi + np.pi) / (2.0 * np.pi) * n_phi).astype(np.int64), 0, n_phi - 1)
         return self._table[iz, ip].astype(np.int64)

@@ -29,19 +29,29 @@ def test_golden_spiral_unit_and_spread():
 
 
 @given(st.floats(-1, 1), st.floats(-np.pi, np.pi))
-@settings(max_examples=60, deadline=None)
-def test_direction_table_picks_a_nearest_direction(z, phi):
-    d = cm.golden_spiral(50)
-    table = cm.direction_table(d)
+@settings(max_examples=100, deadline=None)
+def test_nearest_direction_within_a_cell_of_the_true_nearest(z, phi):
+    m = _tiny_map()
     s = np.sqrt(1 - z * z)
     v = np.array([s * np.cos(phi), s * np.sin(phi), z])
-    n_z, n_phi = table.shape
-    iz = min(int((z + 1) / 2 * n_z), n_z - 1)
-    ip = min(int((phi + np.pi) / (2 * np.pi) * n_phi), n_phi - 1)
-    chosen = d[table[iz, ip]] @ v
-    best = np.max(d @ v)
-    # the cell's nearest direction is within one cell size of the true nearest
-    assert np.arccos(min(1.0, chosen)) <= np.arccos(min(1.0, best)) + 2.5 * np.pi / n_z
+    chosen = m.directions[m.nearest_direction(v[None])[0]] @ v
+    best = np.max(m.directions @ v)
+    n_theta = m._table.shape[0]
+    # the table's pick is at most one cell diameter worse than the true nearest (poles included)
+    assert np.arccos(min(1.0, chosen)) <= np.arccos(min(1.0, best)) + 1.5 * np.pi / n_theta
+    # the compiled query kernel and the numpy lookup agree
+    cell = m.centres()[0]
+    X = transform(cm.frames_from_z(v), cell)
+    assert m.query(X[None])[0][0] == m.reach_rows([0])[0, m.nearest_direction(v[None])[0]]
+
+
+_TINY = []
+
+
+def _tiny_map():
+    if not _TINY:
+        _TINY.append(cm.build(cm.make_params(0.3, 50), workers=1))
+    return _TINY[0]
 
 
 def test_obviously_reachable_and_unreachable(coarse):
