@@ -20,6 +20,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "analyses.instrument",
     "analyses.capmap",
     "analyses.robot_place",
+    "analyses.simulate",
 )
 
 

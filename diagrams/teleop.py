@@ -1,0 +1,443 @@
+"""The teleoperated-feeding diagram (DESIGN.md section 7).
+
+```
+MasterDevice --V_WE_command--> VirtualFixtureForceLaw --X_WE_desired--> DiffIK integrator
+DiffIK --q_desired--> (kinematic) positions of the plant   | (dynamic) interpolator ->
+                      inverse dynamics controller -> MultibodyPlant at 1 ms
+q (plant) --> ToolPose --X_WE--> VirtualFixtureForceLaw, FpsmEstimator, MasterDevice (finishing)
+loggers: q, tool position, VF violation, FPSM safety, alarm;  scene graph --> Meshcat (optional)
+```
+
+Two modes:
+
+- ``kinematic`` (default for the experiments): Drake's DifferentialInverseKinematicsIntegrator
+  (200 Hz) integrates its own joint positions, which *are* the arm's positions: the plant is the
+  kinematic model (DiffIK's robot, and MultibodyPositionToGeometryPose feeds the scene graph);
+  nothing integrates dynamics.
+- ``dynamic``: the same q_desired goes through StateInterpolatorWithDiscreteDerivative to an
+  InverseDynamicsController driving the discrete MultibodyPlant (1 ms step) through its actuators.
+
+Frames: End = the actuator's ``tcp`` frame on the plant; seed 000's Tool frame (x along the rod
+out of the mouth, z along the implant axis) is End rotated by R_ET = R_OE^T (systems.moprp: Oral
+= Tool, and End's axes in Oral are R_OE). The FPSM and the virtual fixture live in the Center
+frame, placed in World by ``X_WCenter``.
+
+The scene (arm, actuator, cart, chair and patient) comes from diagrams.plant's model directives;
+build_plant returns a finished diagram, so this module adds the same directives to its own
+builder through diagrams.plant's directive loader.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.geometry import (
+    CollisionFilterDeclaration,
+    MeshcatVisualizer,
+    MeshcatVisualizerParams,
+    Role,
+    SceneGraph,
+)
+from pydrake.math import RigidTransform
+from pydrake.multibody.inverse_kinematics import (
+    DifferentialInverseKinematicsIntegrator,
+    DifferentialInverseKinematicsParameters,
+)
+from pydrake.multibody.parsing import Parser, ProcessModelDirectives
+from pydrake.multibody.plant import AddMultibodyPlantSceneGraph, MultibodyPlant
+from pydrake.multibody.tree import BodyIndex
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.controllers import InverseDynamicsController
+from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem
+from pydrake.systems.primitives import LogVectorOutput, StateInterpolatorWithDiscreteDerivative
+from pydrake.systems.rendering import MultibodyPositionToGeometryPose
+
+import models
+from diagrams import plant as scene
+from diagrams import tools
+from systems import kinematics as kin
+from systems.errors import InputError
+from systems.fpsm import Fpsm
+from systems.fpsm_estimator import FpsmEstimator, ToolLines
+from systems.frames import transform
+from systems.master_device import IncrementalMapping, MasterDevice, MasterMotion
+from systems.moprp import R_OE
+from systems.vf_system import VirtualFixtureForceLaw
+from systems.virtual_fixture import VirtualFixture
+
+MODES = ("kinematic", "dynamic")
+X_ET = transform(R_OE.T, np.zeros(3))  # seed 000's Tool frame in the plant's TCP frame (End)
+
+
+@dataclass
+class TeleopCase:
+    """A feeding case in World (SI units).
+
+    Attributes:
+        scenario: the plant scene ("lying" / "sitting" / "arm").
+        X_WBase: base_link pose in World.
+        q_start: (6,) arm configuration at the start (the pre-feed pose).
+        X_WCenter: the FPSM's Center frame in World.
+        fpsm: the surrogate model (Center frame).
+        vf: the virtual fixture (Center frame).
+        X_WTarget: the feeding target: Tool (= Oral) pose in World.
+        rod_radius, implant_length: the actuator (m).
+        limits: "175" or "360".
+        label: free text for reports.
+    """
+
+    scenario: str
+    X_WBase: np.ndarray
+    q_start: np.ndarray
+    X_WCenter: np.ndarray
+    fpsm: Fpsm
+    vf: VirtualFixture
+    X_WTarget: np.ndarray
+    rod_radius: float = tools.ROD_RADIUS
+    implant_length: float = tools.IMPLANT_LENGTH
+    limits: str = "175"
+    label: str = ""
+
+    @property
+    def X_FE(self) -> np.ndarray:
+        """The plant's TCP (End) in the flange frame."""
+        return tools.X_FT()
+
+    def X_WE(self, q) -> np.ndarray:
+        """End pose(s) in World for configurations ``q`` (..., 6)."""
+        return self.X_WBase @ kin.fk(q, self.X_FE)
+
+    @property
+    def X_WE_target(self) -> np.ndarray:
+        return self.X_WTarget @ np.linalg.inv(X_ET)
+
+
+class ToolPose(LeafSystem):
+    """Forward kinematics of the arm + actuator: the TCP (End) pose from the joint positions.
+
+    .. pydrake_system::
+
+        name: ToolPose
+        input_ports:
+        - q
+        output_ports:
+        - X_WE
+        - p_WE
+
+    ``q`` (6, or the 12-vector arm state [q; v] when ``state_input``): joint positions.
+    ``X_WE`` (abstract RigidTransform) and ``p_WE`` (3): the TCP pose / position in World
+    (systems.kinematics.fk with the actuator's X_FE, and the base pose).
+    """
+
+    def __init__(self, X_WBase, X_FE, *, state_input: bool = False):
+        super().__init__()
+        self._X_WBase = np.asarray(X_WBase, dtype=float)
+        self._X_FE = np.asarray(X_FE, dtype=float)
+        self._q = self.DeclareVectorInputPort("q", 12 if state_input else 6)
+        self._X = self.DeclareAbstractOutputPort(
+            "X_WE", lambda: AbstractValue.Make(RigidTransform()), self._calc_pose
+        )
+        self._p = self.DeclareVectorOutputPort("p_WE", 3, self._calc_position)
+
+    def pose(self, context) -> np.ndarray:
+        q = np.asarray(self._q.Eval(context))[:6]
+        return self._X_WBase @ kin.fk(q, self._X_FE)
+
+    def _calc_pose(self, context, value):
+        value.set_value(RigidTransform(self.pose(context)))
+
+    def _calc_position(self, context, output: BasicVector):
+        output.SetFromVector(self._X.Eval(context).translation())
+
+
+@dataclass
+class Teleop:
+    """A built feeding diagram and handles to its parts (keep it alive while simulating)."""
+
+    diagram: object
+    plant: MultibodyPlant
+    scene_graph: SceneGraph
+    mode: str
+    master: MasterDevice
+    vf: VirtualFixtureForceLaw
+    estimator: FpsmEstimator
+    diffik: DifferentialInverseKinematicsIntegrator
+    tool_pose: ToolPose
+    loggers: dict
+    case: TeleopCase
+    period: float
+    visualizer: object = None
+    interpolator: object = None
+    keep: list = field(default_factory=list)
+
+    def initialize(self, context) -> None:
+        """Put the arm, DiffIK and the fixture's desired pose at the case's start."""
+        q0 = np.asarray(self.case.q_start, dtype=float)
+        self.diffik.SetPositions(self.diffik.GetMyMutableContextFromRoot(context), q0)
+        plant_context = self.plant.GetMyMutableContextFromRoot(context) if (
+            self.mode == "dynamic"
+        ) else None
+        if plant_context is not None:
+            self.plant.SetPositions(plant_context, self.plant.GetModelInstanceByName("aubo"), q0)
+            self.interpolator.set_initial_position(
+                self.interpolator.GetMyMutableContextFromRoot(context), q0
+            )
+        self.vf.set_desired_pose(
+            self.vf.GetMyMutableContextFromRoot(context), self.case.X_WE(q0)
+        )
+
+
+def _add_scene(builder, case: TeleopCase, mode: str, plant_step: float):
+    """The case's scene (diagrams.plant directives, base welded at X_WBase) in ``builder``."""
+    directives, _ = scene._scene_directives(case.scenario, case.X_WBase, case.limits, True)
+    if mode == "dynamic":
+        plant, scene_graph = AddMultibodyPlantSceneGraph(builder, time_step=plant_step)
+    else:
+        scene_graph = builder.AddSystem(SceneGraph())
+        plant = MultibodyPlant(0.0)
+        plant.RegisterAsSourceForSceneGraph(scene_graph)
+    parser = Parser(plant)
+    models.add_package(parser.package_map())
+    ProcessModelDirectives(directives, plant, parser)
+    plant.Finalize()
+    if plant.num_positions() != 6:
+        raise InputError("scenario", f"expected a 6-DOF scene, got {plant.num_positions()} q")
+    if mode == "dynamic":
+        # No contact forces: the patient model has no mouth (the FPSM estimator stands in for
+        # the cavity) and the feed is a free-space motion; dynamic mode is about tracking.
+        everything = plant.CollectRegisteredGeometries(
+            [plant.get_body(BodyIndex(b)) for b in range(plant.num_bodies())]
+        )
+        scene_graph.collision_filter_manager().Apply(
+            CollisionFilterDeclaration().ExcludeWithin(everything)
+        )
+    return plant, scene_graph
+
+
+def diffik_parameters(plant: MultibodyPlant, q0, period: float):
+    """DiffIK settings: full-pose tracking, the URDF's joint position and velocity limits."""
+    params = DifferentialInverseKinematicsParameters(6, 6)
+    params.set_time_step(period)
+    params.set_nominal_joint_position(np.asarray(q0, dtype=float))
+    params.set_joint_position_limits(
+        (plant.GetPositionLowerLimits(), plant.GetPositionUpperLimits())
+    )
+    params.set_joint_velocity_limits(
+        (plant.GetVelocityLowerLimits(), plant.GetVelocityUpperLimits())
+    )
+    params.set_end_effector_velocity_flag(np.ones(6, dtype=bool))
+    return params
+
+
+def build_teleop(
+    case: TeleopCase,
+    motion: MasterMotion,
+    *,
+    mode: str = "kinematic",
+    mapping: IncrementalMapping | None = None,
+    vf_enabled: bool = True,
+    finish: bool = True,
+    period: float = 0.005,
+    plant_step: float = 0.001,
+    stiffness: float = 2000.0,
+    damping: float = 100.0,
+    alarm_margin: float = 0.001,
+    estimator_period: float = 0.02,
+    gains: tuple[float, float, float] = (900.0, 1.0, 60.0),
+    meshcat=None,
+) -> Teleop:
+    """Wire the feeding diagram for one master motion.
+
+    Args:
+        case: the scene, layout, FPSM, fixture and start configuration.
+        motion: the operator's master handle motion (scripted or recorded).
+        mode: "kinematic" or "dynamic" (see the module docstring).
+        mapping: master -> slave incremental mapping (identity by default).
+        vf_enabled: False lets the command through unfiltered (experiments without the fixture).
+        finish: the operator finishes by eye towards the feeding target after the script.
+        period: control period of DiffIK, the fixture, the estimator and the loggers (s).
+        plant_step: the plant's time step in dynamic mode (s).
+        stiffness, damping: the fixture's admittance (N/m, N s/m).
+        alarm_margin: FPSM alarm threshold on min d_safe (m).
+        estimator_period: update period of the FPSM estimator and its loggers (s).
+        gains: (kp, ki, kd) of the inverse dynamics controller (dynamic mode).
+        meshcat: a pydrake.geometry.Meshcat, or None.
+    """
+    if mode not in MODES:
+        raise InputError("mode", f"expected kinematic or dynamic, got {mode!r}")
+    builder = DiagramBuilder()
+    plant, scene_graph = _add_scene(builder, case, mode, plant_step)
+    tcp = plant.GetFrameByName("tcp")
+    q0 = np.asarray(case.q_start, dtype=float)
+
+    target = case.X_WTarget[:3, 3] if finish else None
+    master = builder.AddSystem(MasterDevice(motion, mapping, target_W=target))
+    master.set_name("master")
+    vf = builder.AddSystem(
+        VirtualFixtureForceLaw(
+            case.vf,
+            case.X_WCenter,
+            case.X_WE(q0),
+            period=period,
+            stiffness=stiffness,
+            damping=damping,
+            enabled=vf_enabled,
+        )
+    )
+    vf.set_name("virtual_fixture")
+    lines = ToolLines.contra_angle(case.rod_radius, case.implant_length).expressed_in(X_ET)
+    estimator = builder.AddSystem(
+        FpsmEstimator(
+            case.fpsm,
+            case.X_WCenter,
+            lines,
+            alarm_margin=alarm_margin,
+            period=estimator_period,
+        )
+    )
+    estimator.set_name("fpsm_estimator")
+    diffik = builder.AddSystem(
+        DifferentialInverseKinematicsIntegrator(
+            plant,
+            tcp,
+            period,
+            diffik_parameters(plant, q0, period),
+            log_only_when_result_state_changes=True,
+        )
+    )
+    diffik.set_name("diff_ik")
+    tool_pose = builder.AddSystem(
+        ToolPose(case.X_WBase, case.X_FE, state_input=(mode == "dynamic"))
+    )
+    tool_pose.set_name("tool_pose")
+
+    builder.Connect(master.GetOutputPort("V_WE_command"), vf.GetInputPort("V_WE_command"))
+    builder.Connect(vf.GetOutputPort("X_WE_desired"), diffik.GetInputPort("X_AE_desired"))
+    builder.Connect(tool_pose.GetOutputPort("X_WE"), vf.GetInputPort("X_WE_measured"))
+    builder.Connect(tool_pose.GetOutputPort("X_WE"), estimator.GetInputPort("X_WT"))
+    if finish:
+        builder.Connect(tool_pose.GetOutputPort("X_WE"), master.GetInputPort("X_WE_measured"))
+
+    arm = plant.GetModelInstanceByName("aubo")
+    keep, interp = [], None
+    if mode == "kinematic":
+        q_port = diffik.GetOutputPort("joint_positions")
+        to_pose = builder.AddSystem(MultibodyPositionToGeometryPose(plant))
+        builder.Connect(q_port, to_pose.get_input_port())
+        builder.Connect(
+            to_pose.get_output_port(), scene_graph.get_source_pose_port(plant.get_source_id())
+        )
+        keep.append(plant)  # not owned by the diagram in this mode
+        builder.Connect(q_port, tool_pose.GetInputPort("q"))
+    else:
+        interp = builder.AddSystem(
+            StateInterpolatorWithDiscreteDerivative(6, period, suppress_initial_transient=True)
+        )
+        kp, ki, kd = gains
+        controller = builder.AddSystem(
+            InverseDynamicsController(plant, [kp] * 6, [ki] * 6, [kd] * 6, False)
+        )
+        builder.Connect(diffik.GetOutputPort("joint_positions"), interp.get_input_port())
+        builder.Connect(interp.get_output_port(), controller.get_input_port_desired_state())
+        builder.Connect(
+            plant.get_state_output_port(arm), controller.get_input_port_estimated_state()
+        )
+        builder.Connect(controller.get_output_port_control(), plant.get_actuation_input_port())
+        q_port = plant.get_state_output_port(arm)
+        builder.Connect(q_port, tool_pose.GetInputPort("q"))
+
+    loggers = {
+        "q": LogVectorOutput(q_port, builder, period),
+        "p_WE": LogVectorOutput(tool_pose.GetOutputPort("p_WE"), builder, period),
+        "violation": LogVectorOutput(vf.GetOutputPort("violation"), builder, period),
+        "safety": LogVectorOutput(estimator.GetOutputPort("safety"), builder, estimator_period),
+        "alarm": LogVectorOutput(estimator.GetOutputPort("alarm"), builder, estimator_period),
+    }
+    visualizer = None
+    if meshcat is not None:
+        visualizer = MeshcatVisualizer.AddToBuilder(
+            builder, scene_graph, meshcat, MeshcatVisualizerParams(role=Role.kIllustration)
+        )
+    diagram = builder.Build()
+    diagram.set_name(f"teleop_{mode}")
+    return Teleop(
+        diagram=diagram,
+        plant=plant,
+        scene_graph=scene_graph,
+        mode=mode,
+        master=master,
+        vf=vf,
+        estimator=estimator,
+        diffik=diffik,
+        tool_pose=tool_pose,
+        loggers=loggers,
+        case=case,
+        period=period,
+        visualizer=visualizer,
+        interpolator=interp,
+        keep=keep,
+    )
+
+
+@dataclass
+class FeedRun:
+    """What one simulated run measured (SI units)."""
+
+    t: np.ndarray  # (n,) log times
+    q: np.ndarray  # (n, 6)
+    p_WE: np.ndarray  # (n, 3)
+    violation: np.ndarray  # (n,)
+    t_safety: np.ndarray  # (m,) times of the estimator's log
+    f_safe_line1: np.ndarray
+    f_safe_line2: np.ndarray
+    min_d_safe: np.ndarray
+    alarm: np.ndarray  # (n,) bool
+    sim_seconds: float
+    wall_seconds: float
+
+    @property
+    def joint_travel(self) -> float:
+        """Sum over joints of the integrated |qdot| (seed 001 Eq. 23), from the log (rad)."""
+        return float(np.abs(np.diff(self.q, axis=0)).sum())
+
+    def first_alarm_time(self) -> float | None:
+        hit = np.flatnonzero(self.alarm)
+        return float(self.t_safety[hit[0]]) if hit.size else None
+
+
+def simulate(teleop: Teleop, duration: float, *, recording: bool = False) -> FeedRun:
+    """Run the diagram from the case's start for ``duration`` seconds of simulated time."""
+    if not np.isfinite(duration) or duration <= 0:
+        raise InputError("duration", f"expected a duration > 0 s, got {duration}")
+    simulator = Simulator(teleop.diagram)
+    context = simulator.get_mutable_context()
+    diffik_context = teleop.diffik.GetMyMutableContextFromRoot(context)
+    teleop.diffik.GetInputPort("use_robot_state").FixValue(diffik_context, False)
+    teleop.initialize(context)
+    if recording and teleop.visualizer is not None:
+        teleop.visualizer.StartRecording()
+    simulator.Initialize()
+    start = time.perf_counter()
+    simulator.AdvanceTo(duration)
+    wall = time.perf_counter() - start
+    if recording and teleop.visualizer is not None:
+        teleop.visualizer.StopRecording()
+        teleop.visualizer.PublishRecording()
+    logs = {k: v.FindLog(context) for k, v in teleop.loggers.items()}
+    safety = logs["safety"].data().T
+    return FeedRun(
+        t=logs["q"].sample_times().copy(),
+        q=logs["q"].data().T[:, :6].copy(),
+        p_WE=logs["p_WE"].data().T.copy(),
+        violation=logs["violation"].data()[0].copy(),
+        t_safety=logs["safety"].sample_times().copy(),
+        f_safe_line1=safety[:, 0].copy(),
+        f_safe_line2=safety[:, 1].copy(),
+        min_d_safe=safety[:, 2].copy(),
+        alarm=logs["alarm"].data()[0] > 0.5,
+        sim_seconds=float(context.get_time()),
+        wall_seconds=wall,
+    )

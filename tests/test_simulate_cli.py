@@ -1,0 +1,99 @@
+"""implantplan simulate feeding|circle and analyze layouts, through the CLI."""
+
+import json
+
+import numpy as np
+import pytest
+
+from analyses import simulate as S
+from analyses.cli import main
+from systems.fpsm import Fpsm
+
+
+def read(path):
+    return json.loads(path.read_text())
+
+
+def test_feeding_writes_the_runs(tmp_path):
+    out = tmp_path / "feed"
+    assert main(["simulate", "feeding", "--runs", "2", "--seed", "3", "--out", str(out),
+                 "--quiet"]) == 0
+    data = read(out / "feeding.json")
+    assert data["kind"] == "feeding" and data["schema_version"] == 1
+    assert len(data["runs"]) == 2
+    for run in data["runs"]:
+        for key in ("joint_travel", "min_d_safe", "max_vf_violation", "collision_alarm",
+                    "sim_seconds", "wall_seconds"):
+            assert key in run
+        assert run["max_vf_violation"] < 0.001 and not run["collision_alarm"]
+        assert run["reached_target"]
+    assert data["realtime_factor"] > 0
+    assert data["runs"][0]["joint_travel"] != data["runs"][1]["joint_travel"]
+    assert (out / "feeding_travel.png").stat().st_size > 0
+
+
+def test_feeding_from_an_instrument_plan(tmp_path):
+    fpsm_path = Fpsm.cylinder(0.05, 0.0, 0.1, slices=11).save(tmp_path / "fpsm.json")
+    plan = tmp_path / "placement.json"
+    code = main(["instrument", "place", "--fpsm", str(fpsm_path), "--hole-mm", "0", "-50", "50",
+                 "--hole-axis", "0", "1", "0", "--rod-radius-mm", "6",
+                 "--implant-length-mm", "31", "--out", str(plan)])
+    assert code == 0
+    out = tmp_path / "feed"
+    assert main(["simulate", "feeding", "--plan", str(plan), "--runs", "1", "--out", str(out),
+                 "--quiet"]) == 0
+    data = read(out / "feeding.json")
+    assert data["instrument"] == str(plan)
+    assert data["runs"][0]["reached_target"] and not data["runs"][0]["collision_alarm"]
+
+
+def test_circle_writes_the_path_error(tmp_path):
+    out = tmp_path / "circle"
+    assert main(["simulate", "circle", "--realizations", "3", "--out", str(out), "--quiet"]) == 0
+    data = read(out / "circle.json")
+    # joint errors of ~0.1 deg on a ~1 m arm: a path error of the order of a millimetre
+    assert 1e-4 < data["path_error_mean"] < 5e-3
+    assert data["path_error_max"] >= data["path_error_mean"]
+    assert (out / "circle.png").stat().st_size > 0
+
+
+def test_layouts_ranks_and_plots(tmp_path):
+    out = tmp_path / "layouts"
+    assert main(["analyze", "layouts", "--random", "2", "--runs", "1", "--realizations", "2",
+                 "--out", str(out), "--quiet"]) == 0
+    data = read(out / "layouts.json")
+    assert data["of"] == 3 and data["layouts"][0]["label"] == "win"
+    for key in ("joint_travel", "path_error", "gii"):
+        assert 1 <= data["ranks"][key] <= 3
+    for name in ("path_error", "joint_travel", "gii"):
+        assert (out / f"layouts_{name}.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize(
+    "argv, field",
+    [
+        (["simulate", "feeding", "--runs", "0"], "--runs"),
+        (["simulate", "feeding", "--plan", "/nonexistent.json"], "--plan"),
+        (["simulate", "circle", "--scenario", "standing"], "--scenario"),
+        (["analyze", "layouts", "--random", "0"], "--random"),
+    ],
+)
+def test_bad_input_exits_2(tmp_path, capsys, argv, field):
+    assert main([*argv, "--out", str(tmp_path / "x"), "--quiet"]) == 2
+    assert field in capsys.readouterr().err
+
+
+def test_rank_of_first_by_hand():
+    assert S.rank_of_first([1.0, 2.0, 3.0]) == 1
+    assert S.rank_of_first([2.0, 1.0, 3.0]) == 2
+    assert S.rank_of_first([2.0, 1.0, 3.0], higher_is_better=True) == 2
+    assert S.rank_of_first([1.0, 1.0, 0.5]) == 2  # ties count in its favour
+
+
+def test_joint_error_model_is_seeded_and_sized():
+    t = np.arange(200) * 0.01
+    q = np.stack([np.sin(t)] * 6, axis=1)
+    a = S.joint_error(q, t, np.deg2rad(0.1), 4, seed=7)
+    b = S.joint_error(q, t, np.deg2rad(0.1), 4, seed=7)
+    assert a.shape == (4, 200, 6) and np.array_equal(a, b)
+    assert np.abs(a).max() < np.deg2rad(0.1) * 3

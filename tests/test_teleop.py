@@ -1,0 +1,108 @@
+"""The feeding diagram: a full feed on the default case, a bad command stream, both modes."""
+
+import numpy as np
+import pytest
+
+from analyses import simulate as S
+from diagrams.teleop import X_ET, ToolPose, build_teleop, simulate
+from systems.master_device import MasterMotion, feeding_runs
+
+
+@pytest.fixture(scope="module")
+def case():
+    sc, sc_plant = S.load_scenario("lying")
+    xyz, branch, _ = S.select_layout(sc, seed=0, candidates=100)
+    return S.make_case("lying", sc_plant, xyz, branch, S.default_instrument())
+
+
+def test_tool_pose_matches_the_plant_tcp(case):
+    motion = MasterMotion(dt=0.01, p_M=np.zeros((2, 3)))
+    teleop = build_teleop(case, motion)
+    plant = teleop.plant
+    context = plant.CreateDefaultContext()
+    system = ToolPose(case.X_WBase, case.X_FE)
+    sys_context = system.CreateDefaultContext()
+    rng = np.random.default_rng(0)
+    for q in [case.q_start, *rng.uniform(-3, 3, (5, 6))]:
+        plant.SetPositions(context, q)
+        X_drake = plant.CalcRelativeTransform(
+            context, plant.world_frame(), plant.GetFrameByName("tcp")
+        ).GetAsMatrix4()
+        system.GetInputPort("q").FixValue(sys_context, q)
+        X = system.GetOutputPort("X_WE").Eval(sys_context).GetAsMatrix4()
+        np.testing.assert_allclose(X, X_drake, atol=1e-12)
+
+
+def test_target_frame_is_the_tool_frame_at_the_goal(case):
+    # seed 000's Tool x (the rod, out of the mouth) is End -z; Tool z (implant axis) is End y
+    X_WE = case.X_WE_target
+    np.testing.assert_allclose(X_WE @ X_ET, case.X_WTarget, atol=1e-12)
+    np.testing.assert_allclose(X_WE[:3, 2], -case.X_WTarget[:3, 0], atol=1e-12)
+    # the start is backed out along the rod, 60 mm (the scenario's feed length)
+    d = case.X_WE(case.q_start)[:3, 3] - case.X_WTarget[:3, 3]
+    np.testing.assert_allclose(d, 0.06 * case.X_WTarget[:3, 0], atol=1e-9)
+
+
+def test_full_feed_reaches_the_target_inside_the_fixture_without_alarm(case):
+    start = case.X_WE(case.q_start)[:3, 3]
+    target = case.X_WTarget[:3, 3]
+    motion = feeding_runs(start, target, runs=1, seed=4)[0]
+    run = simulate(build_teleop(case, motion), motion.duration + S.FINISH_SECONDS)
+    assert np.linalg.norm(run.p_WE[-1] - target) < 0.001
+    assert run.violation.max() < 0.001
+    assert not run.alarm.any()
+    assert 0.0 < run.min_d_safe.min() < 1.0  # the estimator saw the rod inside the mouth
+    assert run.joint_travel > 0.1  # a 60 mm feed moves the joints by tenths of a radian
+    # bit-for-bit repeatable
+    again = simulate(build_teleop(case, motion), motion.duration + S.FINISH_SECONDS)
+    assert np.array_equal(again.q, run.q)
+
+
+def cheek_push(case, *, depth=0.03, lateral=0.06, speed=0.02, dt=0.005):
+    """Feed straight in by ``depth`` then push sideways into the cheek (Center +x)."""
+    start = case.X_WE(case.q_start)[:3, 3]
+    u_in = -case.X_WTarget[:3, 0]  # into the mouth along the rod
+    u_cheek = case.X_WCenter[:3, 0]
+    n1 = int(depth / speed / dt)
+    n2 = int(lateral / speed / dt)
+    s1 = np.linspace(0.0, depth, n1)
+    s2 = np.linspace(0.0, lateral, n2)[1:]
+    path = np.concatenate(
+        [start + s1[:, None] * u_in, start + depth * u_in + s2[:, None] * u_cheek]
+    )
+    return MasterMotion(dt=dt, p_M=path - start)
+
+
+def test_bad_command_into_the_cheek(case):
+    motion = cheek_push(case)
+    duration = motion.duration + 0.5
+    guarded = simulate(build_teleop(case, motion, finish=False), duration)
+    # the fixture stops the tool: it stays within 1 mm of the fixture and never touches
+    assert guarded.violation.max() < 0.001
+    assert guarded.min_d_safe.min() > 0.0
+    lateral = (guarded.p_WE - guarded.p_WE[0]) @ case.X_WCenter[:3, 0]
+    assert lateral.max() < case.vf.cylinder_radius + 0.001
+
+    free = simulate(build_teleop(case, motion, finish=False, vf_enabled=False), duration)
+    contact = np.flatnonzero(free.min_d_safe <= 0.0)
+    assert contact.size, "without the fixture the push must reach the cheek"
+    t_contact = free.t_safety[contact[0]]
+    t_alarm = free.first_alarm_time()
+    assert t_alarm is not None and t_alarm < t_contact
+
+
+def test_dynamic_mode_tracks_the_kinematic_run(case):
+    start = case.X_WE(case.q_start)[:3, 3]
+    u_in = -case.X_WTarget[:3, 0]
+    motion = feeding_runs(start, start + 0.02 * u_in, runs=1, seed=1)[0]
+    kinematic = simulate(build_teleop(case, motion, finish=False), 2.0)
+    dynamic = simulate(build_teleop(case, motion, finish=False, mode="dynamic"), 2.0)
+    assert np.abs(dynamic.p_WE - kinematic.p_WE).max() < 0.001
+    assert dynamic.violation.max() < 0.001
+
+
+def test_bad_mode_is_an_input_error(case):
+    from systems.errors import InputError
+
+    with pytest.raises(InputError, match="mode"):
+        build_teleop(case, MasterMotion(dt=0.01, p_M=np.zeros((2, 3))), mode="fast")
