@@ -178,7 +178,9 @@ def summary_row(p: Placement) -> dict:
         "grid_d_T_mm": g.get("d_T", np.nan) / MM,
         "grid_theta_T_deg": np.rad2deg(g.get("theta_T", np.nan)),
         "pso_minus_grid_d_T_mm": (p.d_T - g.get("d_T", np.nan)) / MM,
-        "pso_minus_grid_theta_T_deg": np.rad2deg(p.theta_T - g.get("theta_T", np.nan)),
+        "pso_minus_grid_theta_T_deg": np.rad2deg(
+            np.angle(np.exp(1j * (p.theta_T - g.get("theta_T", np.nan))))
+        ),
     }
 
 

@@ -512,10 +512,12 @@ def place_instrument(
     problem = PlacementProblem(
         fpsm, X_CH, rod_radius, implant_length, objective, lambda_avg, lambda_min
     )
-    # The paper runs the PSO once. A swarm can stall on an infeasible plateau (3 of 80 runs on
-    # the bundled cavity), so when its optimum is not collision-free we run it again with
-    # seeds spawned from ``seed`` (at most ``restarts`` more runs) and keep the best optimum.
-    seeds = np.random.SeedSequence(seed if isinstance(seed, int) else 0).spawn(restarts)
+    # The paper runs the PSO once. A swarm can stall on an infeasible plateau (seen on the
+    # bundled cavity: one seed ended with the tool above the mouth while a collision-free
+    # optimum existed), so when its optimum is not collision-free we run it again with seeds
+    # spawned from ``seed`` (at most ``restarts`` more runs) and keep the best optimum.
+    entropy = int(seed) if isinstance(seed, (int, np.integer)) else 0
+    seeds = np.random.SeedSequence(entropy).spawn(restarts)
     runs, total_it, total_ev, total_s = 0, 0, 0, 0.0
     best = None
     for attempt in range(restarts + 1):
@@ -553,7 +555,8 @@ def place_instrument(
             "d_T": float(g["x"][0]),
             "theta_T": float(g["x"][1]),
             "distance_d_T": float(abs(g["x"][0] - res.x[0])),
-            "distance_theta_T": float(abs(g["x"][1] - res.x[1])),
+            # angles wrap: -pi and pi are the same rod direction
+            "distance_theta_T": float(abs(np.angle(np.exp(1j * (g["x"][1] - res.x[1]))))),
             "F_pso_minus_grid": float(res.F - g["F"]),
         }
     placement = Placement(
@@ -581,7 +584,7 @@ def place_instrument(
         rod_radius=rod_radius,
         implant_length=implant_length,
         bounds=bounds,
-        seed=int(seed) if not isinstance(seed, np.random.Generator) else -1,
+        seed=entropy if isinstance(seed, (int, np.integer)) else -1,
         grid=grid,
         settings={
             "particles": particles,
