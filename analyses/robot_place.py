@@ -64,7 +64,7 @@ def register(subparsers) -> None:
     p.add_argument("--gen", type=int, default=None, help="max generations (scenario: 500)")
     p.add_argument("--seed", type=int, default=None, help="seed (scenario's seed by default)")
     p.add_argument("--ik", choices=("closed-form", "drake"), default="closed-form")
-    p.add_argument("--drake-starts", type=int, default=16,
+    p.add_argument("--drake-starts", type=int, default=64,
                    help="multi-start budget per pose for --ik drake")
     p.add_argument("--weights", nargs=3, type=float, default=None, metavar=("WD", "WE", "WJ"),
                    help="select by weighted normalized indices instead of the knee point")
@@ -232,7 +232,7 @@ def _entry(xyz, ev: moprp.BaseEvaluation, i: int) -> dict:
 
 
 def run_placement(sc: moprp.Scenario, *, ik: str = "closed-form", weights=None,
-                  drake_starts: int = 16, progress: Progress | None = None) -> dict:
+                  drake_starts: int = 64, progress: Progress | None = None) -> dict:
     """Run MOPRP on a scenario; returns the placement dict (raises PlanningFailure)."""
     progress = progress or Progress("robot place", quiet=True)
     t_start = time.perf_counter()
@@ -250,7 +250,8 @@ def run_placement(sc: moprp.Scenario, *, ik: str = "closed-form", weights=None,
     if not np.any(cvs <= 0):
         ev = moprp.evaluate_bases(Xs, sc, rng, ik_solver=ik_solver)
         codes = ev.reason[ev.reason > 0]
-        common = np.bincount(codes, minlength=7).argmax() if codes.size else moprp.DROP_IK
+        common = (np.bincount(codes, minlength=len(moprp.DROP_REASONS)).argmax()
+                  if codes.size else moprp.DROP_IK)
         raise PlanningFailure(
             f"no feasible base among {Xs.shape[0]} samples of the bounds "
             f"x {sc.lower[0]:.3f}..{sc.upper[0]:.3f}, y {sc.lower[1]:.3f}..{sc.upper[1]:.3f}, "

@@ -56,7 +56,7 @@ R_BE = R_OB.T @ R_OE
 INDEX_NAMES = ("dexterity", "error_range", "joint_variation")
 
 # Which capsules are tested against which (names from collision_primitives).
-ACTUATOR = ("actuator_rod", "actuator_head", "actuator_body")
+ACTUATOR = ("actuator_rod", "actuator_head", "actuator_implant", "actuator_body")
 SELF_PAIRS = tuple(
     [(a, b) for a in ACTUATOR for b in
      ("base", "shoulder", "upper_arm_housing", "upper_arm", "forearm_housing", "forearm")]
@@ -98,6 +98,8 @@ class Actuator:
     rod_length: float = 0.16
     rod_radius: float = 0.006
     head_radius: float = 0.008
+    implant_length: float = 0.031
+    implant_radius: float = 0.002
     body_length: float = 0.0
     body_radius: float = 0.0
 
@@ -110,6 +112,8 @@ class Actuator:
             rod_length=self.rod_length,
             rod_radius=self.rod_radius,
             head_radius=self.head_radius,
+            implant_length=self.implant_length,
+            implant_radius=self.implant_radius,
             body_length=self.body_length,
             body_radius=self.body_radius,
         )
@@ -300,7 +304,8 @@ def scenario_from_dict(data: dict, *, X_FT=None, source: str = "scenario") -> Sc
     actuator = Actuator(**{
         key: _num(act.get(f"{key}_m", getattr(defaults, key)), f"actuator.{key}_m",
                   positive=key.startswith(("rod", "head")), nonneg=True)
-        for key in ("rod_length", "rod_radius", "head_radius", "body_length", "body_radius")
+        for key in ("rod_length", "rod_radius", "head_radius", "implant_length",
+                    "implant_radius", "body_length", "body_radius")
     })
     X_FT = actuator.X_FT() if X_FT is None else kin._check_pose(X_FT, "X_FT")
 
@@ -506,6 +511,55 @@ def collision_clearance(q, xyz, sc: Scenario, model: CollisionModel | None = Non
     return {"self": d_self, "environment": d_env, "cabinet": d_cab}
 
 
+_BOX_CORNERS = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], float)
+_BOX_EDGES = np.array([(a, b) for a in range(8) for b in range(a + 1, 8)
+                       if np.sum(_BOX_CORNERS[a] != _BOX_CORNERS[b]) == 1])
+
+
+def box_edges(X, half) -> np.ndarray:
+    """The 12 edges (..., 12, 2, 3) of boxes: centre poses X (..., 4, 4), half sizes (..., 3)."""
+    corners = (_BOX_CORNERS * np.asarray(half)[..., None, :]) @ np.swapaxes(
+        np.asarray(X)[..., :3, :3], -1, -2) + np.asarray(X)[..., None, :3, 3]
+    return corners[..., _BOX_EDGES, :]
+
+
+def cart_clearance(xyz, sc: Scenario) -> np.ndarray:
+    """Clearance (m) between the cart/cabinet box (fixed under the base) and the patient/chair,
+    per base position (P,). Two boxes overlap iff an edge of one meets the other or one holds
+    the other's centre, so box-box is tested by edges both ways plus the centres (0 = touching
+    or overlapping; the clearance is exact when the closest features are an edge and a face)."""
+    xyz = np.atleast_2d(np.asarray(xyz, dtype=float))
+    n = xyz.shape[0]
+    out = np.full(n, np.inf)
+    if not sc.obstacles:
+        return out
+    X_BW = invert(base_pose(xyz)) @ invert(sc.X_WO)  # (P, 4, 4)
+    R_BW = X_BW[0, :3, :3]
+    cart_edges = box_edges(sc.X_BC, sc.cabinet_half)  # (12, 2, 3) in Base
+    cart_seg = np.broadcast_to(cart_edges, (n, 12, 2, 3))
+    cart_R = sc.X_BC[None, :3, :3]
+    cart_p = np.broadcast_to(sc.X_BC[:3, 3], (n, 1, 3))
+    zeros12 = np.zeros(12)
+    for o in sc.obstacles:
+        if o.kind == "capsule":
+            seg_B = np.array([o.p0, o.p1]) @ R_BW.T + X_BW[:, None, :3, 3]  # (P, 2, 3)
+            d = cp.min_box_clearance(seg_B[:, None], np.array([o.radius]), cart_R, cart_p,
+                                     sc.cabinet_half[None])
+        else:
+            R_box = (R_BW @ o.X_WB[:3, :3])[None]
+            p_box = (o.X_WB[:3, 3] @ R_BW.T + X_BW[:, :3, 3])[:, None]  # (P, 1, 3)
+            d1 = cp.min_box_clearance(cart_seg, zeros12, R_box, p_box, o.half_size[None])
+            X_o = transform(R_box[0], p_box[:, 0])  # (P, 4, 4)
+            d2 = cp.min_box_clearance(box_edges(X_o, o.half_size), zeros12, cart_R, cart_p,
+                                      sc.cabinet_half[None])
+            inside = np.all(np.abs(p_box[:, 0] - sc.X_BC[:3, 3]) <= sc.cabinet_half, axis=1)
+            local = (sc.X_BC[:3, 3] - p_box[:, 0]) @ R_box[0]
+            inside |= np.all(np.abs(local) <= o.half_size, axis=1)
+            d = np.where(inside, 0.0, np.minimum(d1, d2))
+        out = np.minimum(out, d)
+    return out
+
+
 # --------------------------------------------------------------------------------------------
 # The problem evaluated by the GA
 # --------------------------------------------------------------------------------------------
@@ -542,7 +596,8 @@ class BaseEvaluation:
         return self.branch >= 0
 
 
-DROP_OK, DROP_IK, DROP_CONTINUITY, DROP_JOINT2, DROP_SELF, DROP_ENV, DROP_CABINET = range(7)
+(DROP_OK, DROP_IK, DROP_CONTINUITY, DROP_JOINT2, DROP_SELF, DROP_ENV, DROP_CABINET,
+ DROP_CART) = range(8)
 DROP_REASONS = {
     DROP_OK: "ok",
     DROP_IK: "no IK solution within the joint limits somewhere along the feed",
@@ -551,6 +606,7 @@ DROP_REASONS = {
     DROP_SELF: "condition 2: actuator or wrist hits the arm",
     DROP_ENV: "arm hits the patient or chair",
     DROP_CABINET: "arm hits the cabinet",
+    DROP_CART: "the cart itself overlaps the patient or chair at this base position",
 }
 
 
@@ -598,6 +654,14 @@ def evaluate_bases(
     reason = np.where(jump, DROP_CONTINUITY, reason)
     alive &= ~jump
     viol = ik_fail + np.where(jump, 0.5, 0.0)
+
+    # the cart under the base must stand clear of the patient and chair (independent of q)
+    d_cart = cart_clearance(xyz, sc)
+    cart_bad = d_cart < sc.clearance
+    viol = viol + np.where(cart_bad, sc.clearance - np.minimum(d_cart, sc.clearance) + 1e-3,
+                           0.0)[:, None]
+    reason = np.where(alive & cart_bad[:, None], DROP_CART, reason)
+    alive &= ~cart_bad[:, None]
 
     lo2, hi2 = sc.joint2_range
     q2 = q[..., 1]  # (P, B, K)

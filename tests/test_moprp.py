@@ -411,3 +411,24 @@ def test_min_capsule_clearance_matches_pairwise():
     pairs = np.array([[0, 1], [2, 3]])
     np.testing.assert_allclose(cp.min_capsule_clearance(A, ra, B, rb, pairs),
                                np.minimum(full[:, 0, 1], full[:, 2, 3]))
+
+
+def test_cart_clearance_by_hand():
+    """Bundled Oral pose: Base axes = World axes, base at Oral (1, 0, 0) = World (1, 0, 0.85);
+    the cart spans World x 0.85..1.45, y -0.25..0.25, z -1.15..0.85."""
+    d = _raw()
+    d["obstacles"] = [
+        {"name": "box", "type": "box", "center_m": [0.5, 0.0, 0.5], "size_m": [0.4, 0.4, 0.4]},
+    ]
+    sc = moprp.scenario_from_dict(d)
+    # box x 0.3..0.7: 0.15 from the cart's face at x = 0.85
+    assert moprp.cart_clearance([[1.0, 0.0, 0.0]], sc)[0] == pytest.approx(0.15)
+    # moving the base 0.2 towards the box makes them overlap
+    assert moprp.cart_clearance([[0.8, 0.0, 0.0]], sc)[0] == 0.0
+    d["obstacles"] = [{"name": "cap", "type": "capsule", "p0_m": [0.5, 0.0, 0.3],
+                       "p1_m": [0.5, 0.0, 0.6], "radius_m": 0.1}]
+    sc = moprp.scenario_from_dict(d)
+    assert moprp.cart_clearance([[1.0, 0.0, 0.0]], sc)[0] == pytest.approx(0.25)
+    # a base whose cart overlaps the patient is infeasible for every branch
+    ev = moprp.evaluate_bases([[0.5, 0.0, 0.0]], sc, np.random.default_rng(0))
+    assert ev.branch[0] == -1 and np.all(np.isin(ev.reason, [moprp.DROP_IK, moprp.DROP_CART]))

@@ -128,3 +128,32 @@ def test_paper_setting_500_by_500(tmp_path, scenario):
     data = read_json(out / "placement.json")
     assert data["generations"] == 500 and data["pop"] == 500
     assert len(data["pareto"]) >= 50
+
+
+def test_drake_ik_path_matches_the_closed_form():
+    """--ik drake: Drake's multi-start IK, tracked along the feed and labelled by the nearest
+    closed-form branch, gives the same surviving branches and indices at a base."""
+    import dataclasses
+
+    from analyses.robot_place import drake_ik_solver
+
+    sc = dataclasses.replace(moprp.load_scenario("lying"), feed_samples=2)
+    xyz = np.array([[0.6, -0.3, 0.0]])
+    solver = drake_ik_solver(starts=64, seed=0, limits=sc.limits, X_FT=sc.X_FT)
+    ev_d = moprp.evaluate_bases(xyz, sc, np.random.default_rng(0), ik_solver=solver)
+    ev_c = moprp.evaluate_bases(xyz, sc, np.random.default_rng(0))
+    assert ev_c.valid.sum() >= 2
+    np.testing.assert_array_equal(ev_d.valid, ev_c.valid)
+    np.testing.assert_allclose(ev_d.candidate_indices[ev_c.valid],
+                               ev_c.candidate_indices[ev_c.valid], rtol=1e-5)
+    assert solver.stats["poses"] == 2
+
+
+def test_capsules_agree_with_scenegraph():
+    """The capsule model's collision verdict (condition 2 pairs) matches Drake's SceneGraph on
+    the URDF geometry for nearly all random configurations (10,000 in the benchmark)."""
+    from analyses.bench_moprp import scenegraph_agreement
+
+    a = scenegraph_agreement(400, seed=1)
+    assert a["both_collide"] > 20 and a["both_free"] > 200
+    assert a["agreement"] >= 0.97
