@@ -48,6 +48,8 @@ def test_small_run_writes_the_placement(tmp_path):
     assert ev.feasible[0]
     for png in ("pareto_design", "pareto_objectives", "layout_after", "layout_before"):
         assert (out / f"{png}.png").stat().st_size > 1000
+    html = (out / "layout.html").read_text()
+    assert "<html" in html.lower() and len(html) > 10000
 
 
 def test_same_seed_same_front(tmp_path):
