@@ -32,7 +32,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--batch", type=int, default=100_000)
     parser.add_argument("--drake-poses", type=int, default=5)
-    parser.add_argument("--starts", type=int, default=128, help="Drake multi-start guesses per pose")
+    parser.add_argument("--starts", type=int, default=128, help="Drake starts per pose")
     parser.add_argument("--plant-configs", type=int, default=2000)
     args = parser.parse_args(argv)
 
