@@ -57,8 +57,10 @@ class VirtualFixtureForceLaw(LeafSystem):
     ``X_WE_measured`` (abstract RigidTransform): measured tool pose in World (its origin is the
     fixture's tool point). ``X_WE_desired`` (abstract RigidTransform): the integrated desired
     pose (discrete state, period ``period``), for differential IK. ``V_WE_corrected`` (6): the
-    corrected velocity, [w; v] in World. ``violation`` (1): how far the measured tool point is
-    outside the fixture (m, >= 0). ``F_W_fixture`` (3): the fixture's restoring force (N) in World.
+    corrected velocity, [w; v] in World. ``violation`` (1): how far the measured tool point was
+    outside the fixture at the last update (m, >= 0; kept in the state so the update's one
+    distance query serves the logger too). ``F_W_fixture`` (3): the fixture's restoring force
+    (N) in World.
 
     Args:
         vf: the fixture (in the Center frame).
@@ -98,8 +100,10 @@ class VirtualFixtureForceLaw(LeafSystem):
         self._X_meas = self.DeclareAbstractInputPort(
             "X_WE_measured", AbstractValue.Make(RigidTransform())
         )
-        # state: [p_WE (3), R_WE row-major (9)]
-        self._state = self.DeclareDiscreteState(np.concatenate([X0[:3, 3], X0[:3, :3].ravel()]))
+        # state: [p_WE desired (3), R_WE desired row-major (9), violation at the update (1)]
+        self._state = self.DeclareDiscreteState(
+            np.concatenate([X0[:3, 3], X0[:3, :3].ravel(), [0.0]])
+        )
         self.DeclarePeriodicDiscreteUpdateEvent(self._period, 0.0, self._update)
         self._X_des = self.DeclareAbstractOutputPort(
             "X_WE_desired",
@@ -109,10 +113,7 @@ class VirtualFixtureForceLaw(LeafSystem):
         )
         self._V_out = self.DeclareVectorOutputPort("V_WE_corrected", 6, self._calc_corrected)
         self._violation = self.DeclareVectorOutputPort(
-            "violation",
-            1,
-            self._calc_violation,
-            prerequisites_of_calc={self.input_port_ticket(self._X_meas.get_index())},
+            "violation", 1, self._calc_violation, prerequisites_of_calc={self.xd_ticket()}
         )
         self._force = self.DeclareVectorOutputPort("F_W_fixture", 3, self._calc_force)
 
@@ -135,23 +136,36 @@ class VirtualFixtureForceLaw(LeafSystem):
 
     def _update(self, context, discrete_state):
         x = context.get_discrete_state(0).get_value()
-        V = self.corrected(context)
+        V = np.array(self._V_cmd.Eval(context), dtype=float)
+        p_C = self._tool_point_C(context)
+        d = float(self._vf.distance(p_C))
+        violation = max(d, 0.0)
+        v_C = self._R_WC.T @ V[3:]
+        # A point that cannot reach the boundary within this period passes unchanged
+        # (correct_velocity would return v_C exactly); only near the wall call the full law.
+        if self._enabled and d > -float(np.linalg.norm(v_C)) * self._period - 1e-9:
+            v_C = self._vf.correct_velocity(
+                p_C, v_C, dt=self._period, return_gain=self._k / self._b
+            )
+            V = np.concatenate([V[:3], self._R_WC @ v_C])
         p = x[:3] + V[3:] * self._period
-        R = _rotation_from_vector(V[:3] * self._period) @ x[3:].reshape(3, 3)
-        discrete_state.get_mutable_vector(0).SetFromVector(np.concatenate([p, R.ravel()]))
+        R = _rotation_from_vector(V[:3] * self._period) @ x[3:12].reshape(3, 3)
+        discrete_state.get_mutable_vector(0).SetFromVector(
+            np.concatenate([p, R.ravel(), [violation]])
+        )
 
     # -- outputs ------------------------------------------------------------------------------
 
     def _calc_desired(self, context, value):
         x = context.get_discrete_state(0).get_value()
-        R = RotationMatrix(x[3:].reshape(3, 3))
+        R = RotationMatrix(x[3:12].reshape(3, 3))
         value.set_value(RigidTransform(R, x[:3]))
 
     def _calc_corrected(self, context, output: BasicVector):
         output.SetFromVector(self.corrected(context))
 
     def _calc_violation(self, context, output: BasicVector):
-        output.SetFromVector(self._vf.violation(self._tool_point_C(context)).reshape(1))
+        output.SetFromVector(context.get_discrete_state(0).get_value()[12:])
 
     def _calc_force(self, context, output: BasicVector):
         V = np.array(self._V_cmd.Eval(context), dtype=float)
@@ -163,4 +177,4 @@ class VirtualFixtureForceLaw(LeafSystem):
     def set_desired_pose(self, context, X_WE) -> None:
         """Reset the desired pose (e.g. to the tool's pose at the start of a run)."""
         X = np.asarray(X_WE, dtype=float)
-        context.SetDiscreteState(0, np.concatenate([X[:3, 3], X[:3, :3].ravel()]))
+        context.SetDiscreteState(0, np.concatenate([X[:3, 3], X[:3, :3].ravel(), [0.0]]))

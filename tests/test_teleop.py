@@ -15,22 +15,19 @@ def case():
     return S.make_case("lying", sc_plant, xyz, branch, S.default_instrument())
 
 
-def test_tool_pose_matches_the_plant_tcp(case):
+def test_tool_pose_matches_the_kinematics_core(case):
+    """ToolPose (Drake's plant: URDF base weld + actuator tcp frame) against the numpy FK with
+    diagrams.tools.X_FT and the layout's base pose."""
     motion = MasterMotion(dt=0.01, p_M=np.zeros((2, 3)))
     teleop = build_teleop(case, motion)
-    plant = teleop.plant
-    context = plant.CreateDefaultContext()
-    system = ToolPose(case.X_WBase, case.X_FE)
-    sys_context = system.CreateDefaultContext()
+    system = ToolPose(teleop.plant, teleop.plant.GetFrameByName("tcp"))
+    context = system.CreateDefaultContext()
     rng = np.random.default_rng(0)
     for q in [case.q_start, *rng.uniform(-3, 3, (5, 6))]:
-        plant.SetPositions(context, q)
-        X_drake = plant.CalcRelativeTransform(
-            context, plant.world_frame(), plant.GetFrameByName("tcp")
-        ).GetAsMatrix4()
-        system.GetInputPort("q").FixValue(sys_context, q)
-        X = system.GetOutputPort("X_WE").Eval(sys_context).GetAsMatrix4()
-        np.testing.assert_allclose(X, X_drake, atol=1e-12)
+        system.GetInputPort("q").FixValue(context, q)
+        X = system.GetOutputPort("X_WE").Eval(context).GetAsMatrix4()
+        np.testing.assert_allclose(X, case.X_WE(q), atol=1e-12)
+        np.testing.assert_allclose(system.GetOutputPort("p_WE").Eval(context), X[:3, 3])
 
 
 def test_target_frame_is_the_tool_frame_at_the_goal(case):

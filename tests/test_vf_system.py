@@ -39,20 +39,25 @@ def test_motion_along_the_axis_passes_unchanged():
     V = [0.0, 0.0, 0.0, 0.0, 0.0, -0.01]
     system, context, X_WE = make([0.0, 0.0, 0.02], V)
     np.testing.assert_allclose(system.GetOutputPort("V_WE_corrected").Eval(context), V)
-    assert system.GetOutputPort("violation").Eval(context)[0] == 0.0
     np.testing.assert_allclose(system.GetOutputPort("F_W_fixture").Eval(context), 0.0)
     # one period integrates the desired pose by v dt = 50 um
     xd = system.EvalUniquePeriodicDiscreteUpdate(context).get_vector(0).get_value()
     np.testing.assert_allclose(xd[:3], X_WE[:3, 3] + [0.0, 0.0, -0.01 * 0.005], atol=1e-15)
-    np.testing.assert_allclose(xd[3:].reshape(3, 3), X_WE[:3, :3], atol=1e-15)
+    np.testing.assert_allclose(xd[3:12].reshape(3, 3), X_WE[:3, :3], atol=1e-15)
+    assert xd[12] == 0.0  # no violation
 
 
 def test_a_point_outside_the_cylinder_is_pushed_back_by_the_stated_force():
     # 8 mm from the axis along Center x: 2 mm outside; outward normal = Center x = World y.
     # Still hand (no command): F = -k * 0.002 * n = -4 N along World y; the corrected velocity
     # is the admittance return -(k/b) * 0.002 * n = -0.04 m/s along World y.
-    system, context, _ = make([0.008, 0.0, 0.02], np.zeros(6))
+    system, context, X_WE = make([0.008, 0.0, 0.02], np.zeros(6))
+    context.SetDiscreteState(0, system.EvalUniquePeriodicDiscreteUpdate(context).get_vector(0)
+                             .get_value())
     assert system.GetOutputPort("violation").Eval(context)[0] == pytest.approx(0.002, abs=1e-12)
+    # the update moved the desired pose by the return velocity over one period: 0.2 mm inward
+    desired = system.GetOutputPort("X_WE_desired").Eval(context).translation()
+    np.testing.assert_allclose(desired - X_WE[:3, 3], [0.0, -0.04 * 0.005, 0.0], atol=1e-12)
     np.testing.assert_allclose(
         system.GetOutputPort("F_W_fixture").Eval(context), [0.0, -4.0, 0.0], atol=1e-9
     )
@@ -87,6 +92,13 @@ def test_disabled_fixture_passes_everything():
     # rotation about World z by 0.1 rad/s * 5 ms
     a = 0.1 * 0.005
     Rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
-    np.testing.assert_allclose(xd[3:].reshape(3, 3), Rz @ X_WE[:3, :3], atol=1e-15)
+    np.testing.assert_allclose(xd[3:12].reshape(3, 3), Rz @ X_WE[:3, :3], atol=1e-15)
     desired = system.GetOutputPort("X_WE_desired").Eval(context)
     np.testing.assert_allclose(desired.GetAsMatrix4(), X_WE, atol=1e-15)
+
+
+def test_update_near_the_wall_uses_the_full_law():
+    # 1 mm inside the wall, commanding 1 m/s outward: the update limits the step to 1 mm
+    system, context, X_WE = make([0.005, 0.0, 0.02], [0, 0, 0, 0, 1.0, 0.0])
+    xd = system.EvalUniquePeriodicDiscreteUpdate(context).get_vector(0).get_value()
+    np.testing.assert_allclose(xd[:3] - X_WE[:3, 3], [0.0, 0.001, 0.0], atol=1e-12)
