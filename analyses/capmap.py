@@ -60,12 +60,14 @@ def build_map(
     rolls: int | None,
     workers: int | None,
     *,
+    self_collision: bool = False,
     quiet: bool = False,
 ) -> cm.CapabilityMap:
     X_FT, name = tool_frame(tool)
     params = cm.make_params(
-        voxel_mm / 1000.0, directions, limits=limits, X_FT=X_FT, tool=name, rolls=rolls
-    )
+        voxel_mm / 1000.0, directions, limits=limits, X_FT=X_FT, tool=name, rolls=rolls,
+        self_collision=self_collision,
+    )  # fmt: skip
     grid = cm.make_grid(params)
     prog = Progress("capmap build", quiet=quiet)
     n_vox = len(cm.candidate_voxels(params, grid))
@@ -84,8 +86,9 @@ def _cmd_build(args) -> int:
         raise InputError("--workers", f"expected >= 1, got {args.workers}")
     t0 = time.perf_counter()
     cmap = build_map(
-        args.voxel_mm, args.directions, args.limits, args.tool, args.rolls, args.workers
-    )
+        args.voxel_mm, args.directions, args.limits, args.tool, args.rolls, args.workers,
+        self_collision=args.self_collision,
+    )  # fmt: skip
     cmap.save(args.out)
     summary = {
         "out": str(args.out),
@@ -151,7 +154,8 @@ def resolve_map(robot: rm.Robot, override: str | None, *, quiet: bool = False) -
         )
     b = robot.build
     for key in b:
-        if key not in ("voxel_mm", "directions", "limits", "tool", "rolls", "workers"):
+        if key not in ("voxel_mm", "directions", "limits", "tool", "rolls", "workers",
+                       "self_collision"):  # fmt: skip
             raise InputError(f"robot.build.{key}", "unknown key")
     cmap = build_map(
         float(b.get("voxel_mm", 50)),
@@ -160,6 +164,7 @@ def resolve_map(robot: rm.Robot, override: str | None, *, quiet: bool = False) -
         b.get("tool"),
         b.get("rolls"),
         b.get("workers"),
+        self_collision=bool(b.get("self_collision", False)),
         quiet=quiet,
     )
     cmap.save(path)
@@ -411,6 +416,9 @@ def register(subparsers) -> None:
     b.add_argument("--tool", choices=("actuator",), default=None, help="map the actuator's tip")
     b.add_argument("--rolls", type=int, default=None, help="roll samples (off-axis tools only)")
     b.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    b.add_argument(
+        "--self-collision", action="store_true", help="also require self-collision-free IK"
+    )
     b.add_argument("--out", required=True, help="output .h5")
     b.set_defaults(func=_cmd_build)
 

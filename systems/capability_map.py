@@ -132,6 +132,8 @@ class MapParams:
         X_FT: 4x4 pose of the mapped frame in the flange frame (identity = flange).
         tool: name of the mapped frame ("flange" or a tool name), for humans.
         rolls: roll samples about the approach axis; 1 when roll is free (flange-coaxial frame).
+        self_collision: a branch also has to be free of self-collision (arm capsules of
+            :mod:`systems.collision_primitives` on links two or more apart must not overlap).
     """
 
     voxel: float
@@ -140,6 +142,7 @@ class MapParams:
     X_FT: tuple = tuple(np.eye(4).ravel())
     tool: str = "flange"
     rolls: int = 1
+    self_collision: bool = False
 
     def X_FT_matrix(self) -> np.ndarray:
         return np.asarray(self.X_FT, dtype=float).reshape(4, 4)
@@ -152,6 +155,7 @@ class MapParams:
             "X_FT": [float(v) for v in self.X_FT],
             "tool": str(self.tool),
             "rolls": int(self.rolls),
+            "self_collision": bool(self.self_collision),
         }
 
     def key(self) -> str:
@@ -176,6 +180,7 @@ def make_params(
     X_FT: np.ndarray | None = None,
     tool: str = "flange",
     rolls: int | None = None,
+    self_collision: bool = False,
 ) -> MapParams:
     """Validated :class:`MapParams`; ``rolls`` defaults to 1 if roll is free, else 12."""
     if not np.isfinite(voxel) or not 0.005 <= voxel <= 0.5:
@@ -194,7 +199,15 @@ def make_params(
         raise InputError("rolls", f"expected a positive integer, got {rolls!r}")
     if free and rolls != 1:
         raise InputError("rolls", "roll about the flange axis is free (joint 6); use rolls = 1")
-    return MapParams(float(voxel), int(directions), limits, tuple(X.ravel()), tool, int(rolls))
+    return MapParams(
+        float(voxel),
+        int(directions),
+        limits,
+        tuple(X.ravel()),
+        tool,
+        int(rolls),
+        bool(self_collision),
+    )
 
 
 @dataclass(frozen=True)
@@ -248,6 +261,29 @@ def _relaxed_limits(limits: str) -> np.ndarray:
     return lim
 
 
+def self_collision_free(q: np.ndarray) -> np.ndarray:
+    """(..., 6) joint vectors -> (...) bool: no overlap between arm capsules (DESIGN.md 8
+    primitives, :data:`systems.collision_primitives.ARM_CAPSULES`) on links two or more apart.
+    The arm capsules are symmetric about the joint-6 axis, so q6 never matters (roll stays free)."""
+    from systems.collision_primitives import ARM_CAPSULES, arm_capsules, capsule_clearance
+
+    links = np.array([c.link for c in ARM_CAPSULES])
+    ia, ib = np.nonzero(links[None, :] - links[:, None] >= 2)
+    seg, r = arm_capsules(q)
+    clr = capsule_clearance(seg[..., ia, :, :], r[ia], seg[..., ib, :, :], r[ib])
+    return np.all(clr > 0.0, axis=-1)
+
+
+def _collision_filter(params: MapParams, res) -> np.ndarray:
+    """IkResult.valid with self-colliding branches removed when the params ask for it."""
+    if not params.self_collision:
+        return res.valid
+    valid = res.valid.copy()
+    if valid.any():
+        valid[valid] = self_collision_free(res.q[valid])
+    return valid
+
+
 def reach_at(
     params: MapParams, centres: np.ndarray, directions: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -267,12 +303,13 @@ def reach_at(
         X[..., 3, 3] = 1.0
         X_BF = X @ invert(X_FT) if not np.allclose(X_FT, np.eye(4)) else X
         res = ik(X_BF, limits=_relaxed_limits(params.limits))
-        reachable = res.valid.any(-1)
+        valid = _collision_filter(params, res)
+        reachable = valid.any(-1)
         lim = joint_limits(params.limits)
         gap = 2.0 * np.pi - (lim[1, 5] - lim[0, 5])
         if gap <= 0.0:
             return reachable, reachable.copy()
-        q6 = np.where(res.valid, res.q[..., 5], np.nan)  # (n, k, 8)
+        q6 = np.where(valid, res.q[..., 5], np.nan)  # (n, k, 8)
         d = np.abs(q6[..., :, None] - q6[..., None, :])
         d = np.minimum(d, 2.0 * np.pi - d)
         spread = np.nanmax(np.where(np.isnan(d), -1.0, d), axis=(-1, -2))
@@ -286,7 +323,7 @@ def reach_at(
     X[..., :3, 3] = centres[:, None, None]
     X[..., 3, 3] = 1.0
     res = ik(X, limits=params.limits, X_FT=X_FT)
-    per_roll = res.valid.any(-1)
+    per_roll = _collision_filter(params, res).any(-1)
     return per_roll.any(-1), per_roll.all(-1)
 
 
@@ -539,6 +576,7 @@ def load(path: str | os.PathLike, *, expect: dict | None = None) -> CapabilityMa
             X_FT=tuple(float(v) for v in raw["X_FT"]),
             tool=str(raw["tool"]),
             rolls=int(raw["rolls"]),
+            self_collision=bool(raw.get("self_collision", False)),
         )
         grid = make_grid(params)
         if (
@@ -613,7 +651,7 @@ def accuracy(cmap: CapabilityMap, poses: np.ndarray, *, exact_roll: bool = True)
     p = cmap.params
     reach_map, _ = cmap.query(poses)
     if exact_roll:
-        truth = ik(poses, limits=p.limits, X_FT=p.X_FT_matrix()).valid.any(-1)
+        truth = _collision_filter(p, ik(poses, limits=p.limits, X_FT=p.X_FT_matrix())).any(-1)
     else:
         truth, _ = _some_roll_truth(p, poses)
     n = len(poses)
@@ -633,7 +671,7 @@ def _some_roll_truth(params: MapParams, poses: np.ndarray):
         X_FT = params.X_FT_matrix()
         X_BF = poses @ invert(X_FT)
         res = ik(X_BF, limits=_relaxed_limits(params.limits))
-        return res.valid.any(-1), None
+        return _collision_filter(params, res).any(-1), None
     # sampled roll: the truth for "some roll" is approximated by a 4x finer roll sampling
     fine = make_params(
         params.voxel, params.directions, limits=params.limits, X_FT=params.X_FT_matrix(),
@@ -644,7 +682,8 @@ def _some_roll_truth(params: MapParams, poses: np.ndarray):
     Rz = np.zeros((fine.rolls, 4, 4))
     Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2], Rz[:, 3, 3] = c, -s, s, c, 1, 1
     X = poses[:, None] @ Rz[None]
-    return ik(X, limits=params.limits, X_FT=params.X_FT_matrix()).valid.any(-1).any(-1), None
+    res = ik(X, limits=params.limits, X_FT=params.X_FT_matrix())
+    return _collision_filter(params, res).any(-1).any(-1), None
 
 
 def blocks_of(params: MapParams, poses_per_block: int = 60_000) -> Sequence[np.ndarray]:

@@ -109,6 +109,22 @@ def test_roll_with_175_limits_matches_sampled_rolls():
     assert some.sum() > every.sum() > 0  # the 10 deg gap matters for single-branch pairs
 
 
+def test_self_collision_option_removes_folded_branches():
+    q = np.zeros((2, 6))
+    q[1, 2] = np.radians(170)  # forearm folded back onto the upper arm
+    np.testing.assert_array_equal(cm.self_collision_free(q), [True, False])
+    free = cm.make_params(0.2, 20)
+    checked = cm.make_params(0.2, 20, self_collision=True)
+    assert free.key() != checked.key()
+    rng = np.random.default_rng(8)
+    centres = cm.SHOULDER + rng.uniform(-1.0, 1.0, (80, 3))
+    dirs = cm.golden_spiral(20)
+    a, _ = cm.reach_at(free, centres, dirs)
+    b, _ = cm.reach_at(checked, centres, dirs)
+    assert np.all(a | ~b)  # collision checking only removes pairs
+    assert b.sum() < a.sum()
+
+
 def test_tool_not_coaxial_samples_roll():
     X_FT = transform(rot_x(np.pi / 2), [0.0, 0.0, 0.1])  # tool axis perpendicular to the flange z
     p = cm.make_params(0.2, 10, X_FT=X_FT, tool="test")

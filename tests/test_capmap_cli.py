@@ -28,6 +28,18 @@ def test_build_writes_a_loadable_map(map_path, capsys):
     assert m.params.tool == "flange" and len(m.voxel_ids) > 0
 
 
+def test_build_with_self_collision_and_actuator(tmp_path):
+    pytest.importorskip("diagrams.tools")
+    path = tmp_path / "a.h5"
+    code = main(["capmap", "build", "--voxel-mm", "300", "--directions", "6", "--workers", "1",
+                 "--tool", "actuator", "--rolls", "4", "--self-collision",
+                 "--out", str(path)])  # fmt: skip
+    assert code == 0
+    m = cm.load(path, expect={"tool": "actuator", "self_collision": True, "rolls": 4})
+    # the mapped frame is the implant tip, z along the implant axis (flange -y)
+    np.testing.assert_allclose(m.params.X_FT_matrix()[:3, 2], [0.0, -1.0, 0.0], atol=1e-12)
+
+
 def test_query_json(map_path, tmp_path):
     m = cm.load(map_path)
     full = m.centres()[np.flatnonzero(m.index == 1.0)[0]]
