@@ -768,13 +768,16 @@ def random_feasible(sc: Scenario, n: int, rng: np.random.Generator, *, ik_solver
     return xyz, F
 
 
-def percentiles(f_selected, F_random) -> np.ndarray:
+def percentiles(f_selected, F_random, *, strict: bool = False) -> np.ndarray:
     """Percentile rank per index: % of random feasible bases that the selection beats or ties
-    (index value >= the selection's; all indices are minimized)."""
+    (index value >= the selection's; all indices are minimized), or only beats (> ) when
+    ``strict`` (the two differ where an index has a plateau, e.g. dexterity at sqrt(3))."""
     F_random = np.asarray(F_random, dtype=float)
     if F_random.shape[0] == 0:
         return np.full(np.shape(f_selected), np.nan)
-    return 100.0 * np.mean(F_random >= np.asarray(f_selected)[None, :], axis=0)
+    f = np.asarray(f_selected)[None, :]
+    worse = F_random > f if strict else F_random >= f
+    return 100.0 * np.mean(worse, axis=0)
 
 
 def gii_poses(n: int, rng: np.random.Generator, *, half_size=0.025,

@@ -211,6 +211,10 @@ def test_knee_point_and_percentiles_by_hand():
     pct = moprp.percentiles([2.0, 5.0, 1.0], np.array([[1.0, 5.0, 0.0], [3.0, 6.0, 2.0],
                                                        [4.0, 4.0, 3.0], [2.0, 7.0, 4.0]]))
     np.testing.assert_allclose(pct, [75.0, 75.0, 75.0])
+    strict = moprp.percentiles([2.0, 5.0, 1.0], np.array([[1.0, 5.0, 0.0], [3.0, 6.0, 2.0],
+                                                          [4.0, 4.0, 3.0], [2.0, 7.0, 4.0]]),
+                               strict=True)
+    np.testing.assert_allclose(strict, [50.0, 50.0, 75.0])
 
 
 def test_gii_poses_span_the_cube():
