@@ -362,3 +362,137 @@ def procedural_oral_cavity(
         vertices=vertices, faces=np.concatenate([side, cap0, cap1]), process=False
     )
     return ProceduralCavity(mesh=mesh, length=float(length), params=params)
+
+
+def _rotate_about_axis(points: np.ndarray, point: np.ndarray, axis: np.ndarray, angle):
+    """Rotate each of ``points`` (K, 3) about the line through ``point`` along the unit ``axis``
+    by its own ``angle`` (K,) rad (right-hand rule; Rodrigues' formula)."""
+    v = points - point
+    c, s = np.cos(angle)[:, None], np.sin(angle)[:, None]
+    kxv = np.cross(axis, v)
+    kdv = v @ axis
+    return point + v * c + kxv * s + np.outer(kdv, axis) * (1.0 - c)
+
+
+def _vector3(value, name: str, *, nonzero: bool = False) -> np.ndarray:
+    try:
+        v = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(name, f"expected 3 numbers, got {value!r}") from None
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise InputError(name, f"expected 3 finite numbers, got {value!r}")
+    if nonzero:
+        n = float(np.linalg.norm(v))
+        if n < 1e-12:
+            raise InputError(name, "expected a non-zero direction")
+        v = v / n
+    return v
+
+
+def open_mouth(
+    mesh: trimesh.Trimesh,
+    angle_deg: float,
+    *,
+    hinge_point,
+    hinge_axis,
+    occlusal_point,
+    occlusal_normal,
+    blend: float = 0.02,
+) -> trimesh.Trimesh:
+    """Open the mouth of a closed-mouth oral mesh by rotating the lower jaw's tissue.
+
+    A kinematic jaw-opening model (pure rotation about the temporomandibular hinge, the first
+    20-25 mm of a real opening): every vertex ``p`` is rotated about the hinge line (through
+    ``hinge_point`` along ``hinge_axis``, right-hand rule) by ``w(s) * angle``, where ``s`` is
+    its signed height above the occlusal plane (through ``occlusal_point``, normal
+    ``occlusal_normal`` pointing to the upper jaw) and ``w`` is a smoothstep weight: 1 for
+    ``s <= -blend/2`` (lower jaw, tongue floor and lower lip rotate rigidly), 0 for
+    ``s >= blend/2`` (upper jaw and palate stay), ``3u^2 - 2u^3`` in between
+    (``u = (blend/2 - s) / blend``). The map is smooth, so the mesh stays connected: the cheeks
+    and the corners of the lips stretch across the blend band. Connectivity is unchanged
+    (same faces, same vertex order). Departure from anatomy: no condylar translation, no
+    tissue volume preservation; the opening at the incisors is then ``2 L sin(angle / 2)``
+    for an incisor at distance L from the hinge.
+
+    Args:
+        mesh: oral mesh (m).
+        angle_deg: opening angle in degrees, in [0, 45]; 0 returns an unchanged copy.
+        hinge_point: (3,) a point of the hinge axis (m, mesh frame).
+        hinge_axis: (3,) hinge direction; a positive angle rotates the lower jaw by the
+            right-hand rule about it (so choose the sign that moves the chin down).
+        occlusal_point: (3,) a point of the occlusal plane (m, mesh frame).
+        occlusal_normal: (3,) occlusal plane normal, towards the upper jaw.
+        blend: width (m) of the band across the occlusal plane where the weight goes from 1
+            to 0; > 0.
+
+    Returns:
+        A new :class:`trimesh.Trimesh`; ``metadata["implantplan"]["open_mouth"]`` records the
+        parameters, how many vertices moved and how many faces turned over (normal against
+        the rotated original) or became degenerate.
+    """
+    try:
+        angle = float(angle_deg)
+    except (TypeError, ValueError):
+        raise InputError("mouth_opening_deg", f"expected a number, got {angle_deg!r}") from None
+    if not np.isfinite(angle) or not 0.0 <= angle <= 45.0:
+        raise InputError("mouth_opening_deg", f"expected an angle in [0, 45] deg, got {angle}")
+    hinge_point = _vector3(hinge_point, "hinge_point")
+    hinge_axis = _vector3(hinge_axis, "hinge_axis", nonzero=True)
+    occlusal_point = _vector3(occlusal_point, "occlusal_point")
+    occlusal_normal = _vector3(occlusal_normal, "occlusal_normal", nonzero=True)
+    try:
+        blend = float(blend)
+    except (TypeError, ValueError):
+        raise InputError("blend", f"expected a width in m, got {blend!r}") from None
+    if not np.isfinite(blend) or blend <= 0:
+        raise InputError("blend", f"expected a positive width in m, got {blend}")
+    V = np.asarray(mesh.vertices, dtype=float)
+    F = np.asarray(mesh.faces)
+    s = (V - occlusal_point) @ occlusal_normal
+    u = np.clip((0.5 * blend - s) / blend, 0.0, 1.0)
+    w = u * u * (3.0 - 2.0 * u)  # smoothstep: 1 below the band, 0 above
+    a = np.deg2rad(angle) * w
+    moved = a != 0  # an angle of 0 returns the vertices bit for bit
+    V2 = V.copy()
+    V2[moved] = _rotate_about_axis(V[moved], hinge_point, hinge_axis, a[moved])
+    out = trimesh.Trimesh(vertices=V2, faces=F.copy(), process=False)
+    inverted, degenerate = face_flips(mesh, out, hinge_axis, a)
+    out.metadata["implantplan"] = {
+        **dict(mesh.metadata.get("implantplan", {})),
+        "open_mouth": {
+            "angle_deg": angle,
+            "hinge_point": hinge_point.tolist(),
+            "hinge_axis": hinge_axis.tolist(),
+            "occlusal_point": occlusal_point.tolist(),
+            "occlusal_normal": occlusal_normal.tolist(),
+            "blend": blend,
+            "moved_vertices": int(np.count_nonzero(moved)),
+            "inverted_faces": inverted,
+            "degenerate_faces": degenerate,
+        },
+    }
+    return out
+
+
+def face_flips(before: trimesh.Trimesh, after: trimesh.Trimesh, axis, vertex_angle) -> tuple:
+    """(inverted, degenerate) face counts of a deformation with per-vertex rotation angles.
+
+    A face is inverted when its new normal points against its old normal rotated by the mean
+    angle of its vertices about ``axis`` (what a rigid motion would give), and degenerate when
+    its area falls below 1e-12 of the bounding box's squared size.
+    """
+    F = np.asarray(before.faces)
+
+    def normals(V):
+        t = V[F]
+        return np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+
+    n0 = normals(np.asarray(before.vertices, float))
+    n1 = normals(np.asarray(after.vertices, float))
+    ang = np.asarray(vertex_angle, float)[F].mean(axis=1)
+    n0r = _rotate_about_axis(n0, np.zeros(3), unit(axis), ang)
+    scale = float(np.ptp(np.asarray(after.vertices), axis=0).max())
+    area = np.linalg.norm(n1, axis=1)
+    degenerate = area <= 1e-12 * scale * scale
+    inverted = (np.einsum("ij,ij->i", n0r, n1) <= 0) & ~degenerate
+    return int(np.count_nonzero(inverted)), int(np.count_nonzero(degenerate))
