@@ -185,7 +185,9 @@ def test_default_case_opens_the_real_mesh_cleanly():
     assert 35e-3 < 2 * L * np.sin(np.deg2rad(case["mesh"]["mouth_opening_deg"]) / 2) < 50e-3
 
 
-def test_default_case_sites_have_a_safe_placement_for_the_papers_tool():
+@pytest.fixture(scope="module")
+def default_plan():
+    """The default case opened, fitted (exact, 15 x 15 x 150) and both sites placed."""
     from systems.fpsm_fit import fit_fpsm
     from systems.placement import place_instrument
 
@@ -213,25 +215,53 @@ def test_default_case_sites_have_a_safe_placement_for_the_papers_tool():
         close_open_cuts=case["mesh"]["close_open_cuts"],
         check_factor=0,
     )
-    names = [s["name"] for s in case["sites"]]
-    assert names == ["36", "46"]
-    for site in case["sites"]:
-        p = np.asarray(site["position_mm"]) * MM
-        assert p[1] < -0.015 and abs(p[0]) > 0.01  # lower jaw, side of the arch
-        assert (p[0] > 0) == (site["name"] == "36")  # Center +X is the patient's left
-        assert abs(float(fpsm.d_safe(p))) < 1e-3  # on the model's wall
-        placement = place_instrument(
+    placements = [
+        place_instrument(
             fpsm,
-            p,
+            np.asarray(site["position_mm"]) * MM,
             site["axis"],
             rod_radius=site["rod_radius_mm"] * MM,
             implant_length=site["implant_length_mm"] * MM,
             objective=case["placement"]["objective"],
             seed=case["seed"],
         )
+        for site in case["sites"]
+    ]
+    return case, opened, X_WC, fpsm, placements
+
+
+def test_default_case_sites_have_a_safe_placement_for_the_papers_tool(default_plan):
+    case, _, _, fpsm, placements = default_plan
+    names = [s["name"] for s in case["sites"]]
+    assert names == ["36", "46"]
+    for site, placement in zip(case["sites"], placements, strict=True):
+        p = np.asarray(site["position_mm"]) * MM
+        assert p[1] < -0.015 and abs(p[0]) > 0.01  # lower jaw, side of the arch
+        assert (p[0] > 0) == (site["name"] == "36")  # Center +X is the patient's left
+        assert abs(float(fpsm.d_safe(p))) < 1e-3  # on the model's wall
+        assert (site["rod_radius_mm"], site["implant_length_mm"]) == (6.0, 31.0)  # Sec. 5.2
         assert placement.valid, placement.reason
         assert placement.f_safe_line1 > 3e-3 and placement.f_safe_line2 > 3e-3
         # the tool stays above the implant (d_T >= d12) and the grid finds no better placement
         assert placement.d_T >= site["implant_length_mm"] * MM
         assert placement.grid["F_pso_minus_grid"] < 1e-6
         assert placement.grid["distance_d_T"] < 1e-3
+
+
+def test_case_figures_write_pngs(default_plan, tmp_path):
+    from analyses.case_figures import plot_mouth_opening, plot_placements
+
+    case, opened, X_WC, fpsm, placements = default_plan
+    box = _box()
+    a = plot_mouth_opening(
+        box,
+        open_mouth(box, 20.0, **HINGE),
+        tmp_path / "o.png",
+        planes_y=(0.0, 0.02),
+        hinge_point=HINGE["hinge_point"],
+        occlusal_point=HINGE["occlusal_point"],
+        occlusal_normal=HINGE["occlusal_normal"],
+    )
+    b = plot_placements(opened, X_WC, fpsm, placements, ["36", "46"], tmp_path / "p.png")
+    for path in (a, b):
+        assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

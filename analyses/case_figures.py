@@ -1,0 +1,328 @@
+"""Figures of a surgical case: the mouth opening and the instrument placements at its sites.
+
+``python -m analyses.case_figures [--case models/cases/default.yaml] [--out DIR]`` opens the
+case's mesh (:func:`systems.oral_mesh.open_mouth`), fits the FPSM, places the paper's tool at each
+site (:func:`systems.placement.place_instrument`) and writes
+
+* ``opening.png``: side views (mesh x-z, mm) of the scanned and the opened mesh in the
+  mid-sagittal plane and in the sites' sagittal planes, with the hinge and the occlusal plane;
+* ``placements.png``: per site, a side view (Center Z-Y) in the plane X = the site's X and a top
+  view (Center Z-X) at the Tool origin's height: mesh section, the FPSM's wall and its wall
+  shrunk by the rod radius (Eq. 12), the implant axis, the Tool origin, line1 (rod) and line2
+  (implant tip path), projected (the lines are not in these planes, so only the third panel
+  shows their clearance: d_safe along each line up to the mouth opening);
+
+and prints each placement's figures. The case file is read here with its mm keys as written in
+``models/cases/default.yaml``; the planning code reads it through its own loader.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from systems.files import read_yaml
+
+MM = 1e-3
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _mesh_path(value: str, case_path: Path) -> Path:
+    prefix = "package://implantplan/"
+    if value.startswith(prefix):
+        return ROOT / "models" / value[len(prefix) :]
+    return (case_path.parent / value).resolve()
+
+
+def build_case(case_path):
+    """Load a case YAML, open its mesh, fit the FPSM and place the tool at every site.
+
+    Returns:
+        dict with ``case`` (the YAML data), ``scanned`` and ``opened`` meshes (m), ``X_WC``,
+        ``fpsm``, ``placements`` (list of :class:`systems.placement.Placement`), ``seconds``
+        (dict: open, fit, place per site).
+    """
+    import time
+
+    from systems.fpsm_fit import fit_fpsm
+    from systems.oral_mesh import center_frame, load_oral_mesh, open_mouth
+    from systems.placement import place_instrument
+
+    case_path = Path(case_path)
+    case = read_yaml(case_path)
+    m = case["mesh"]
+    scanned = load_oral_mesh(_mesh_path(m["path"], case_path), units=m.get("units", "mm"))
+    t0 = time.perf_counter()
+    opened = open_mouth(
+        scanned,
+        m.get("mouth_opening_deg", 0.0),
+        hinge_point=np.asarray(m["hinge_point_mm"]) * MM,
+        hinge_axis=m["hinge_axis"],
+        occlusal_point=np.asarray(m["occlusal_point_mm"]) * MM,
+        occlusal_normal=m["occlusal_normal"],
+        blend=m["opening_blend_mm"] * MM,
+    )
+    t1 = time.perf_counter()
+    c = case["center"]
+    X_WC = center_frame(np.asarray(c["origin_mm"]) * MM, c["z_axis"], x_hint=c.get("x_hint"))
+    fp = case["fpsm"]
+    fpsm = fit_fpsm(
+        opened,
+        X_WC,
+        slices=fp["slices"],
+        control_points=fp["control_points"],
+        samples=fp["samples"],
+        method=fp.get("method", "exact"),
+        margin=fp.get("margin_mm", 0.0) * MM,
+        z_range=None if fp.get("z_range_mm") is None else np.asarray(fp["z_range_mm"]) * MM,
+        close_open_cuts=m.get("close_open_cuts", False),
+        cap_radius=None if m.get("cap_radius_mm") is None else m["cap_radius_mm"] * MM,
+    )
+    t2 = time.perf_counter()
+    placements, place_s = [], []
+    for site in case["sites"]:
+        t = time.perf_counter()
+        placements.append(
+            place_instrument(
+                fpsm,
+                np.asarray(site["position_mm"]) * MM,
+                site["axis"],
+                rod_radius=site["rod_radius_mm"] * MM,
+                implant_length=site["implant_length_mm"] * MM,
+                objective=case.get("placement", {}).get("objective", "eq14"),
+                seed=case.get("seed", 0),
+            )
+        )
+        place_s.append(time.perf_counter() - t)
+    return {
+        "case": case,
+        "scanned": scanned,
+        "opened": opened,
+        "X_WC": X_WC,
+        "fpsm": fpsm,
+        "placements": placements,
+        "seconds": {"open": t1 - t0, "fit": t2 - t1, "place": place_s},
+    }
+
+
+def _segments(mesh, origin, normal):
+    from trimesh.intersections import mesh_plane
+
+    return mesh_plane(mesh, np.asarray(normal, float), np.asarray(origin, float))
+
+
+def plot_mouth_opening(
+    scanned,
+    opened,
+    path,
+    *,
+    planes_y=(0.0,),
+    hinge_point=None,
+    occlusal_point=None,
+    occlusal_normal=None,
+) -> Path:
+    """Side views (mesh x-z, mm) of the scanned (grey) and opened (black) mesh, one panel per
+    sagittal plane y = ``planes_y`` (m), with the hinge (red dot) and the occlusal plane."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+
+    fig, axes = plt.subplots(1, len(planes_y), figsize=(6 * len(planes_y), 5), squeeze=False)
+    for ax, y in zip(axes[0], planes_y, strict=True):
+        for mesh, color, label in ((scanned, "0.6", "scanned"), (opened, "k", "opened")):
+            s = _segments(mesh, (0.0, y, 0.0), (0.0, 1.0, 0.0)) / MM
+            ax.add_collection(LineCollection(s[:, :, [0, 2]], colors=color, lw=0.8, label=label))
+        if hinge_point is not None:
+            h = np.asarray(hinge_point) / MM
+            ax.plot(h[0], h[2], "ro", label="hinge")
+        if occlusal_point is not None and occlusal_normal is not None:
+            p, n = np.asarray(occlusal_point) / MM, np.asarray(occlusal_normal, float)
+            xs = np.array([50.0, 160.0])
+            # the plane's trace in y = const: n_x (x - p_x) + n_z (z - p_z) = 0 (n_y y ignored)
+            if abs(n[2]) > 1e-9:
+                zs = p[2] - n[0] * (xs - p[0]) / n[2]
+                ax.plot(xs, zs, "b--", lw=0.8, label="occlusal plane")
+        ax.autoscale()
+        ax.set_aspect("equal")
+        ax.grid(True, lw=0.3)
+        ax.set_xlabel("mesh x (mm, front -> back)")
+        ax.set_ylabel("mesh z (mm, up)")
+        ax.set_title(f"sagittal section y = {y / MM:.1f} mm")
+    axes[0][0].legend(loc="lower right", fontsize=8)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _contours(ax, fpsm, grid_u, grid_v, points, radius):
+    """Draw the FPSM wall (d_safe = 0, blue) and the wall shrunk by ``radius`` (dashed)."""
+    d = fpsm.d_safe(points)
+    d = np.where(np.isfinite(d), d, 1.0)
+    ax.contour(grid_u / MM, grid_v / MM, d, levels=[0.0], colors="tab:blue", linewidths=1.0)
+    ax.contour(
+        grid_u / MM,
+        grid_v / MM,
+        d - radius,
+        levels=[0.0],
+        colors="tab:blue",
+        linewidths=0.8,
+        linestyles="--",
+    )
+
+
+def plot_placements(opened, X_WC, fpsm, placements, names, path) -> Path:
+    """Per site: side view (Center Z-Y) in the site's plane X = const and top view (Center Z-X)
+    at the Tool origin's height, in mm; see the module docstring for what is drawn."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+
+    R_WC, p_WC = X_WC[:3, :3], X_WC[:3, 3]
+    z_lo, z_hi = fpsm.z_range
+    zs = np.linspace(z_lo - 0.01, z_hi + 0.005, 220)
+    n = len(placements)
+    fig, axes = plt.subplots(n, 3, figsize=(18, 5 * n), squeeze=False)
+    for row, (pl, name) in enumerate(zip(placements, names, strict=True)):
+        site = pl.X_CH[:3, 3]
+        tool = pl.X_CT[:3, 3]
+        p1, p2, D = pl.line1["start"], pl.line2["start"], pl.line1["direction"]
+        # how far the lines run until they leave through the top slice
+        t_end = (z_hi - p1[2]) / D[2] if D[2] > 1e-9 else 0.08
+        e1, e2 = p1 + t_end * D, p2 + t_end * D
+        views = (
+            (0, 2, 1, site[0], "Center Z (mm, out of the mouth)", "Center Y (mm, up)", "side"),
+            (1, 2, 0, tool[1], "Center Z (mm, out of the mouth)", "Center X (mm)", "top"),
+        )
+        for col, (fixed, iu, iv, value, xl, yl, kind) in enumerate(views):
+            ax = axes[row][col]
+            # mesh section in the plane Center[fixed] = value
+            normal_W = R_WC[:, fixed]
+            origin_W = p_WC + value * normal_W
+            seg = _segments(opened, origin_W, normal_W)
+            if len(seg):
+                segC = (seg.reshape(-1, 3) - p_WC) @ R_WC  # mesh -> Center
+                segC = segC.reshape(-1, 2, 3) / MM
+                ax.add_collection(LineCollection(segC[:, :, [iu, iv]], colors="k", lw=0.6))
+            vs = np.linspace(-0.05, 0.05, 200)
+            U, Vg = np.meshgrid(zs, vs)
+            pts = np.zeros(U.shape + (3,))
+            pts[..., iu], pts[..., iv], pts[..., fixed] = U, Vg, value
+            _contours(ax, fpsm, U, Vg, pts, pl.rod_radius)
+            ax.axvline(z_hi / MM, color="0.5", lw=0.6, ls=":")
+            ax.plot(*(np.stack([site, tool])[:, [iu, iv]] / MM).T, "g-", lw=2, label="implant axis")
+            ax.plot(*(np.stack([p1, e1])[:, [iu, iv]] / MM).T, "r-", lw=2, label="line1 (rod)")
+            ax.plot(*(np.stack([p2, e2])[:, [iu, iv]] / MM).T, "m-", lw=1.2, label="line2 (tip)")
+            ax.plot(site[iu] / MM, site[iv] / MM, "go")
+            ax.plot(tool[iu] / MM, tool[iv] / MM, "ks", ms=4)
+            ax.set_xlim(zs[0] / MM, zs[-1] / MM)
+            ax.set_ylim(-50, 50)
+            ax.set_aspect("equal")
+            ax.grid(True, lw=0.3)
+            ax.set_xlabel(xl)
+            ax.set_ylabel(yl)
+            where = (
+                f"the site's X = {value / MM:.1f} mm"
+                if kind == "side"
+                else f"the Tool's Y = {value / MM:.1f} mm"
+            )
+            ax.set_title(
+                f"site {name}, {kind} view at {where}: d_T = {pl.d_T / MM:.1f} mm, "
+                f"theta_T = {np.rad2deg(pl.theta_T):.1f} deg\n"
+                f"f_safe line1 = {pl.f_safe_line1 / MM:.2f} mm, line2 = "
+                f"{pl.f_safe_line2 / MM:.2f} mm (blue: wall, dashed: shrunk by r)",
+                fontsize=9,
+            )
+        axes[row][0].legend(loc="lower left", fontsize=8)
+        # what the objective sees: d_safe along each line up to the top slice (Eq. 10-12)
+        ax = axes[row][2]
+        t = np.linspace(0.0, t_end, 300)
+        for start, radius, color, label in (
+            (p1, pl.rod_radius, "r", "line1 (rod), model shrunk by r"),
+            (p2, 0.0, "m", "line2 (implant tip)"),
+        ):
+            d = fpsm.d_safe(start + t[:, None] * D, radius=radius)
+            ax.plot(t / MM, d / MM, color, label=label)
+        ax.axhline(0.0, color="k", lw=0.6)
+        ax.set_xlabel("distance along the line from its start (mm)")
+        ax.set_ylabel("d_safe (mm)")
+        ax.set_title(f"site {name}: safe distance along the lines to the mouth opening", fontsize=9)
+        ax.grid(True, lw=0.3)
+        ax.legend(fontsize=8)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def case_figures(case_path, out_dir) -> dict:
+    """Build the case (:func:`build_case`) and write ``opening.png`` and ``placements.png``."""
+    out_dir = Path(out_dir)
+    built = build_case(case_path)
+    case = built["case"]
+    m = case["mesh"]
+    sites_y = [
+        float((built["X_WC"] @ np.r_[np.asarray(s["position_mm"]) * MM, 1.0])[1])
+        for s in case["sites"]
+    ]
+    opening = plot_mouth_opening(
+        built["scanned"],
+        built["opened"],
+        out_dir / "opening.png",
+        planes_y=(0.0, *sites_y),
+        hinge_point=np.asarray(m["hinge_point_mm"]) * MM,
+        occlusal_point=np.asarray(m["occlusal_point_mm"]) * MM,
+        occlusal_normal=m["occlusal_normal"],
+    )
+    placements = plot_placements(
+        built["opened"],
+        built["X_WC"],
+        built["fpsm"],
+        built["placements"],
+        [s["name"] for s in case["sites"]],
+        out_dir / "placements.png",
+    )
+    return {**built, "figures": [opening, placements]}
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--case", type=Path, default=ROOT / "models" / "cases" / "default.yaml")
+    parser.add_argument("--out", type=Path, default=Path("case_figures"))
+    args = parser.parse_args(argv)
+    out = case_figures(args.case, args.out)
+    info = out["opened"].metadata["implantplan"]["open_mouth"]
+    print(
+        f"opening {info['angle_deg']} deg: {info['moved_vertices']} vertices moved, "
+        f"{info['inverted_faces']} inverted, {info['degenerate_faces']} degenerate faces"
+    )
+    s = out["seconds"]
+    print(f"open {s['open']:.3f} s, fit {s['fit']:.3f} s")
+    for site, pl, t in zip(out["case"]["sites"], out["placements"], s["place"], strict=True):
+        g = pl.grid
+        print(
+            f"site {site['name']}: valid={pl.valid} d_T={pl.d_T / MM:.2f} mm "
+            f"theta_T={np.rad2deg(pl.theta_T):.2f} deg f_safe1={pl.f_safe_line1 / MM:.3f} mm "
+            f"f_safe2={pl.f_safe_line2 / MM:.3f} mm F_safe={pl.F_safe:.5f} sqrt(m) "
+            f"PSO {pl.iterations} it {pl.seconds:.3f} s, place+grid {t:.2f} s | grid "
+            f"d_T={g['d_T'] / MM:.2f} mm theta_T={np.rad2deg(g['theta_T']):.2f} deg "
+            f"F_pso-F_grid={g['F_pso_minus_grid']:.2e}"
+        )
+    for f in out["figures"]:
+        print(f"wrote {f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
