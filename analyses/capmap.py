@@ -3,12 +3,14 @@
 Subcommands:
 
 - ``capmap build [--voxel-mm V] [--directions K] [--limits 175|360] [--tool actuator]
-  [--rolls R] [--workers W] --out map.h5`` (without ``--tool`` the mapped frame is the flange,
-  wrist3_Link; with ``--tool actuator`` it is the actuator's implant tip, z along the implant
-  axis, drilling direction). Progress on stderr; a summary on stdout.
+  [--rolls R] [--self-collision] [--workers W] --out map.h5`` (without ``--tool`` the mapped
+  frame is the flange, wrist3_Link; with ``--tool actuator`` it is the actuator's implant tip,
+  z along the implant axis, the drilling direction). Progress on stderr; a summary on stdout.
 - ``capmap query map.h5 --poses FILE.npy --out q.json``: poses N x 4 x 4 in base_link; JSON with
   ``reachable`` (bool) and ``index`` (float), one per pose.
 - ``capmap accuracy map.h5 [--samples N] [--seed S]``: TP/FP/FN against direct IK.
+- ``capmap show map.h5 --png slices.png [--html map.html]``: voxels coloured by index (HSV red 0
+  to blue 1) as PNG slices and, optionally, a static Meshcat HTML.
 - ``capmap plan --patient P.yaml --task T.yaml --robot R.yaml --out DIR [--method
   auto|exhaustive|ga] [--seed S] [--map M] [--store DIR] [--meshcat]``: best base (and access
   point), cost, maps used; writes ``plan.json``, ``best_vs_worst.png``, ``cmap_slices.png`` (and
@@ -133,6 +135,21 @@ def _cmd_accuracy(args) -> int:
         raise InputError("--samples", f"expected >= 1, got {args.samples}")
     X = cm.random_poses(args.samples, seed=args.seed, radius=cm.reach_radius(cmap.params))
     out = {"exact_roll": cm.accuracy(cmap, X), "some_roll": cm.accuracy(cmap, X, exact_roll=False)}
+    print(json.dumps(out))
+    return 0
+
+
+def _cmd_show(args) -> int:
+    cmap = cm.load(args.map)
+    if args.slices < 1:
+        raise InputError("--slices", f"expected >= 1, got {args.slices}")
+    plot_map_slices(cmap, args.png, n_slices=args.slices)
+    out = {"png": str(args.png)}
+    if args.html:
+        if meshcat_html(cmap.centres(), cmap.index, args.html, voxel=cmap.params.voxel):
+            out["html"] = str(args.html)
+        else:
+            print("implantplan: Meshcat could not start here; no HTML written", file=sys.stderr)
     print(json.dumps(out))
     return 0
 
@@ -433,6 +450,13 @@ def register(subparsers) -> None:
     a.add_argument("--samples", type=int, default=100_000)
     a.add_argument("--seed", type=int, default=0)
     a.set_defaults(func=_cmd_accuracy)
+
+    sh = sub.add_parser("show", help="pictures of a map: PNG slices, optional Meshcat HTML")
+    sh.add_argument("map")
+    sh.add_argument("--png", required=True, help="output PNG of horizontal slices")
+    sh.add_argument("--slices", type=int, default=6)
+    sh.add_argument("--html", default=None, help="also write a static Meshcat HTML here")
+    sh.set_defaults(func=_cmd_show)
 
     pl = sub.add_parser("plan", help="best base pose / access point from patient, task, robot")
     pl.add_argument("--patient", required=True)

@@ -647,9 +647,14 @@ def accuracy(cmap: CapabilityMap, poses: np.ndarray, *, exact_roll: bool = True)
         exact_roll: ground truth is IK of the exact pose (its roll included, true joint limits);
             False: ground truth is "some roll" (the map's own question), which isolates the
             discretization error.
+
+    Returns:
+        n, TP, FP, FN, TN, correct (fractions of all poses), truth_reachable, and the share of
+        poses in partially reachable voxels (0 < index < 1) with the correct rate among them (the
+        hard cases: poses in full or empty voxels are mostly answered right by construction).
     """
     p = cmap.params
-    reach_map, _ = cmap.query(poses)
+    reach_map, index = cmap.query(poses)
     if exact_roll:
         truth = _collision_filter(p, ik(poses, limits=p.limits, X_FT=p.X_FT_matrix())).any(-1)
     else:
@@ -659,10 +664,14 @@ def accuracy(cmap: CapabilityMap, poses: np.ndarray, *, exact_roll: bool = True)
     fp = np.sum(reach_map & ~truth)
     fn = np.sum(~reach_map & truth)
     tn = n - tp - fp - fn
+    edge = (index > 0.0) & (index < 1.0)  # voxels where some directions are reachable, some not
+    n_edge = int(edge.sum())
+    edge_ok = float(np.mean(reach_map[edge] == truth[edge])) if n_edge else 1.0
     return {
         "n": int(n), "TP": float(tp / n), "FP": float(fp / n), "FN": float(fn / n),
         "TN": float(tn / n), "correct": float((tp + tn) / n),
         "truth_reachable": float(truth.mean()),
+        "partial_voxel_share": float(n_edge / n), "partial_voxel_correct": edge_ok,
     }  # fmt: skip
 
 

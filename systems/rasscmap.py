@@ -40,6 +40,9 @@ of instrument directions, sampled evenly in angle.
 
 with c_t,i the capability index of the voxel holding task pose i and r_t,i its reachability
 (unconstrained: the CMAP bit of the pose's approach direction; constrained: the RASSCMAP bit).
+Ties (common: with this 6-axis arm about half of the map has index 1, so f saturates at 1) go to
+the larger :func:`task_margin` (mean index of the 27 voxels around each task position: tolerance
+to a base placed a voxel off), then to the lower candidate id. This tie-break is our addition.
 
 **Optimization**: :func:`optimize` with ``method="exhaustive"`` evaluates every candidate (exact),
 ``"ga"`` runs :func:`genetic_search` (a small vectorized GA over the discrete candidate grid:
@@ -620,7 +623,8 @@ class RasscmapStore:
 
     The key hashes the CMAP's parameter key, the map kind, its geometric inputs (access pose,
     trocar, instrument, voxel, rotation step) and the base pose, plus ``STORE_VERSION``. One HDF5
-    file per key under ``root/ab/<key>.h5``, written atomically.
+    file per key under ``root/ab/<key>.h5``, written atomically. Constrained maps only: an
+    unconstrained RASSCMAP is a CMAP lookup of ~25 us per base, cheaper than opening a file.
     """
 
     def __init__(self, root: str | os.PathLike):

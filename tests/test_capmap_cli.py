@@ -64,6 +64,13 @@ def test_query_bad_input_exit_2(map_path, tmp_path):
     assert main(["capmap", "build", "--voxel-mm", "0", "--out", str(tmp_path / "x.h5")]) == 2
 
 
+def test_show_writes_png(map_path, tmp_path):
+    png = tmp_path / "s.png"
+    assert main(["capmap", "show", str(map_path), "--png", str(png), "--slices", "3"]) == 0
+    assert png.stat().st_size > 10_000
+    assert main(["capmap", "show", str(map_path), "--png", str(png), "--slices", "0"]) == 2
+
+
 def test_accuracy_command(map_path, capsys):
     assert main(["capmap", "accuracy", str(map_path), "--samples", "3000", "--seed", "4"]) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
