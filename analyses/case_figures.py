@@ -266,6 +266,76 @@ def plot_placements(opened, X_WC, fpsm, placements, names, path) -> Path:
     return path
 
 
+def scan_sites(
+    fpsm,
+    *,
+    rod_radius: float,
+    implant_length: float,
+    slices=None,
+    angles_deg=tuple(range(-170, -9, 10)),
+    lingual_tilts_deg=(0.0, 15.0, 30.0),
+    mesial_tilts_deg=(0.0, 10.0, 20.0),
+    grid=(41, 73),
+    objective: str = "eq14",
+) -> list[dict]:
+    """Rank candidate implant sites on the lower half of a fitted FPSM by their best placement.
+
+    Candidates: the model's wall point at each slice in ``slices`` (default all but the end
+    slices) and polar angle in ``angles_deg`` (Center, -90 = straight down), with the axis
+    Center +Y tilted towards the mid-sagittal plane by each lingual tilt and then towards +Z
+    (out of the mouth) by each mesial tilt. Each is scored by the exhaustive placement grid
+    (:func:`systems.placement.grid_search`, ``grid`` points over the default bounds), which is
+    how the default case's sites were chosen.
+
+    Returns:
+        dicts sorted by F (best first): slice, angle_deg, lingual/mesial tilt (deg), site (m),
+        axis, F, f_safe_line1/2 (m), d_T (m), theta_T (rad), valid (both f_safe > 0).
+    """
+    from systems.placement import PlacementProblem, default_bounds, grid_search, hole_frame
+
+    js = range(1, fpsm.slices - 1) if slices is None else slices
+    bounds = default_bounds(fpsm, implant_length)
+    out = []
+    for j in js:
+        z = float(fpsm.slice_z[j])
+        for phi_deg in angles_deg:
+            phi = np.deg2rad(phi_deg)
+            r = float(fpsm.radius_at(phi, z))
+            site = np.array([r * np.cos(phi), r * np.sin(phi), z])
+            lingual = np.array([-np.sign(site[0]), 0.0, 0.0])
+            for t_in in lingual_tilts_deg:
+                for t_z in mesial_tilts_deg:
+                    a = np.cos(np.deg2rad(t_in)) * np.array([0.0, 1.0, 0.0])
+                    a = a + np.sin(np.deg2rad(t_in)) * lingual
+                    a = np.cos(np.deg2rad(t_z)) * a + np.sin(np.deg2rad(t_z)) * np.array(
+                        [0.0, 0.0, 1.0]
+                    )
+                    problem = PlacementProblem(
+                        fpsm, hole_frame(site, a), rod_radius, implant_length, objective
+                    )
+                    g = grid_search(problem, bounds[0], bounds[1], grid)
+                    ev = problem.evaluate(g.x[None])
+                    f1, f2 = float(ev.f_safe_line1[0]), float(ev.f_safe_line2[0])
+                    out.append(
+                        {
+                            "slice": int(j),
+                            "angle_deg": float(phi_deg),
+                            "lingual_tilt_deg": float(t_in),
+                            "mesial_tilt_deg": float(t_z),
+                            "site": site,
+                            "axis": a,
+                            "F": g.best_F,
+                            "f_safe_line1": f1,
+                            "f_safe_line2": f2,
+                            "d_T": float(g.x[0]),
+                            "theta_T": float(g.x[1]),
+                            "valid": f1 > 0 and f2 > 0,
+                        }
+                    )
+    out.sort(key=lambda c: c["F"])
+    return out
+
+
 def case_figures(case_path, out_dir) -> dict:
     """Build the case (:func:`build_case`) and write ``opening.png`` and ``placements.png``."""
     out_dir = Path(out_dir)
@@ -300,6 +370,11 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--case", type=Path, default=ROOT / "models" / "cases" / "default.yaml")
     parser.add_argument("--out", type=Path, default=Path("case_figures"))
+    parser.add_argument(
+        "--scan",
+        action="store_true",
+        help="also rank candidate sites on the lower-lateral wall (how the sites were chosen)",
+    )
     args = parser.parse_args(argv)
     out = case_figures(args.case, args.out)
     info = out["opened"].metadata["implantplan"]["open_mouth"]
@@ -321,6 +396,30 @@ def main(argv=None) -> int:
         )
     for f in out["figures"]:
         print(f"wrote {f}")
+    if args.scan:
+        site0 = out["case"]["sites"][0]
+        ranked = scan_sites(
+            out["fpsm"],
+            rod_radius=site0["rod_radius_mm"] * MM,
+            implant_length=site0["implant_length_mm"] * MM,
+        )
+        print(f"scan: {sum(c['valid'] for c in ranked)} of {len(ranked)} candidates valid")
+        # the sides of the arch: lower-lateral quadrants, away from the throat and the lips
+        for side, (lo, hi) in (("X < 0", (-165, -115)), ("X > 0", (-65, -15))):
+            sel = [
+                c
+                for c in ranked
+                if lo <= c["angle_deg"] <= hi and 6 <= c["slice"] <= 11 and c["valid"]
+            ]
+            print(f"best lateral candidates, {side} (slices 6-11): {len(sel)} valid")
+            for c in sel[:5]:
+                print(
+                    f"  slice {c['slice']} angle {c['angle_deg']:.0f} deg lingual "
+                    f"{c['lingual_tilt_deg']:.0f} mesial {c['mesial_tilt_deg']:.0f} site_mm "
+                    f"{np.round(c['site'] / MM, 1).tolist()} F={c['F']:.4f} "
+                    f"f1={c['f_safe_line1'] / MM:.2f} f2={c['f_safe_line2'] / MM:.2f} mm "
+                    f"d_T={c['d_T'] / MM:.1f} mm"
+                )
     return 0
 
 

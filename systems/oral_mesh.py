@@ -13,6 +13,10 @@ For a planar convex loop that is the flat cap; for a bent loop (the default mesh
 runs along its floor and up its back) it is a cone towards the centroid, which lies inside the
 loop's convex hull: it cuts the free space short there, i.e. errs on the safe side.
 
+Opening the mouth (:func:`open_mouth`): scans of a closed mouth (the default mesh) leave no room
+for the instrument; the lower jaw's tissue is rotated about the temporomandibular hinge, blended
+smoothly across the occlusal plane (see the function).
+
 The procedural oral cavity (:func:`procedural_oral_cavity`) is a closed tube around the Center
 Z axis whose wall radius R(theta, z) is a known analytic function (arch, palate dome, tongue
 floor, teeth ridges, mouth opening), so tests know the wall distances the fit must find.
@@ -44,6 +48,9 @@ _MODELS = Path(__file__).resolve().parent.parent / "models" / "oral"
 # x = 140.3 mm there). Center z then runs from the back (z ~ -0.3 mm) to the lips (z ~ 85.4 mm).
 # The mesh is open along the floor and at the back, so fitting it needs close_open_cuts (or a
 # cap radius and an explicit z range).
+# These constants describe the mesh AS SCANNED (mouth closed: the paper's tool has no safe
+# placement in it). The bundled surgical case, models/cases/default.yaml, opens the mouth first
+# (open_mouth, 25 deg about the TMJ hinge) and uses its own Center frame and z range there.
 DEFAULT_CAVITY = {
     "path": _MODELS / "oralCavityMesh.obj",
     "units": "mm",

@@ -265,3 +265,29 @@ def test_case_figures_write_pngs(default_plan, tmp_path):
     b = plot_placements(opened, X_WC, fpsm, placements, ["36", "46"], tmp_path / "p.png")
     for path in (a, b):
         assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_site_scan_finds_the_default_sites_valid(default_plan):
+    from analyses.case_figures import scan_sites
+
+    case, _, _, fpsm, placements = default_plan
+    ranked = scan_sites(
+        fpsm,
+        rod_radius=6e-3,
+        implant_length=31e-3,
+        slices=[8],
+        angles_deg=(-120, -60, -90),
+        lingual_tilts_deg=(15.0,),
+        mesial_tilts_deg=(0.0,),
+    )
+    assert len(ranked) == 3
+    assert [c["F"] for c in ranked] == sorted(c["F"] for c in ranked)
+    for site, placement in zip(case["sites"], placements, strict=True):
+        c = min(
+            ranked, key=lambda c: np.linalg.norm(c["site"] - np.asarray(site["position_mm"]) * MM)
+        )
+        assert np.linalg.norm(c["site"] - np.asarray(site["position_mm"]) * MM) < 0.1 * MM
+        np.testing.assert_allclose(c["axis"], site["axis"], atol=1e-6)
+        assert c["valid"]
+        # a coarse grid cannot beat the PSO + fine grid optimum, and is close to it
+        assert placement.F_safe - 1e-9 <= c["F"] < placement.F_safe + 0.005
