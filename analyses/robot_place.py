@@ -347,6 +347,11 @@ def _place(args: argparse.Namespace) -> int:
         w = np.asarray(args.weights, dtype=float)
         if not np.all(np.isfinite(w)) or np.any(w < 0) or not np.any(w > 0):
             raise InputError("--weights", "expected three weights >= 0, not all 0")
+    up = (sc.X_WO @ moprp.base_pose(np.zeros(3)))[:3, 2]
+    tilt = float(np.degrees(np.arccos(np.clip(up[2], -1.0, 1.0))))
+    if tilt > 5.0:
+        progress.say(f"warning: Base Z || Oral Y (DESIGN.md 5) tilts the base {tilt:.0f} deg from "
+                     "World up for this Oral pose; the cart would not stand on the floor")
     out = run_placement(sc, ik=args.ik, weights=args.weights, drake_starts=args.drake_starts,
                         progress=progress)
     out["inputs"] = info
