@@ -403,30 +403,42 @@ def build(
 # ---------------------------------------------------------------------------------------------
 
 
+@numba.njit(cache=True, inline="always")
+def direction_of(zx, zy, zz, table):  # pragma: no cover - compiled
+    """Map direction index for a vector (any length > 0) from the lookup table."""
+    n_z, n_phi = table.shape
+    norm = np.sqrt(zx * zx + zy * zy + zz * zz)
+    c = min(1.0, max(-1.0, zz / norm))
+    iz = min(max(int(np.arccos(c) / np.pi * n_z), 0), n_z - 1)
+    ip = int((np.arctan2(zy, zx) + np.pi) / (2.0 * np.pi) * n_phi)
+    ip = min(max(ip, 0), n_phi - 1)
+    return table[iz, ip]
+
+
+@numba.njit(cache=True, inline="always")
+def lookup(px, py, pz, zx, zy, zz, origin, voxel, shape, row_of, table, bits):  # pragma: no cover
+    """(row, reachable) of one position + approach direction; row -1 outside stored voxels."""
+    i = int(np.floor((px - origin[0]) / voxel))
+    j = int(np.floor((py - origin[1]) / voxel))
+    k = int(np.floor((pz - origin[2]) / voxel))
+    if i < 0 or j < 0 or k < 0 or i >= shape[0] or j >= shape[1] or k >= shape[2]:
+        return -1, False
+    row = row_of[(i * shape[1] + j) * shape[2] + k]
+    if row < 0:
+        return -1, False
+    d = direction_of(zx, zy, zz, table)
+    return row, (bits[row, d >> 3] >> (7 - (d & 7))) & 1 == 1
+
+
 @numba.njit(cache=True)
 def _query_kernel(p, zax, origin, voxel, shape, row_of, table, bits, index, reach_out, index_out):
-    n_z, n_phi = table.shape
-    for n in range(p.shape[0]):
-        reach_out[n] = False
-        index_out[n] = 0.0
-        i = int(np.floor((p[n, 0] - origin[0]) / voxel))
-        j = int(np.floor((p[n, 1] - origin[1]) / voxel))
-        k = int(np.floor((p[n, 2] - origin[2]) / voxel))
-        if i < 0 or j < 0 or k < 0 or i >= shape[0] or j >= shape[1] or k >= shape[2]:
-            continue
-        row = row_of[(i * shape[1] + j) * shape[2] + k]
-        if row < 0:
-            continue
-        zx, zy, zz = zax[n, 0], zax[n, 1], zax[n, 2]
-        norm = np.sqrt(zx * zx + zy * zy + zz * zz)
-        zz = min(1.0, max(-1.0, zz / norm))
-        iz = int(np.arccos(zz) / np.pi * n_z)
-        iz = min(max(iz, 0), n_z - 1)
-        ip = int((np.arctan2(zy, zx) + np.pi) / (2.0 * np.pi) * n_phi)
-        ip = min(max(ip, 0), n_phi - 1)
-        d = table[iz, ip]
-        reach_out[n] = (bits[row, d >> 3] >> (7 - (d & 7))) & 1 == 1
-        index_out[n] = index[row]
+    for n in range(p.shape[0]):  # pragma: no cover - compiled
+        row, ok = lookup(
+            p[n, 0], p[n, 1], p[n, 2], zax[n, 0], zax[n, 1], zax[n, 2],
+            origin, voxel, shape, row_of, table, bits,
+        )  # fmt: skip
+        reach_out[n] = ok
+        index_out[n] = index[row] if row >= 0 else 0.0
 
 
 @dataclass
@@ -461,6 +473,14 @@ class CapabilityMap:
         self._table = direction_table(self.directions)
 
     # -- queries ------------------------------------------------------------------------------
+    def kernel_args(self) -> tuple:
+        """(origin, voxel, shape, row_of, table, bits): the arguments of :func:`lookup`, for
+        compiled callers (e.g. the RASSCMAP's Algorithm 2)."""
+        return (
+            np.asarray(self.grid.origin, float), float(self.grid.voxel),
+            np.asarray(self.grid.shape, np.int64), self._row_of, self._table, self.reach_bits,
+        )  # fmt: skip
+
     def query_points(self, p: np.ndarray, z_axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(reachable, index) for positions (n, 3) and approach directions (n, 3) in base_link."""
         p = np.ascontiguousarray(np.asarray(p, dtype=float).reshape(-1, 3))
@@ -469,11 +489,7 @@ class CapabilityMap:
             raise InputError("poses", "positions and directions differ in count")
         reach = np.empty(len(p), dtype=bool)
         index = np.empty(len(p), dtype=np.float64)
-        _query_kernel(
-            p, z, np.asarray(self.grid.origin, float), float(self.grid.voxel),
-            np.asarray(self.grid.shape, np.int64), self._row_of, self._table, self.reach_bits,
-            self.index, reach, index,
-        )  # fmt: skip
+        _query_kernel(p, z, *self.kernel_args(), self.index, reach, index)
         return reach, index
 
     def query(self, X_BP: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

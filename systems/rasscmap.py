@@ -60,10 +60,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import h5py
+import numba
 import numpy as np
 from scipy.optimize import brentq
 
-from systems.capability_map import CapabilityMap, golden_spiral
+from systems.capability_map import CapabilityMap, direction_of, golden_spiral, lookup
 from systems.errors import InputError, PlanningFailure
 from systems.files import read_yaml, write_atomic
 from systems.frames import invert, rot_x, rot_y, rot_z, rpy_to_rotation, transform
@@ -250,6 +251,76 @@ def bend_samples(d_rot: float, joint_limit: float) -> tuple[np.ndarray, np.ndarr
     return np.concatenate([[0.0], D.ravel()]), np.concatenate([[0.0], P.ravel()])
 
 
+@numba.njit(cache=True)
+def _bend_kernel(
+    centres,
+    p_A,
+    z_A,
+    cos_min,
+    delta,
+    sin_d,
+    cos_d,
+    cos_psi,
+    sin_psi,
+    l_i,
+    l_s,
+    l_c,
+    R_BW,
+    t_BW,
+    origin,
+    voxel,
+    shape,
+    row_of,
+    table,
+    bits,
+    out,
+):  # pragma: no cover - compiled
+    """Algorithm 2 for every pivot centre x bend sample; marks out[pivot, direction]."""
+    for m in range(centres.shape[0]):
+        vx, vy, vz = centres[m, 0] - p_A[0], centres[m, 1] - p_A[1], centres[m, 2] - p_A[2]
+        D = np.sqrt(vx * vx + vy * vy + vz * vz)
+        if D <= l_i:
+            continue
+        ux, uy, uz = vx / D, vy / D, vz / D
+        hx, hy, hz = (1.0, 0.0, 0.0) if abs(ux) < 0.9 else (0.0, 1.0, 0.0)
+        dot = hx * ux + hy * uy + hz * uz
+        ax, ay, az = hx - dot * ux, hy - dot * uy, hz - dot * uz
+        na = np.sqrt(ax * ax + ay * ay + az * az)
+        ax, ay, az = ax / na, ay / na, az / na
+        bx, by, bz = uy * az - uz * ay, uz * ax - ux * az, ux * ay - uy * ax  # e2 = u x e1
+        for s in range(delta.shape[0]):
+            d, sd, cd = delta[s], sin_d[s], cos_d[s]
+            sphi = l_i * sd / D  # law of sines: sin(phi) / l_i = sin(pi - delta) / D
+            if sphi > 1.0:
+                continue
+            cphi = np.sqrt(1.0 - sphi * sphi)
+            sg = sd * cphi - cd * sphi  # sin(delta - phi): instrument angle to u
+            cg = cd * cphi + sd * sphi
+            if d > 0.0:
+                AJ = D * sg / sd  # |trocar - joint|
+                if AJ < l_c:
+                    continue  # the instrument joint is still inside the cannula
+            else:
+                AJ = D - l_i
+            cp, sp = cos_psi[s], sin_psi[s]
+            wx, wy, wz = cp * ax + sp * bx, cp * ay + sp * by, cp * az + sp * bz
+            sx, sy, sz = cphi * ux - sphi * wx, cphi * uy - sphi * wy, cphi * uz - sphi * wz
+            if sx * z_A[0] + sy * z_A[1] + sz * z_A[2] < cos_min - 1e-12:
+                continue  # shaft outside the trocar's rotation limits
+            t = AJ - l_s  # shaft start (robot's mapped frame) = p_A + (AJ - l_s) z_s
+            ex, ey, ez = p_A[0] + t * sx, p_A[1] + t * sy, p_A[2] + t * sz
+            px = R_BW[0, 0] * ex + R_BW[0, 1] * ey + R_BW[0, 2] * ez + t_BW[0]
+            py = R_BW[1, 0] * ex + R_BW[1, 1] * ey + R_BW[1, 2] * ez + t_BW[1]
+            pz = R_BW[2, 0] * ex + R_BW[2, 1] * ey + R_BW[2, 2] * ez + t_BW[2]
+            qx = R_BW[0, 0] * sx + R_BW[0, 1] * sy + R_BW[0, 2] * sz
+            qy = R_BW[1, 0] * sx + R_BW[1, 1] * sy + R_BW[1, 2] * sz
+            qz = R_BW[2, 0] * sx + R_BW[2, 1] * sy + R_BW[2, 2] * sz
+            row, ok = lookup(px, py, pz, qx, qy, qz, origin, voxel, shape, row_of, table, bits)
+            if ok:
+                k = direction_of(cg * ux + sg * wx, cg * uy + sg * wy, cg * uz + sg * wz, table)
+                out[m, k] = True
+
+
 def add_orientations(
     cmap: CapabilityMap,
     X_WB: np.ndarray,
@@ -258,53 +329,26 @@ def add_orientations(
     trocar: Trocar,
     instrument: Instrument,
     d_rot: float,
-    directions: np.ndarray,
 ) -> np.ndarray:
-    """Algorithm 2: instrument directions (n, K) bool reachable at each pivot centre (n, 3)."""
-    K = len(directions)
-    n = len(centres)
-    out = np.zeros((n, K), bool)
-    if n == 0:
+    """Algorithm 2: instrument directions (n, K) bool reachable at each pivot centre (n, 3).
+
+    For each centre and bend (delta, psi) (:func:`bend_samples`): shaft angle phi to u by the law
+    of sines, joint past the cannula, shaft within the trocar limits, CMAP lookup of the shaft's
+    start point and direction in base_link, then the instrument direction's bin is set.
+    """
+    out = np.zeros((len(centres), cmap.params.directions), bool)
+    if len(centres) == 0:
         return out
-    p_A = X_WA[:3, 3]
-    z_A = X_WA[:3, 2]
-    v = centres - p_A
-    D = np.linalg.norm(v, axis=1)
-    u = v / D[:, None]
-    # a basis (e1, e2) orthogonal to u
-    hint = np.where(np.abs(u[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    e1 = hint - np.sum(hint * u, axis=1, keepdims=True) * u
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(u, e1)
     delta, psi = bend_samples(d_rot, instrument.joint_limit)
-    l_i, l_s, l_c = instrument.instrument_length, instrument.shaft_length, trocar.cannula_length
-    s = l_i * np.sin(delta)[None, :] / D[:, None]  # (n, S)
-    ok = (s <= 1.0) & (D[:, None] > l_i)
-    phi = np.arcsin(np.clip(s, -1.0, 1.0))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        AJ = np.where(
-            delta[None] > 0,
-            D[:, None] * np.sin(delta[None] - phi) / np.sin(delta),
-            D[:, None] - l_i,
-        )
-    ok &= (delta[None] == 0) | (AJ >= l_c)
-    w = np.cos(psi)[None, :, None] * e1[:, None] + np.sin(psi)[None, :, None] * e2[:, None]
-    z_s = np.cos(phi)[..., None] * u[:, None] - np.sin(phi)[..., None] * w  # shaft axis
-    ang = (delta[None] - phi)[..., None]
-    z_i = np.cos(ang) * u[:, None] + np.sin(ang) * w  # instrument axis (tip direction)
-    ok &= (z_s @ z_A) >= np.cos(min(trocar.alpha_max, trocar.beta_max, np.pi / 2)) - 1e-12
-    J = p_A + AJ[..., None] * z_s
-    p_ee = J - l_s * z_s
     X_BW = invert(X_WB)
-    m = ok.ravel()
-    reach = np.zeros(m.shape, bool)
-    if m.any():
-        pe = p_ee.reshape(-1, 3)[m] @ X_BW[:3, :3].T + X_BW[:3, 3]
-        zs = z_s.reshape(-1, 3)[m] @ X_BW[:3, :3].T
-        reach[m] = cmap.query_points(pe, zs)[0]
-    reach = reach.reshape(ok.shape)
-    rows = np.broadcast_to(np.arange(n)[:, None], reach.shape)[reach]
-    out[rows, cmap.nearest_direction(z_i[reach])] = True
+    cos_min = np.cos(min(trocar.alpha_max, trocar.beta_max, np.pi / 2))
+    _bend_kernel(
+        np.ascontiguousarray(centres, dtype=float), X_WA[:3, 3].copy(), X_WA[:3, 2].copy(),
+        float(cos_min), delta, np.sin(delta), np.cos(delta), np.cos(psi), np.sin(psi),
+        float(instrument.instrument_length),
+        float(instrument.shaft_length), float(trocar.cannula_length),
+        np.ascontiguousarray(X_BW[:3, :3]), X_BW[:3, 3].copy(), *cmap.kernel_args(), out,
+    )  # fmt: skip
     return out
 
 
@@ -325,9 +369,7 @@ def constrained_map(
     directions = golden_spiral(cmap.params.directions)
     centres = X_WA[:3, 3] + keys * voxel
     reach = np.zeros((len(keys), len(directions)), bool)
-    reach[pivot] = add_orientations(
-        cmap, X_WB, X_WA, centres[pivot], trocar, instrument, d_rot, directions
-    )
+    reach[pivot] = add_orientations(cmap, X_WB, X_WA, centres[pivot], trocar, instrument, d_rot)
     t2 = time.perf_counter()
     index = reach.mean(axis=1)
     return Rasscmap(
@@ -734,6 +776,7 @@ class SetupProblem:
         self.margin = np.zeros(self.n)
         self.directions = golden_spiral(cmap.params.directions)
         self.evaluations = 0
+        self.eval_seconds = 0.0  # time spent in evaluate (the rest of a search is bookkeeping)
         if patient.access == "unconstrained":
             b = patient.body
             pts_P = surface_points(
@@ -767,6 +810,7 @@ class SetupProblem:
 
     def evaluate(self, ids: np.ndarray) -> np.ndarray:
         """Costs of candidates ``ids`` (computing only those not cached)."""
+        t0 = time.perf_counter()
         ids = np.unique(np.asarray(ids, dtype=np.int64))
         todo = ids[np.isnan(self.cost[ids])]
         if len(todo):
@@ -791,6 +835,7 @@ class SetupProblem:
             self.c_s[todo] = c_s
             self.all_reached[todo] = reach.all(axis=1)
             self.mean_c_t[todo] = c_t.mean(axis=1)
+        self.eval_seconds += time.perf_counter() - t0
         return self.cost[np.asarray(ids)]
 
     # genome = (range, ix, iy, iz, iyaw, access); bounds per range

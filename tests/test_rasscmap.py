@@ -78,6 +78,54 @@ def test_algorithm2_geometry_law_of_sines(cmap):
     assert np.degrees(np.arccos(z_s @ z_i)) == pytest.approx(60.0, abs=1e-9)
 
 
+def _algorithm2_reference(cmap, X_WB, X_WA, centres, trocar, ins, d_rot):
+    """Slow numpy Algorithm 2: the same geometry written with arcsin / explicit angles."""
+    out = np.zeros((len(centres), cmap.params.directions), bool)
+    delta, psi = rm.bend_samples(d_rot, ins.joint_limit)
+    X_BW = np.linalg.inv(X_WB)
+    p_A, z_A = X_WA[:3, 3], X_WA[:3, 2]
+    for m, c in enumerate(centres):
+        D = np.linalg.norm(c - p_A)
+        u = (c - p_A) / D
+        hint = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        e1 = hint - (hint @ u) * u  # the bend-plane azimuth psi is measured from this e1
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(u, e1)
+        for d, ps in zip(delta, psi, strict=True):
+            if D <= ins.instrument_length or ins.instrument_length * np.sin(d) / D > 1:
+                continue
+            phi = np.arcsin(ins.instrument_length * np.sin(d) / D)
+            AJ = D * np.sin(d - phi) / np.sin(d) if d > 0 else D - ins.instrument_length
+            if d > 0 and AJ < trocar.cannula_length:
+                continue
+            w = np.cos(ps) * e1 + np.sin(ps) * e2
+            z_s = np.cos(phi) * u - np.sin(phi) * w
+            if z_s @ z_A < -1e-12:
+                continue
+            p_ee = p_A + (AJ - ins.shaft_length) * z_s
+            ok = cmap.query_points(
+                (X_BW[:3, :3] @ p_ee + X_BW[:3, 3])[None], (X_BW[:3, :3] @ z_s)[None]
+            )
+            if ok[0][0]:
+                z_i = np.cos(d - phi) * u + np.sin(d - phi) * w
+                out[m, cmap.nearest_direction(z_i[None])[0]] = True
+    return out
+
+
+def test_algorithm2_kernel_matches_reference(cmap):
+    X_WA = transform(rot_x(np.pi), [0.5, -0.3, 0.5])
+    trocar = rm.Trocar(cannula_length=0.03, depth=0.10)
+    ins = rm.Instrument(shaft_length=0.3, instrument_length=0.03)
+    X_WB = transform(rot_x(0.0), [0.05, 0.02, 0.0])
+    rng = np.random.default_rng(5)
+    centres = X_WA[:3, 3] + rng.uniform([-0.1, -0.1, -0.13], [0.1, 0.1, -0.04], (12, 3))
+    d_rot = np.radians(15)
+    fast = rm.add_orientations(cmap, X_WB, X_WA, centres, trocar, ins, d_rot)
+    slow = _algorithm2_reference(cmap, X_WB, X_WA, centres, trocar, ins, d_rot)
+    assert slow.sum() > 20
+    np.testing.assert_array_equal(fast, slow)
+
+
 def test_constrained_map_hemisphere_and_index(cmap):
     X_WA = transform(rot_x(np.pi), [0.5, -0.3, 0.5])  # z points down into the "patient"
     X_WB = np.eye(4)
