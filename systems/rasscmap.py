@@ -42,7 +42,9 @@ with c_t,i the capability index of the voxel holding task pose i and r_t,i its r
 (unconstrained: the CMAP bit of the pose's approach direction; constrained: the RASSCMAP bit).
 Ties (common: with this 6-axis arm about half of the map has index 1, so f saturates at 1) go to
 the larger :func:`task_margin` (mean index of the 27 voxels around each task position: tolerance
-to a base placed a voxel off), then to the lower candidate id. This tie-break is our addition.
+to a base placed a voxel off), then to the candidate deepest inside the tied set (farthest from
+any worse candidate), then to the lower id. This tie-break is our addition (the paper's GA
+returns one of the tied optima at random).
 
 **Optimization**: :func:`optimize` with ``method="exhaustive"`` evaluates every candidate (exact),
 ``"ga"`` runs :func:`genetic_search` (a small vectorized GA over the discrete candidate grid:
@@ -867,11 +869,42 @@ class SetupResult:
     generations: int = 0
 
 
+YAW_LENGTH = 0.5  # m: a yaw difference counts as its arc at half a metre (tie-break distance)
+
+
+def setup_distance(problem: SetupProblem, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance between candidates' bases (m): position, plus yaw as an arc at YAW_LENGTH;
+    candidates at different access points are infinitely apart. Shapes (na,), (nb,) -> (na, nb)."""
+    ba, aa = problem.split(a)
+    bb, ab = problem.split(b)
+    Pa, Pb = problem.bases[ba], problem.bases[bb]
+    dp = np.linalg.norm(Pa[:, None, :3, 3] - Pb[None, :, :3, 3], axis=-1)
+    ya = np.arctan2(Pa[:, 1, 0], Pa[:, 0, 0])
+    yb = np.arctan2(Pb[:, 1, 0], Pb[:, 0, 0])
+    dy = np.abs(np.angle(np.exp(1j * (ya[:, None] - yb[None, :]))))
+    d = np.hypot(dp, YAW_LENGTH * dy)
+    return np.where(aa[:, None] == ab[None, :], d, np.inf)
+
+
 def _best_worst(problem: SetupProblem, ids: np.ndarray) -> tuple[int, int]:
-    """Highest cost (ties: highest margin, then lowest id) and lowest cost (ties: lowest margin)."""
+    """Best and worst of the evaluated candidates ``ids``.
+
+    Best: highest cost; ties -> highest :func:`task_margin`; remaining ties -> the candidate
+    deepest inside the tied set (largest :func:`setup_distance` to any evaluated candidate of
+    lower cost or margin: the most tolerant to a misplaced base); then the lowest id.
+    Worst: lowest cost; ties -> lowest margin, then lowest id.
+    """
     ids = np.asarray(ids)
     cost, margin = problem.cost[ids], problem.margin[ids]
-    best = ids[np.lexsort((ids, -margin, -cost))[0]]
+    order = np.lexsort((ids, -margin, -cost))
+    top = (cost == cost[order[0]]) & (margin == margin[order[0]])
+    best = ids[order[0]]
+    if top.sum() > 1 and (~top).any():
+        tied, rest = ids[top], ids[~top]
+        depth = np.full(len(tied), np.inf)
+        for i in range(0, len(rest), 2048):
+            depth = np.minimum(depth, setup_distance(problem, tied, rest[i : i + 2048]).min(axis=1))
+        best = tied[np.lexsort((tied, -depth))[0]]
     worst = ids[np.lexsort((ids, margin, cost))[0]]
     return int(best), int(worst)
 

@@ -245,6 +245,22 @@ def test_exhaustive_and_ga_agree_and_far_bases_score_zero(cmap, tmp_path):
     assert (ga2.best, ga2.cost) == (ga.best, ga.cost)  # same seed, same result
 
 
+def test_tie_break_takes_the_deepest_of_the_tied_best(cmap, tmp_path):
+    prob = _unconstrained_problem(cmap, tmp_path, [-0.3, 0.3])
+    res = rm.exhaustive_search(prob)
+    ids = np.arange(prob.n)
+    top = (prob.cost == prob.cost[res.best]) & (prob.margin == prob.margin[res.best])
+    assert prob.cost[res.best] == prob.cost.max()
+    assert prob.margin[res.best] == prob.margin[prob.cost == prob.cost.max()].max()
+    if top.sum() > 1:
+        depth = rm.setup_distance(prob, ids[top], ids[~top]).min(axis=1)
+        assert depth[np.flatnonzero(ids[top] == res.best)[0]] == depth.max()
+    # distance: a 30 deg yaw step at the same position = YAW_LENGTH * pi / 6
+    same_pos = np.flatnonzero(np.all(prob.base_coords[:, :4] == prob.base_coords[0, :4], axis=1))
+    d = rm.setup_distance(prob, np.array([0]), same_pos)[0]
+    np.testing.assert_allclose(np.sort(d)[:2], [0.0, rm.YAW_LENGTH * np.pi / 6], atol=1e-12)
+
+
 def test_no_reachable_base_is_a_planning_failure(cmap, tmp_path):
     prob = _unconstrained_problem(cmap, tmp_path, [4.0, 4.2])
     with pytest.raises(PlanningFailure, match="reaches all 2 task poses"):
