@@ -16,6 +16,7 @@ from systems.errors import InputError, PlanningFailure
 
 # Modules that add subcommands, in the order they appear in --help.
 COMMAND_MODULES: tuple[str, ...] = (
+    "analyses.plan",
     "analyses.fpsm_commands",
     "analyses.instrument",
     "analyses.capmap",

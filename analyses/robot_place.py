@@ -388,8 +388,10 @@ def summary_table(out: dict) -> str:
 # --------------------------------------------------------------------------------------------
 
 
-def plot_placement(sc: moprp.Scenario, out: dict, out_dir: Path) -> list[Path]:
-    """Pareto front in design and objective space, and the selected layout before/after feed."""
+def plot_placement(sc: moprp.Scenario, out: dict, out_dir: Path, *, html: bool = True
+                   ) -> list[Path]:
+    """Pareto front in design and objective space, and the selected layout before/after feed
+    (PNGs; and the Meshcat static HTML of the layout when ``html``)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -435,7 +437,8 @@ def plot_placement(sc: moprp.Scenario, out: dict, out_dir: Path) -> list[Path]:
     for label, key in (("after", "q"), ("before", "q_pre")):
         paths.append(_plot_layout(sc, ps, np.asarray(s[key]), out_dir / f"layout_{label}.png",
                                   f"{sc.name}: selected layout {label} feeding"))
-    paths.append(write_layout_html(sc, ps, int(s["branch"]), out_dir / "layout.html"))
+    if html:
+        paths.append(write_layout_html(sc, ps, int(s["branch"]), out_dir / "layout.html"))
     return paths
 
 

@@ -22,13 +22,13 @@ from systems.errors import InputError
 SCHEMA_VERSION = 1
 
 
-def _to_jsonable(obj: Any) -> Any:
+def to_jsonable(obj: Any) -> Any:
     if isinstance(obj, dict):
-        return {str(k): _to_jsonable(v) for k, v in obj.items()}
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_to_jsonable(v) for v in obj]
+        return [to_jsonable(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return _to_jsonable(obj.tolist())
+        return to_jsonable(obj.tolist())
     if isinstance(obj, (np.bool_,)):
         return bool(obj)
     if isinstance(obj, np.integer):
@@ -67,7 +67,7 @@ def write_json(path: str | os.PathLike, data: dict, *, kind: str | None = None) 
     if kind is not None:
         head["kind"] = kind
     body = {**head, **{k: v for k, v in data.items() if k not in head}}
-    text = json.dumps(_to_jsonable(body), indent=1, allow_nan=False)
+    text = json.dumps(to_jsonable(body), indent=1, allow_nan=False)
     return write_text_atomic(path, text + "\n")
 
 

@@ -356,18 +356,27 @@ def base_pose(xyz) -> np.ndarray:
     return transform(R_OB, np.asarray(xyz, dtype=float))
 
 
-def target_pose(xyz) -> np.ndarray:
-    """X_BE (..., 4, 4): the TCP target (End = Oral, rotated by R_OE) seen from the base."""
+def target_pose(xyz, X_OT=None) -> np.ndarray:
+    """X_BE (..., 4, 4): the TCP target seen from the base at ``xyz``.
+
+    The target is End = Oral rotated by R_OE (the paper's convention), or, for several implant
+    sites served from one base, End = T rotated by R_OE where ``X_OT`` is the site's feeding
+    target (seed 000's Tool frame) in Oral: the base keeps its orientation R_OB relative to
+    Oral, only the target moves.
+    """
     xyz = np.asarray(xyz, dtype=float)
-    return transform(R_BE, -np.einsum("ji,...j->...i", R_OB, xyz))
+    if X_OT is None:
+        return transform(R_BE, -np.einsum("ji,...j->...i", R_OB, xyz))
+    X_OE = np.asarray(X_OT, dtype=float) @ transform(R_OE, np.zeros(3))
+    return invert(base_pose(xyz)) @ X_OE
 
 
-def feed_poses(xyz, feed_length: float, samples: int) -> np.ndarray:
+def feed_poses(xyz, feed_length: float, samples: int, X_OT=None) -> np.ndarray:
     """X_BE along the straight feed (..., samples, 4, 4): sample 0 is the pre-feed pose (TCP backed
-    out along End -Z by ``feed_length``), the last is the target."""
-    X = target_pose(xyz)
+    out along End -Z by ``feed_length``), the last is the target (see :func:`target_pose`)."""
+    X = target_pose(xyz, X_OT)
     s = np.linspace(-feed_length, 0.0, samples)  # offset along End Z
-    z_B = R_BE[:, 2]
+    z_B = X[..., None, :3, 2]
     out = np.broadcast_to(X[..., None, :, :], X.shape[:-2] + (samples, 4, 4)).copy()
     out[..., :3, 3] += s[:, None] * z_B
     return out
@@ -623,6 +632,7 @@ def evaluate_bases(
     *,
     ik_solver=ik_closed_form,
     model: CollisionModel | None = None,
+    X_OT=None,
 ) -> BaseEvaluation:
     """Evaluate base positions ``xyz`` (P, 3) in Oral: the GA's vectorized problem.
 
@@ -634,6 +644,8 @@ def evaluate_bases(
             slot b must be the same branch at every feed sample (the closed form guarantees it;
             other solvers must track their solutions, see analyses.robot_place).
         model: precomputed collision model (built from ``sc`` if None).
+        X_OT: the feeding target (Tool frame) in Oral when it is not Oral itself (several
+            implant sites from one base; see :func:`target_pose`).
     """
     xyz = np.atleast_2d(np.asarray(xyz, dtype=float))
     if xyz.ndim != 2 or xyz.shape[1] != 3:
@@ -641,7 +653,7 @@ def evaluate_bases(
     P = xyz.shape[0]
     model = model or CollisionModel.for_scenario(sc)
     K = sc.feed_samples
-    X = feed_poses(xyz, sc.feed_length, K)  # (P, K, 4, 4)
+    X = feed_poses(xyz, sc.feed_length, K, X_OT)  # (P, K, 4, 4)
     q, ok = ik_solver(X, limits=sc.limits, X_FT=sc.X_FT)  # (P, K, B, 6), (P, K, B)
     B = q.shape[2]
     q = np.swapaxes(q, 1, 2)  # (P, B, K, 6)

@@ -1,0 +1,320 @@
+"""The case pipeline's stages as plain functions (DESIGN.md section 1), shared by ``plan``,
+``demo`` and the figure scripts.
+
+    case -> mesh (opened) -> FPSM fit -> placement + VF per site -> robot base (all sites)
+         -> capability check of every feeding target -> teleop feeding per site
+
+Each stage takes what the previous one made and returns plain results; the ``plan`` command
+(analyses.plan) writes them out and builds the report.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+from analyses.case import Case
+from systems import moprp
+from systems.errors import PlanningFailure
+from systems.fpsm import Fpsm
+from systems.fpsm_fit import fit_fpsm
+from systems.frames import transform
+from systems.nsga2 import non_dominated_sort, nsga2
+from systems.oral_mesh import center_frame, load_oral_mesh, open_mouth
+from systems.placement import Placement, place_instrument
+
+
+@dataclass
+class FitResult:
+    scanned: trimesh.Trimesh  # m, mesh frame
+    opened: trimesh.Trimesh  # after the jaw-opening model (the scanned mesh when 0 deg)
+    fpsm: Fpsm  # its X_WC is the Center frame in the mesh frame
+    seconds: float
+
+
+def fit_stage(case: Case, *, progress=None) -> FitResult:
+    """Load the scan, open the mouth if the case asks, fit the FPSM (stage 1)."""
+    t0 = time.perf_counter()
+    scanned = load_oral_mesh(case.mesh_path, units=case.units, field="mesh.path")
+    opened = scanned
+    if case.mouth_opening_deg > 0:
+        opened = open_mouth(scanned, case.mouth_opening_deg, **case.opening)
+        if progress is not None:
+            info = opened.metadata.get("implantplan", {}).get("open_mouth", {})
+            progress.say(f"mouth opened by {case.mouth_opening_deg:g} deg "
+                         f"({info.get('moved_vertices', '?')} vertices moved)")
+    X_WC = center_frame(case.center_origin, case.center_z, x_hint=case.center_x_hint)
+    fpsm = fit_fpsm(
+        opened,
+        X_WC,
+        slices=case.slices,
+        control_points=case.control_points,
+        samples=case.samples,
+        z_range=case.z_range,
+        method=case.fit_method,
+        margin=case.margin,
+        cap_radius=case.cap_radius,
+        close_open_cuts=case.close_open_cuts,
+        progress=progress,
+    )
+    fpsm.settings["mesh_units"] = case.units
+    return FitResult(scanned, opened, fpsm, time.perf_counter() - t0)
+
+
+def placement_stage(case: Case, fpsm: Fpsm, *, progress=None) -> list[Placement]:
+    """Stage 2 for every site; a site without a collision-free placement is a planning failure
+    that names the site and the reason."""
+    out = []
+    for k, site in enumerate(case.sites):
+        p = place_instrument(
+            fpsm,
+            site.position,
+            site.axis,
+            rod_radius=site.rod_radius,
+            implant_length=site.implant_length,
+            objective=case.objective,
+            seed=case.seed + k,
+        )
+        if progress is not None:
+            progress.step(k, len(case.sites), f"site {site.name}: d_T {p.d_T * 1e3:.1f} mm, "
+                          f"theta_T {np.rad2deg(p.theta_T):.1f} deg, F_safe {p.F_safe:.4f}, "
+                          f"{'valid' if p.valid else 'INVALID'}")
+        if not p.valid:
+            raise PlanningFailure(f"site {site.name}: no collision-free instrument placement "
+                                  f"({p.reason})", result={"site": site.name, **p.to_dict()})
+        out.append(p)
+    return out
+
+
+# -- robot base for all sites -----------------------------------------------------------------
+
+# Center axes in the scenario's Oral frame, by posture. The bundled scenarios keep Oral Y up in
+# the room (so the cart stands on the floor, Base Z || Oral Y). Lying supine: the mouth opens up
+# (Center Z = Oral Y) and the head lies towards World +Y = -Oral Z (Center Y, cranial); sitting:
+# the mouth faces Oral Z and the head is up (Center Y = Oral Y).
+R_OC_BY_POSTURE = {
+    "lying": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]),
+    "sitting": np.eye(3),
+}
+
+
+def center_in_oral(posture: str, placements: list[Placement]) -> np.ndarray:
+    """X_OC: the patient's Center frame in the scenario's Oral frame. Oral's origin is where the
+    scenario puts the mouth; we put the mean feeding target there."""
+    R = R_OC_BY_POSTURE[posture]
+    p_CT = np.mean([p.X_CT[:3, 3] for p in placements], axis=0)
+    return transform(R, -R @ p_CT)
+
+
+@dataclass
+class RobotResult:
+    scenario: object  # systems.moprp.Scenario (with the plant's TCP)
+    X_OC: np.ndarray
+    X_OT: np.ndarray  # (S, 4, 4) feeding targets in Oral
+    base_xyz: np.ndarray  # (3,) selected base position in Oral
+    X_WBase: np.ndarray
+    branch: np.ndarray  # (S,) IK branch per site
+    q: np.ndarray  # (S, 6) at the feeding target
+    q_pre: np.ndarray  # (S, 6) pre-feed configuration
+    indices: np.ndarray  # (3,) worst over sites of [dexterity, error_range, joint_variation]
+    site_indices: np.ndarray  # (S, 3)
+    pareto_xyz: np.ndarray
+    pareto_F: np.ndarray
+    percentiles: np.ndarray  # (3,) of the selection against random feasible bases
+    percentile_samples: int
+    evaluations: int
+    generations: int
+    seconds: float
+
+
+def _site_evaluations(X, sc, rng, targets, model):
+    return [moprp.evaluate_bases(X, sc, rng, model=model, X_OT=T) for T in targets]
+
+
+def _combine(evs):
+    """Several sites from one base: feasible when every site is; each index is its worst value
+    over the sites (the base must serve all of them); violations add up."""
+    F = np.max([np.where(np.isfinite(e.objectives), e.objectives, 1e12) for e in evs], axis=0)
+    cv = np.sum([e.violation for e in evs], axis=0)
+    return F, cv
+
+
+def robot_stage(case: Case, placements: list[Placement], *, progress=None) -> RobotResult:
+    """MOPRP over the base position with every site's feeding target (NSGA-II, systems.nsga2).
+
+    Departure from seed 001 for several sites: the objectives are the worst index over the sites
+    and a base is feasible only if every site has a surviving branch."""
+    from analyses.robot_place import initial_population
+    from diagrams import tools
+
+    t0 = time.perf_counter()
+    sc = moprp.load_scenario(case.scenario, X_FT=tools.X_FT())
+    sc = dataclasses.replace(sc, pop=case.pop, gen=case.gen, seed=case.seed)
+    X_OC = center_in_oral(case.posture, placements)
+    targets = np.array([X_OC @ p.X_CT for p in placements])
+    model = moprp.CollisionModel.for_scenario(sc)
+
+    def evaluate(X, rng):
+        return _combine(_site_evaluations(X, sc, rng, targets, model))
+
+    rng = np.random.default_rng(sc.seed)
+    X0, n0, (Xs, cvs) = initial_population(sc, evaluate, rng, sc.pop)
+    if not np.any(cvs <= 0):
+        evs = _site_evaluations(Xs, sc, rng, targets, model)
+        why = []
+        for site, ev in zip(case.sites, evs, strict=True):
+            codes = ev.reason[ev.reason > 0]
+            common = int(np.bincount(codes).argmax()) if codes.size else moprp.DROP_IK
+            why.append(f"site {site.name}: {int(ev.feasible.sum())} feasible, mostly "
+                       f"'{moprp.DROP_REASONS[common]}'")
+        raise PlanningFailure(
+            f"no base position in the bounds serves every site ({Xs.shape[0]} sampled); "
+            + "; ".join(why)
+        )
+    if progress is not None:
+        progress.say(f"{int(np.sum(cvs <= 0))} of {n0} sampled bases serve all "
+                     f"{len(placements)} sites; NSGA-II pop {sc.pop}, gen <= {sc.gen}")
+
+    def on_gen(g, n_front, hv):
+        if progress is not None:
+            progress.step(g - 1, sc.gen, f"generations, front {n_front}, hypervolume {hv:.4g}")
+
+    res = nsga2(evaluate, sc.lower, sc.upper, pop=sc.pop, gen=sc.gen, seed=sc.seed + 1,
+                initial=X0, patience=sc.patience, hv_tol=sc.hv_tol, on_generation=on_gen)
+    Xf = res.X[res.front]
+    F, cv = evaluate(Xf, np.random.default_rng(sc.seed))
+    keep = np.flatnonzero(cv <= 0)
+    keep = keep[non_dominated_sort(F[keep]) == 0]
+    if keep.size == 0:
+        raise PlanningFailure("the optimizer found no base that serves every site")
+    Xf, F = Xf[keep], F[keep]
+    k = moprp.knee_point(F)
+    evs = _site_evaluations(Xf[k : k + 1], sc, np.random.default_rng(sc.seed), targets, model)
+
+    # percentile ranks of the selection against random bases that serve every site
+    rng_pct = np.random.default_rng(sc.seed + 2)
+    F_rand = []
+    for _ in range(20):
+        Xr = sc.lower + rng_pct.random((2000, 3)) * (sc.upper - sc.lower)
+        Fr, cvr = evaluate(Xr, rng_pct)
+        F_rand.append(Fr[cvr <= 0])
+        if sum(len(f) for f in F_rand) >= sc.percentile_samples:
+            break
+    F_rand = np.concatenate(F_rand)[: sc.percentile_samples]
+    pct = moprp.percentiles(F[k], F_rand) if len(F_rand) else np.full(3, np.nan)
+
+    return RobotResult(
+        scenario=sc,
+        X_OC=X_OC,
+        X_OT=targets,
+        base_xyz=Xf[k],
+        X_WBase=sc.X_WO @ moprp.base_pose(Xf[k]),
+        branch=np.array([int(e.branch[0]) for e in evs]),
+        q=np.array([e.q[0] for e in evs]),
+        q_pre=np.array([e.q_pre[0] for e in evs]),
+        indices=F[k],
+        site_indices=np.array([e.objectives[0] for e in evs]),
+        pareto_xyz=Xf,
+        pareto_F=F,
+        percentiles=pct,
+        percentile_samples=int(len(F_rand)),
+        evaluations=int(res.evaluations + n0),
+        generations=int(res.generations),
+        seconds=time.perf_counter() - t0,
+    )
+
+
+# -- capability check of every feeding target ---------------------------------------------------
+
+
+@dataclass
+class CapabilityResult:
+    cmap: object  # systems.capability_map.CapabilityMap over the sites' neighbourhoods
+    X_BA: np.ndarray  # (S, 4, 4) the mapped frame (implant tip, z = drilling) at each target
+    map_reachable: np.ndarray  # (S,) the map's answer for the target's voxel and direction
+    index: np.ndarray  # (S,) reachability index of the target's voxel
+    neighbourhood_index: np.ndarray  # (S,) mean index over the 3x3x3 voxels around the target
+    ik_branches: np.ndarray  # (S,) closed-form branches within limits at the exact target
+    seconds: float
+
+
+def capability_stage(case: Case, robot: RobotResult, *, progress=None) -> CapabilityResult:
+    """Capability map (seed 004) of the arm + actuator around each feeding target, from the chosen
+    base: the voxels of the 3x3x3 neighbourhood of every target, all approach directions and
+    sampled rolls (the contra-angle's roll is not free). Only these voxels are built: the check
+    needs the map where the tasks are, not the whole workspace (a full 5 cm map takes minutes)."""
+    from analyses.capmap import actuator_map_frame
+    from diagrams import tools
+    from systems import capability_map as cm
+    from systems import kinematics as kin
+    from systems.frames import invert
+
+    t0 = time.perf_counter()
+    sc = robot.scenario
+    X_FA = actuator_map_frame()
+    X_BE = invert(moprp.base_pose(robot.base_xyz)) @ robot.X_OT @ transform(moprp.R_OE, np.zeros(3))
+    X_BA = X_BE @ invert(tools.X_FT()) @ X_FA
+    params = cm.make_params(case.voxel, case.directions, limits=sc.limits, X_FT=X_FA,
+                            tool="actuator")
+    grid = cm.make_grid(params)
+    ijk = np.floor((X_BA[:, :3, 3] - grid.origin) / grid.voxel).astype(int)
+    offsets = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    cells = (ijk[:, None, :] + offsets).reshape(-1, 3)
+    inside = np.all((cells >= 0) & (cells < np.asarray(grid.shape)), axis=1)
+    ids = np.unique(np.ravel_multi_index(cells[inside].T, grid.shape))
+    vox, reach, allr = cm.build_block(params, ids)
+    cmap = cm.CapabilityMap(params, grid, vox, reach, allr)
+    map_reach, index = cmap.query(X_BA)
+    centres = grid.centres(np.ravel_multi_index(
+        np.clip(cells, 0, np.asarray(grid.shape) - 1).T, grid.shape))
+    neigh = cmap.voxel_index(centres).reshape(len(X_BA), -1).mean(axis=1)
+    branches = kin.ik(X_BE, limits=sc.limits, X_FT=tools.X_FT()).valid.sum(axis=-1)
+    if progress is not None:
+        for site, r, i, b in zip(case.sites, map_reach, index, branches, strict=True):
+            progress.say(f"site {site.name}: map says {'reachable' if r else 'NOT reachable'}, "
+                         f"voxel index {i:.2f}, {int(b)} IK branches within limits")
+    return CapabilityResult(cmap, X_BA, map_reach, index, neigh, branches,
+                            time.perf_counter() - t0)
+
+
+# -- teleoperated feeding per site ---------------------------------------------------------------
+
+
+def simulation_stage(case: Case, fit: FitResult, placements: list[Placement],
+                     robot: RobotResult, *, runs: int | None = None, progress=None) -> list[dict]:
+    """A short teleop feeding simulation per site (seed 001's feeding test on the Drake diagram):
+    scripted operator feeds from the pre-feed configuration to the feeding target, VF active,
+    FPSM estimator watching."""
+    from analyses.simulate import run_feeding
+    from diagrams.teleop import TeleopCase
+
+    runs = case.sim_runs if runs is None else runs
+    sc = robot.scenario
+    X_WC = sc.X_WO @ robot.X_OC
+    out = []
+    for k, (site, p) in enumerate(zip(case.sites, placements, strict=True)):
+        tc = TeleopCase(
+            scenario=case.posture,
+            X_WBase=robot.X_WBase,
+            q_start=robot.q_pre[k],
+            X_WCenter=X_WC,
+            fpsm=fit.fpsm,
+            vf=p.vf,
+            X_WTarget=sc.X_WO @ robot.X_OT[k],
+            rod_radius=p.rod_radius,
+            implant_length=p.implant_length,
+            limits=sc.limits,
+            label=f"site {site.name}",
+        )
+        res = run_feeding(tc, runs=runs, seed=case.seed + k, mode=case.sim_mode)
+        res["site"] = site.name
+        out.append(res)
+        if progress is not None:
+            worst = max(r["max_vf_violation"] for r in res["runs"])
+            progress.step(k, len(case.sites), f"site {site.name}: {runs} feeds, max VF "
+                          f"violation {worst * 1e3:.2f} mm, realtime x{res['realtime_factor']:.1f}")
+    return out

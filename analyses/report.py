@@ -1,0 +1,174 @@
+"""``report.html``: one self-contained page per plan (the figures are files beside it).
+
+Sections follow the pipeline: checks first (pass/fail with margins), then the FPSM, each site's
+placement and virtual fixture, the robot base, the capability check, the feeding simulations and
+the 3D scene (the Meshcat static HTML of the layout in an iframe). Tables show mm and degrees;
+the plan itself stays in SI units.
+"""
+
+from __future__ import annotations
+
+import html
+from pathlib import Path
+
+import numpy as np
+
+from systems.files import write_text_atomic
+
+_CSS = """
+body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1100px; color: #222; }
+h1 { margin-bottom: 0.2em; } h2 { border-bottom: 1px solid #ccc; padding-bottom: 0.2em; }
+table { border-collapse: collapse; margin: 0.6em 0 1.2em; font-size: 0.92em; }
+th, td { border: 1px solid #ccc; padding: 3px 8px; text-align: right; }
+th { background: #f3f3f3; } td.l, th.l { text-align: left; }
+.pass { color: #126b12; font-weight: 600; } .fail { color: #b00020; font-weight: 600; }
+.figs img { max-width: 100%; border: 1px solid #ddd; margin: 4px 0; }
+iframe { width: 100%; height: 560px; border: 1px solid #ccc; }
+.muted { color: #666; font-size: 0.9em; }
+"""
+
+
+def _fmt(value, unit: str) -> str:
+    """A value in the unit people read: m -> mm, rad -> deg."""
+    if unit == "m":
+        return f"{value * 1e3:.3f} mm"
+    if unit == "rad":
+        return f"{np.degrees(value):.3f} deg"
+    if unit in ("runs", "branches"):
+        return f"{value:g}"
+    return f"{value:.3f}"
+
+
+def _table(header: list[str], rows: list[list], left: int = 1) -> str:
+    th = "".join(f"<th class='{'l' if i < left else ''}'>{html.escape(h)}</th>"
+                 for i, h in enumerate(header))
+    body = []
+    for r in rows:
+        cells = "".join(
+            f"<td class='{'l' if i < left else ''}'>{c if str(c).startswith('<') else html.escape(str(c))}</td>"  # noqa: E501
+            for i, c in enumerate(r)
+        )
+        body.append(f"<tr>{cells}</tr>")
+    return f"<table><tr>{th}</tr>{''.join(body)}</table>"
+
+
+def _figs(paths) -> str:
+    return "<div class='figs'>" + "".join(
+        f"<img src='{html.escape(p)}' alt='{html.escape(Path(p).stem)}'>" for p in paths
+    ) + "</div>"
+
+
+def render(plan: dict, figs: dict) -> str:
+    ok = plan["passed"]
+    parts = [
+        "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
+        f"<title>implantplan: {html.escape(plan['case']['name'])}</title>",
+        f"<style>{_CSS}</style></head><body>",
+        f"<h1>Implant plan: {html.escape(plan['case']['name'])}</h1>",
+        f"<p class='muted'>case {html.escape(plan['case']['source'])}, seed "
+        f"{plan['case']['seed']}; all checks: <span class='{'pass' if ok else 'fail'}'>"
+        f"{'PASS' if ok else 'FAIL'}</span></p>",
+        "<h2>Checks</h2>",
+        _table(["check", "site", "value", "limit", "margin", "result"], [
+            [c["name"], c["site"] or "", _fmt(c["value"], c["unit"]),
+             _fmt(c["limit"], c["unit"]), _fmt(c["margin"], c["unit"]),
+             f"<span class='{'pass' if c['pass'] else 'fail'}'>"
+             f"{'pass' if c['pass'] else 'FAIL'}</span>"]
+            for c in plan["checks"]], left=2),
+    ]
+
+    f = plan["fpsm"]
+    parts += [
+        "<h2>1. Surrogate of the oral cavity (FPSM)</h2>",
+        _table(["slices", "control points", "z range (mm)", "method", "mean coverage",
+                "dense-check penetration", "max depth", "mouth opening"], [[
+                    f["slices"], f["control_points"],
+                    f"{f['z_range'][0] * 1e3:.1f} .. {f['z_range'][1] * 1e3:.1f}", f["method"],
+                    f"{100 * f['coverage_mean']:.1f} %",
+                    "" if f["dense_penetration_rate"] is None
+                    else f"{100 * f['dense_penetration_rate']:.3f} %",
+                    f"{f['dense_max_depth'] * 1e3:.3f} mm", f"{f['mouth_opening_deg']:g} deg"]],
+               left=0),
+        _figs(figs.get("fpsm", [])),
+    ]
+
+    parts.append("<h2>2. Instrument placement and virtual fixture per site</h2>")
+    rows = []
+    for s in plan["sites"]:
+        p = s["placement"]
+        grid = p.get("grid_check") or {}
+        gx = grid.get("x")
+        rows.append([
+            s["name"], f"{p['d_T'] * 1e3:.2f}", f"{np.degrees(p['theta_T']):.2f}",
+            f"{p['f_safe_line1'] * 1e3:.2f}", f"{p['f_safe_line2'] * 1e3:.2f}",
+            f"{p['d_safe_min_line1'] * 1e3:.2f}", f"{p['d_safe_min_line2'] * 1e3:.2f}",
+            f"{p['F_safe']:.5f}",
+            "" if gx is None else f"{gx[0] * 1e3:.2f} / {np.degrees(gx[1]):.2f}",
+            p["iterations"], "valid" if p["valid"] else "INVALID"])
+    parts.append(_table(["site", "d_T (mm)", "theta_T (deg)", "f_safe line1 (mm)",
+                         "f_safe line2 (mm)", "min d_safe line1 (mm)", "min d_safe line2 (mm)",
+                         "F_safe", "grid optimum d_T/theta_T", "PSO iterations", ""], rows))
+    for s in plan["sites"]:
+        parts.append(f"<h3>Site {html.escape(s['name'])}</h3>")
+        parts.append(_figs(figs.get("sites", {}).get(s["name"], [])))
+
+    b = plan["base"]
+    parts += [
+        "<h2>3. Robot base (MOPRP, all sites from one base)</h2>",
+        _table(["base in Oral (mm)", "dexterity", "error range (mm)", "joint variation (deg)",
+                "percentiles (dex / err / joint)", "Pareto size", "generations",
+                "evaluations"], [[
+                    " ".join(f"{v * 1e3:.0f}" for v in b["xyz_in_oral"]),
+                    f"{b['indices_worst_over_sites']['dexterity']:.3f}",
+                    f"{b['indices_worst_over_sites']['error_range'] * 1e3:.3f}",
+                    f"{np.degrees(b['indices_worst_over_sites']['joint_variation']):.2f}",
+                    " / ".join(f"{v:.1f} %" for v in b["percentiles"].values()),
+                    len(b["pareto"]), b["generations"], b["evaluations"]]], left=0),
+        _table(["site", "IK branch", "q at target (deg)", "q pre-feed (deg)"], [
+            [s["name"], s["ik"]["branch"], " ".join(f"{np.degrees(v):.1f}" for v in s["ik"]["q"]),
+             " ".join(f"{np.degrees(v):.1f}" for v in s["ik"]["q_pre"])]
+            for s in plan["sites"]]),
+        _figs(figs.get("robot", [])),
+    ]
+
+    parts += [
+        "<h2>4. Capability check from the chosen base</h2>",
+        _table(["site", "map: reachable", "voxel index", "mean index around the target",
+                "IK branches within limits"], [
+            [s["name"], "yes" if s["capability"]["map_reachable"] else "NO",
+             f"{s['capability']['voxel_index']:.2f}",
+             f"{s['capability']['neighbourhood_index']:.2f}",
+             s["capability"]["ik_branches_within_limits"]] for s in plan["sites"]]),
+        _figs(figs.get("capability", [])),
+    ]
+
+    parts.append("<h2>5. Teleoperated feeding (Drake diagram)</h2>")
+    rows = []
+    for s in plan["sites"]:
+        sim = s["simulation"]
+        for i, r in enumerate((sim or {}).get("runs", [])):
+            rows.append([s["name"], i, f"{r['joint_travel']:.3f}",
+                         f"{r['min_d_safe'] * 1e3:.2f}", f"{r['max_vf_violation'] * 1e3:.3f}",
+                         "yes" if r["collision_alarm"] else "no",
+                         f"{r['final_error'] * 1e3:.3f}", f"{r['sim_seconds']:.2f}",
+                         f"{r['wall_seconds']:.2f}"])
+    parts.append(_table(["site", "run", "joint travel (rad)", "min d_safe (mm)",
+                         "max VF violation (mm)", "alarm", "final error (mm)", "sim (s)",
+                         "wall (s)"], rows, left=1) if rows else "<p>No feeding runs.</p>")
+    for site, paths in figs.get("simulation", {}).items():
+        parts.append(f"<h3>Site {html.escape(site)}</h3>" + _figs(paths))
+
+    if figs.get("scene"):
+        parts += ["<h2>3D scene</h2>",
+                  "<p class='muted'>Meshcat recording of the selected layout: the feed of the "
+                  "first site from the pre-feed pose (t = 0) to the target (t = 1 s). "
+                  f"<a href='{html.escape(figs['scene'])}'>Open full page</a>.</p>",
+                  f"<iframe src='{html.escape(figs['scene'])}' title='3D scene'></iframe>"]
+    parts.append("</body></html>")
+    return "\n".join(parts)
+
+
+def write_report(path: Path, plan: dict, figs: dict) -> Path:
+    from systems.files import to_jsonable
+
+    return write_text_atomic(path, render(to_jsonable(plan), figs))
