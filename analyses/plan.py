@@ -228,9 +228,8 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims) -> dict:
                              MIN_CAPABILITY, unit="1", upper=False, site=n))
         if sim is not None and sim["runs"]:
             runs = sim["runs"]
-            checks.append(_check("feeds reaching the target", sum(r["reached_target"]
-                                 for r in runs), len(runs) - 0.5, unit="runs", upper=False,
-                                 site=n))
+            checks.append(_check("feeds missing the target", sum(not r["reached_target"]
+                                 for r in runs), 0, unit="runs", upper=True, site=n))
             checks.append(_check("max VF violation", max(r["max_vf_violation"] for r in runs),
                                  MAX_VF_VIOLATION, unit="m", upper=True, site=n))
             checks.append(_check("min d_safe of the rod during feeds",

@@ -61,7 +61,8 @@ def _figs(paths) -> str:
 def render(plan: dict, figs: dict) -> str:
     ok = plan["passed"]
     parts = [
-        "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
+        "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"
+        "<link rel='icon' href='data:,'>",
         f"<title>implantplan: {html.escape(plan['case']['name'])}</title>",
         f"<style>{_CSS}</style></head><body>",
         f"<h1>Implant plan: {html.escape(plan['case']['name'])}</h1>",
