@@ -441,6 +441,25 @@ def _query_kernel(p, zax, origin, voxel, shape, row_of, table, bits, index, reac
         index_out[n] = index[row] if row >= 0 else 0.0
 
 
+@numba.njit(cache=True)
+def _index_kernel(p, X, origin, voxel, shape, row_of, index, out):  # pragma: no cover - compiled
+    for b in range(X.shape[0]):
+        for n in range(p.shape[0]):
+            x, y, z = p[n, 0], p[n, 1], p[n, 2]
+            px = X[b, 0, 0] * x + X[b, 0, 1] * y + X[b, 0, 2] * z + X[b, 0, 3]
+            py = X[b, 1, 0] * x + X[b, 1, 1] * y + X[b, 1, 2] * z + X[b, 1, 3]
+            pz = X[b, 2, 0] * x + X[b, 2, 1] * y + X[b, 2, 2] * z + X[b, 2, 3]
+            i = int(np.floor((px - origin[0]) / voxel))
+            j = int(np.floor((py - origin[1]) / voxel))
+            k = int(np.floor((pz - origin[2]) / voxel))
+            out[b, n] = 0.0
+            if i < 0 or j < 0 or k < 0 or i >= shape[0] or j >= shape[1] or k >= shape[2]:
+                continue
+            row = row_of[(i * shape[1] + j) * shape[2] + k]
+            if row >= 0:
+                out[b, n] = index[row]
+
+
 @dataclass
 class CapabilityMap:
     """A built map: params, grid, the stored voxels and their direction bits.
@@ -515,10 +534,20 @@ class CapabilityMap:
         ip = np.clip(((phi + np.pi) / (2.0 * np.pi) * n_phi).astype(np.int64), 0, n_phi - 1)
         return self._table[iz, ip].astype(np.int64)
 
-    def voxel_index(self, p: np.ndarray) -> np.ndarray:
-        """Reachability index of the voxel holding each position (n, 3) (0 outside the map)."""
-        p = np.asarray(p, dtype=float).reshape(-1, 3)
-        return self.query_points(p, np.tile([0.0, 0.0, 1.0], (len(p), 1)))[1]
+    def voxel_index(self, p: np.ndarray, X_BW: np.ndarray | None = None) -> np.ndarray:
+        """Reachability index of the voxel holding each position (0 outside the map).
+
+        Args:
+            p: (n, 3) positions in base_link, or in frame W when ``X_BW`` is given.
+            X_BW: optional (nb, 4, 4) poses of W in base_link (one per base): the result is then
+                (nb, n), the index of every point seen from every base (no (nb, n, 3) temporary).
+        """
+        p = np.ascontiguousarray(np.asarray(p, dtype=float).reshape(-1, 3))
+        X = np.eye(4)[None] if X_BW is None else np.asarray(X_BW, dtype=float).reshape(-1, 4, 4)
+        out = np.empty((len(X), len(p)))
+        origin, voxel, shape, row_of = self.kernel_args()[:4]
+        _index_kernel(p, np.ascontiguousarray(X), origin, voxel, shape, row_of, self.index, out)
+        return out[0] if X_BW is None else out
 
     def centres(self) -> np.ndarray:
         """Centres (m, 3) of the stored voxels."""

@@ -159,7 +159,8 @@ def _codes(keys: np.ndarray) -> np.ndarray:
 
 
 def hemisphere_samples(X_WA: np.ndarray, trocar: Trocar, voxel: float, d_rot: float):
-    """Tip positions (n, 3) and shaft directions (n, 3) of Algorithm 1's search space (in W)."""
+    """Algorithm 1's search space in W: tip positions (n, 3), shaft directions (n, 3) and the
+    tip's distance rho (n,) from the trocar point."""
     a = np.arange(-trocar.alpha_max, trocar.alpha_max + 1e-9, d_rot)
     b = np.arange(-trocar.beta_max, trocar.beta_max + 1e-9, d_rot)
     A, B = np.meshgrid(a, b, indexing="ij")
@@ -175,14 +176,17 @@ def hemisphere_samples(X_WA: np.ndarray, trocar: Trocar, voxel: float, d_rot: fl
 
 @dataclass
 class Rasscmap:
-    """A RASSCMAP: voxel centres in W, per-voxel direction bits and capability index.
+    """A constrained-access RASSCMAP: voxel centres in W, per-voxel direction bits, capability.
+
+    (An unconstrained RASSCMAP needs no object: it is the CMAP index at the body points,
+    :func:`unconstrained_index`, and task poses query the CMAP directly.)
 
     Attributes:
         centres: (n, 3) voxel centres in W.
         reach: (n, K) bool, instrument (or tool) directions reachable in the voxel.
         index: (n,) capability in [0, 1].
-        voxel: voxel edge (m); origin: lattice origin in W (constrained maps; None otherwise).
-        kind: "constrained" or "unconstrained".
+        voxel: voxel edge (m); origin: lattice origin in W (the trocar point).
+        kind: "constrained".
         timings: seconds of Algorithm 1 (t_t) and 2 (t_R).
     """
 
@@ -190,7 +194,7 @@ class Rasscmap:
     reach: np.ndarray
     index: np.ndarray
     voxel: float
-    origin: np.ndarray | None
+    origin: np.ndarray
     kind: str
     timings: dict = field(default_factory=dict)
 
@@ -382,9 +386,7 @@ def constrained_map(
 
 def unconstrained_index(cmap: CapabilityMap, X_WB: np.ndarray, points_W: np.ndarray) -> np.ndarray:
     """CMAP index at body-surface points for a batch of bases: X_WB (nb, 4, 4) -> (nb, n)."""
-    X_BW = invert(np.asarray(X_WB).reshape(-1, 4, 4))
-    p = np.matmul(points_W[None], np.swapaxes(X_BW[:, :3, :3], 1, 2)) + X_BW[:, None, :3, 3]
-    return cmap.voxel_index(p.reshape(-1, 3)).reshape(len(X_BW), len(points_W))
+    return cmap.voxel_index(points_W, invert(np.asarray(X_WB).reshape(-1, 4, 4)))
 
 
 NEIGHBOURS = np.stack(np.meshgrid(*[[-1, 0, 1]] * 3, indexing="ij"), -1).reshape(-1, 3)

@@ -77,6 +77,17 @@ def test_index_in_unit_interval_and_matches_bits(coarse):
     assert np.all(np.linalg.norm(coarse.centres() - cm.SHOULDER, axis=1) <= cm.ARM_REACH + 0.15)
 
 
+def test_voxel_index_seen_from_many_bases(coarse):
+    rng = np.random.default_rng(6)
+    pts = rng.uniform(-1.5, 1.5, (300, 3))
+    X_BW = np.stack([transform(rot_x(a), [0.1 * a, 0.0, -0.2]) for a in (0.0, 0.5, 2.0)])
+    got = coarse.voxel_index(pts, X_BW)
+    for b in range(3):
+        p_B = pts @ X_BW[b, :3, :3].T + X_BW[b, :3, 3]
+        np.testing.assert_array_equal(got[b], coarse.query_points(p_B, np.ones_like(p_B))[1])
+    assert got.max() > 0 and got.min() == 0.0
+
+
 def test_roll_free_with_360_limits():
     p = cm.make_params(0.2, 20, limits="360")
     m = cm.build(p, workers=1)
