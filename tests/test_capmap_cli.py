@@ -1,6 +1,7 @@
 """``implantplan capmap``: build / query / accuracy / plan through the CLI, exit codes."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,7 +12,7 @@ from systems import capability_map as cm
 from systems.files import read_json
 from systems.frames import rot_x, transform
 
-CASES = "models/capmap_cases"
+CASES = str(Path(__file__).resolve().parents[1] / "models" / "capmap_cases")
 
 
 @pytest.fixture(scope="module")

@@ -1,5 +1,7 @@
 """RASSCMAP: arc radius, surface points, Algorithms 1-2, YAML inputs, cost, search, store."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import yaml
@@ -11,7 +13,7 @@ from systems import rasscmap as rm
 from systems.errors import InputError, PlanningFailure
 from systems.frames import rot_x, transform
 
-CASES = "models/capmap_cases"
+CASES = str(Path(__file__).resolve().parents[1] / "models" / "capmap_cases")
 
 
 @pytest.fixture(scope="module")
