@@ -44,6 +44,7 @@ import numpy as np
 
 from systems import collision_primitives as cp
 from systems import kinematics as kin
+from systems import validate
 from systems.errors import InputError
 from systems.files import read_yaml
 from systems.frames import invert, rpy_to_rotation, transform
@@ -194,36 +195,11 @@ def _get(d: dict, key: str, where: str, default=None, required=True):
     return d[key]
 
 
-def _vec(value, field_name: str, n: int) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(field_name, f"expected {n} numbers, got {value!r}") from None
-    if arr.shape != (n,) or not np.all(np.isfinite(arr)):
-        raise InputError(field_name, f"expected {n} finite numbers, got {value!r}")
-    return arr
-
-
-def _num(value, field_name: str, *, positive=False, nonneg=False, integer=False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise InputError(field_name, f"expected a number, got {value!r}")
-    v = float(value)
-    if not np.isfinite(v):
-        raise InputError(field_name, f"expected a finite number, got {value!r}")
-    if positive and v <= 0:
-        raise InputError(field_name, f"expected a positive number, got {value!r}")
-    if nonneg and v < 0:
-        raise InputError(field_name, f"expected a number >= 0, got {value!r}")
-    if integer and v != int(v):
-        raise InputError(field_name, f"expected an integer, got {value!r}")
-    return v
-
-
 def _pose(d, field_name: str) -> np.ndarray:
     if not isinstance(d, dict):
         raise InputError(field_name, "expected a mapping with xyz_m and rpy_deg")
-    xyz = _vec(_get(d, "xyz_m", field_name + "."), field_name + ".xyz_m", 3)
-    rpy = _vec(d.get("rpy_deg", [0, 0, 0]), field_name + ".rpy_deg", 3)
+    xyz = validate.vector(_get(d, "xyz_m", field_name + "."), field_name + ".xyz_m", 3)
+    rpy = validate.vector(d.get("rpy_deg", [0, 0, 0]), field_name + ".rpy_deg", 3)
     return transform(rpy_to_rotation(np.deg2rad(rpy)), xyz)
 
 
@@ -245,7 +221,7 @@ def scenario_from_dict(data: dict, *, X_FT=None, source: str = "scenario") -> Sc
         raise InputError("base_bounds_m", "expected a mapping with x, y, z: [lower, upper]")
     lower, upper = np.zeros(3), np.zeros(3)
     for i, axis in enumerate("xyz"):
-        pair = _vec(_get(bounds, axis, "base_bounds_m."), f"base_bounds_m.{axis}", 2)
+        pair = validate.vector(_get(bounds, axis, "base_bounds_m."), f"base_bounds_m.{axis}", 2)
         if not pair[0] < pair[1]:
             raise InputError(
                 f"base_bounds_m.{axis}",
@@ -257,15 +233,16 @@ def scenario_from_dict(data: dict, *, X_FT=None, source: str = "scenario") -> Sc
     cab = _get(data, "cabinet", "")
     if not isinstance(cab, dict):
         raise InputError("cabinet", "expected a mapping")
-    j2 = np.deg2rad(_vec(_get(cab, "joint2_range_deg", "cabinet."), "cabinet.joint2_range_deg", 2))
+    j2 = np.deg2rad(validate.vector(_get(cab, "joint2_range_deg", "cabinet."),
+                                    "cabinet.joint2_range_deg", 2))
     if not j2[0] < j2[1]:
         raise InputError("cabinet.joint2_range_deg", "expected [lower, upper] with lower < upper")
     box = _get(cab, "box", "cabinet.")
     if not isinstance(box, dict):
         raise InputError("cabinet.box", "expected a mapping with center_m and size_m")
-    X_BC = transform(np.eye(3), _vec(_get(box, "center_m", "cabinet.box."),
+    X_BC = transform(np.eye(3), validate.vector(_get(box, "center_m", "cabinet.box."),
                                      "cabinet.box.center_m", 3))
-    size = _vec(_get(box, "size_m", "cabinet.box."), "cabinet.box.size_m", 3)
+    size = validate.vector(_get(box, "size_m", "cabinet.box."), "cabinet.box.size_m", 3)
     if np.any(size <= 0):
         raise InputError("cabinet.box.size_m", "expected positive sizes")
 
@@ -279,19 +256,21 @@ def scenario_from_dict(data: dict, *, X_FT=None, source: str = "scenario") -> Sc
         if kind == "capsule":
             obstacles.append(Obstacle(
                 name=oname, kind="capsule",
-                p0=_vec(_get(ob, "p0_m", where + "."), where + ".p0_m", 3),
-                p1=_vec(_get(ob, "p1_m", where + "."), where + ".p1_m", 3),
-                radius=_num(_get(ob, "radius_m", where + "."), where + ".radius_m", positive=True),
+                p0=validate.vector(_get(ob, "p0_m", where + "."), where + ".p0_m", 3),
+                p1=validate.vector(_get(ob, "p1_m", where + "."), where + ".p1_m", 3),
+                radius=validate.number(_get(ob, "radius_m", where + "."), where + ".radius_m",
+                                       positive=True),
             ))
         elif kind == "box":
-            bsize = _vec(_get(ob, "size_m", where + "."), where + ".size_m", 3)
+            bsize = validate.vector(_get(ob, "size_m", where + "."), where + ".size_m", 3)
             if np.any(bsize <= 0):
                 raise InputError(where + ".size_m", "expected positive sizes")
-            rpy = _vec(ob.get("rpy_deg", [0, 0, 0]), where + ".rpy_deg", 3)
+            rpy = validate.vector(ob.get("rpy_deg", [0, 0, 0]), where + ".rpy_deg", 3)
             obstacles.append(Obstacle(
                 name=oname, kind="box",
                 X_WB=transform(rpy_to_rotation(np.deg2rad(rpy)),
-                               _vec(_get(ob, "center_m", where + "."), where + ".center_m", 3)),
+                               validate.vector(_get(ob, "center_m", where + "."),
+                                               where + ".center_m", 3)),
                 half_size=bsize / 2,
             ))
         else:
@@ -302,21 +281,22 @@ def scenario_from_dict(data: dict, *, X_FT=None, source: str = "scenario") -> Sc
         raise InputError("actuator", "expected a mapping")
     defaults = Actuator()
     actuator = Actuator(**{
-        key: _num(act.get(f"{key}_m", getattr(defaults, key)), f"actuator.{key}_m",
+        key: validate.number(act.get(f"{key}_m", getattr(defaults, key)), f"actuator.{key}_m",
                   positive=key.startswith(("rod", "head")), nonneg=True)
         for key in ("rod_length", "rod_radius", "head_radius", "implant_length",
                     "implant_radius", "body_length", "body_radius")
     })
     X_FT = actuator.X_FT() if X_FT is None else kin._check_pose(X_FT, "X_FT")
 
-    eps = np.deg2rad(_num(_get(data, "joint_error_deg", ""), "joint_error_deg", positive=True))
-    feed_length = _num(_get(data, "feed_length_m", ""), "feed_length_m", positive=True)
-    feed_samples = int(_num(data.get("feed_samples", 11), "feed_samples", positive=True,
+    eps = np.deg2rad(validate.number(_get(data, "joint_error_deg", ""), "joint_error_deg",
+                                     positive=True))
+    feed_length = validate.number(_get(data, "feed_length_m", ""), "feed_length_m", positive=True)
+    feed_samples = int(validate.number(data.get("feed_samples", 11), "feed_samples", positive=True,
                             integer=True))
     if feed_samples < 2:
         raise InputError("feed_samples", f"expected >= 2 samples, got {feed_samples}")
-    clearance = _num(data.get("clearance_m", 0.005), "clearance_m", nonneg=True)
-    step = np.deg2rad(_num(data.get("max_joint_step_deg", 20.0), "max_joint_step_deg",
+    clearance = validate.number(data.get("clearance_m", 0.005), "clearance_m", nonneg=True)
+    step = np.deg2rad(validate.number(data.get("max_joint_step_deg", 20.0), "max_joint_step_deg",
                            positive=True))
     limits = str(data.get("joint_limits_deg", "175"))
     if limits not in ("175", "360"):
@@ -325,17 +305,17 @@ def scenario_from_dict(data: dict, *, X_FT=None, source: str = "scenario") -> Sc
     ga = data.get("ga", {}) or {}
     if not isinstance(ga, dict):
         raise InputError("ga", "expected a mapping")
-    pop = int(_num(ga.get("pop", 500), "ga.pop", positive=True, integer=True))
-    gen = int(_num(ga.get("gen", 500), "ga.gen", positive=True, integer=True))
+    pop = int(validate.number(ga.get("pop", 500), "ga.pop", positive=True, integer=True))
+    gen = int(validate.number(ga.get("gen", 500), "ga.gen", positive=True, integer=True))
     if pop < 4:
         raise InputError("ga.pop", f"expected at least 4, got {pop}")
     patience = ga.get("patience", 20)
     if patience is not None:
-        patience = int(_num(patience, "ga.patience", positive=True, integer=True))
-    hv_tol = _num(ga.get("hv_tol", 1e-3), "ga.hv_tol", nonneg=True)
-    seed = int(_num(data.get("seed", 0), "seed", nonneg=True, integer=True))
-    n_pct = int(_num(data.get("percentile_samples", 2000), "percentile_samples", positive=True,
-                     integer=True))
+        patience = int(validate.number(patience, "ga.patience", positive=True, integer=True))
+    hv_tol = validate.number(ga.get("hv_tol", 1e-3), "ga.hv_tol", nonneg=True)
+    seed = int(validate.number(data.get("seed", 0), "seed", nonneg=True, integer=True))
+    n_pct = int(validate.number(data.get("percentile_samples", 2000), "percentile_samples",
+                                positive=True, integer=True))
 
     return Scenario(
         name=name, posture=posture, X_WO=X_WO, lower=lower, upper=upper, joint2_range=j2,
