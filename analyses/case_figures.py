@@ -12,8 +12,8 @@ site (:func:`systems.placement.place_instrument`) and writes
   (implant tip path), projected (the lines are not in these planes, so only the third panel
   shows their clearance: d_safe along each line up to the mouth opening);
 
-and prints each placement's figures. The case file is read here with its mm keys as written in
-``models/cases/default.yaml``; the planning code reads it through its own loader.
+and prints each placement's figures. The case is read and fitted as ``implantplan plan`` does
+(analyses.case, analyses.pipeline).
 """
 
 from __future__ import annotations
@@ -24,87 +24,51 @@ from pathlib import Path
 
 import numpy as np
 
-from systems.files import read_yaml
+from analyses.case import default_case_path
 
 MM = 1e-3
-ROOT = Path(__file__).resolve().parent.parent
-
-
-def _mesh_path(value: str, case_path: Path) -> Path:
-    prefix = "package://implantplan/"
-    if value.startswith(prefix):
-        return ROOT / "models" / value[len(prefix) :]
-    return (case_path.parent / value).resolve()
 
 
 def build_case(case_path):
-    """Load a case YAML, open its mesh, fit the FPSM and place the tool at every site.
+    """Load a case (analyses.case), open its mesh and fit the FPSM (analyses.pipeline.fit_stage),
+    and place the tool at every site (valid or not: the figures show both).
 
     Returns:
-        dict with ``case`` (the YAML data), ``scanned`` and ``opened`` meshes (m), ``X_WC``,
-        ``fpsm``, ``placements`` (list of :class:`systems.placement.Placement`), ``seconds``
-        (dict: open, fit, place per site).
+        dict with ``case`` (:class:`analyses.case.Case`), ``scanned`` and ``opened`` meshes (m),
+        ``X_WC``, ``fpsm``, ``placements`` (list of :class:`systems.placement.Placement`),
+        ``seconds`` (dict: fit, place per site).
     """
     import time
 
-    from systems.fpsm_fit import fit_fpsm
-    from systems.oral_mesh import center_frame, load_oral_mesh, open_mouth
+    from analyses.case import load_case
+    from analyses.pipeline import fit_stage
     from systems.placement import place_instrument
 
-    case_path = Path(case_path)
-    case = read_yaml(case_path)
-    m = case["mesh"]
-    scanned = load_oral_mesh(_mesh_path(m["path"], case_path), units=m.get("units", "mm"))
-    t0 = time.perf_counter()
-    opened = open_mouth(
-        scanned,
-        m.get("mouth_opening_deg", 0.0),
-        hinge_point=np.asarray(m["hinge_point_mm"]) * MM,
-        hinge_axis=m["hinge_axis"],
-        occlusal_point=np.asarray(m["occlusal_point_mm"]) * MM,
-        occlusal_normal=m["occlusal_normal"],
-        blend=m["opening_blend_mm"] * MM,
-    )
-    t1 = time.perf_counter()
-    c = case["center"]
-    X_WC = center_frame(np.asarray(c["origin_mm"]) * MM, c["z_axis"], x_hint=c.get("x_hint"))
-    fp = case["fpsm"]
-    fpsm = fit_fpsm(
-        opened,
-        X_WC,
-        slices=fp["slices"],
-        control_points=fp["control_points"],
-        samples=fp["samples"],
-        method=fp.get("method", "exact"),
-        margin=fp.get("margin_mm", 0.0) * MM,
-        z_range=None if fp.get("z_range_mm") is None else np.asarray(fp["z_range_mm"]) * MM,
-        close_open_cuts=m.get("close_open_cuts", False),
-        cap_radius=None if m.get("cap_radius_mm") is None else m["cap_radius_mm"] * MM,
-    )
-    t2 = time.perf_counter()
+    case = load_case(case_path)
+    fit = fit_stage(case)
     placements, place_s = [], []
-    for site in case["sites"]:
+    for k, site in enumerate(case.sites):
         t = time.perf_counter()
         placements.append(
             place_instrument(
-                fpsm,
-                np.asarray(site["position_mm"]) * MM,
-                site["axis"],
-                rod_radius=site["rod_radius_mm"] * MM,
-                implant_length=site["implant_length_mm"] * MM,
-                objective=case.get("placement", {}).get("objective", "eq14"),
-                seed=case.get("seed", 0),
+                fit.fpsm,
+                site.position,
+                site.axis,
+                rod_radius=site.rod_radius,
+                implant_length=site.implant_length,
+                objective=case.objective,
+                seed=case.seed + k,
             )
         )
         place_s.append(time.perf_counter() - t)
     return {
         "case": case,
-        "scanned": scanned,
-        "opened": opened,
-        "X_WC": X_WC,
-        "fpsm": fpsm,
+        "scanned": fit.scanned,
+        "opened": fit.opened,
+        "X_WC": fit.fpsm.X_WC,
+        "fpsm": fit.fpsm,
         "placements": placements,
-        "seconds": {"open": t1 - t0, "fit": t2 - t1, "place": place_s},
+        "seconds": {"fit": fit.seconds, "place": place_s},
     }
 
 
@@ -341,26 +305,22 @@ def case_figures(case_path, out_dir) -> dict:
     out_dir = Path(out_dir)
     built = build_case(case_path)
     case = built["case"]
-    m = case["mesh"]
-    sites_y = [
-        float((built["X_WC"] @ np.r_[np.asarray(s["position_mm"]) * MM, 1.0])[1])
-        for s in case["sites"]
-    ]
+    sites_y = [float((built["X_WC"] @ np.r_[s.position, 1.0])[1]) for s in case.sites]
     opening = plot_mouth_opening(
         built["scanned"],
         built["opened"],
         out_dir / "opening.png",
         planes_y=(0.0, *sites_y),
-        hinge_point=np.asarray(m["hinge_point_mm"]) * MM,
-        occlusal_point=np.asarray(m["occlusal_point_mm"]) * MM,
-        occlusal_normal=m["occlusal_normal"],
+        hinge_point=case.opening.get("hinge_point"),
+        occlusal_point=case.opening.get("occlusal_point"),
+        occlusal_normal=case.opening.get("occlusal_normal"),
     )
     placements = plot_placements(
         built["opened"],
         built["X_WC"],
         built["fpsm"],
         built["placements"],
-        [s["name"] for s in case["sites"]],
+        [s.name for s in case.sites],
         out_dir / "placements.png",
     )
     return {**built, "figures": [opening, placements]}
@@ -368,7 +328,7 @@ def case_figures(case_path, out_dir) -> dict:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--case", type=Path, default=ROOT / "models" / "cases" / "default.yaml")
+    parser.add_argument("--case", type=Path, default=default_case_path())
     parser.add_argument("--out", type=Path, default=Path("case_figures"))
     parser.add_argument(
         "--scan",
@@ -383,11 +343,11 @@ def main(argv=None) -> int:
         f"{info['inverted_faces']} inverted, {info['degenerate_faces']} degenerate faces"
     )
     s = out["seconds"]
-    print(f"open {s['open']:.3f} s, fit {s['fit']:.3f} s")
-    for site, pl, t in zip(out["case"]["sites"], out["placements"], s["place"], strict=True):
+    print(f"open + fit {s['fit']:.3f} s")
+    for site, pl, t in zip(out["case"].sites, out["placements"], s["place"], strict=True):
         g = pl.grid
         print(
-            f"site {site['name']}: valid={pl.valid} d_T={pl.d_T / MM:.2f} mm "
+            f"site {site.name}: valid={pl.valid} d_T={pl.d_T / MM:.2f} mm "
             f"theta_T={np.rad2deg(pl.theta_T):.2f} deg f_safe1={pl.f_safe_line1 / MM:.3f} mm "
             f"f_safe2={pl.f_safe_line2 / MM:.3f} mm F_safe={pl.F_safe:.5f} sqrt(m) "
             f"PSO {pl.iterations} it {pl.seconds:.3f} s, place+grid {t:.2f} s | grid "
@@ -397,11 +357,9 @@ def main(argv=None) -> int:
     for f in out["figures"]:
         print(f"wrote {f}")
     if args.scan:
-        site0 = out["case"]["sites"][0]
+        site0 = out["case"].sites[0]
         ranked = scan_sites(
-            out["fpsm"],
-            rod_radius=site0["rod_radius_mm"] * MM,
-            implant_length=site0["implant_length_mm"] * MM,
+            out["fpsm"], rod_radius=site0.rod_radius, implant_length=site0.implant_length
         )
         print(f"scan: {sum(c['valid'] for c in ranked)} of {len(ranked)} candidates valid")
         # the sides of the arch: lower-lateral quadrants, away from the throat and the lips
