@@ -65,7 +65,7 @@ from systems.errors import InputError, PlanningFailure
 from systems.files import read_json, write_json, write_text_atomic
 from systems.fpsm import Fpsm
 from systems.frames import invert, transform
-from systems.master_device import feeding_runs
+from systems.master_device import Operator, feeding_runs
 from systems.placement import place_instrument
 from systems.virtual_fixture import VirtualFixture
 
@@ -212,13 +212,14 @@ def run_feeding(
     runs: int = 10,
     seed: int = 0,
     mode: str = "kinematic",
+    operator: Operator | None = None,
     meshcat=None,
     progress: Progress | None = None,
 ) -> dict:
     """K scripted feeds on one case; per-run figures and the overall realtime factor."""
     start = case.X_WE(case.q_start)[:3, 3]
     target = case.X_WTarget[:3, 3]
-    motions = feeding_runs(start, target, runs=runs, seed=seed)
+    motions = feeding_runs(start, target, runs=runs, seed=seed, operator=operator)
     out = []
     for i, motion in enumerate(motions):
         teleop = build_teleop(case, motion, mode=mode, meshcat=meshcat if i == 0 else None)
@@ -326,6 +327,7 @@ def analyze_layouts(
     seed: int = 0,
     robot_placement=None,
     realizations: int = 10,
+    operator: Operator | None = None,
     progress: Progress | None = None,
 ) -> dict:
     """The selected layout against ``random_layouts`` random feasible ones on (a)-(c)."""
@@ -345,7 +347,7 @@ def analyze_layouts(
     entries = []
     for i, (label, x, b) in enumerate(layouts):
         case = make_case(scene, sc_plant, x, b, inst, label=label)
-        feed = run_feeding(case, runs=runs, seed=seed)
+        feed = run_feeding(case, runs=runs, seed=seed, operator=operator)
         circle = run_circle(sc_plant, x, b, realizations=realizations, seed=seed)
         g = moprp.gii(x, b, sc_plant, np.random.default_rng(seed), n=100)
         travel = np.array([r["joint_travel"] for r in feed["runs"]])
@@ -380,6 +382,7 @@ def analyze_layouts(
         "ranks": ranks,
         "of": len(entries),
         "runs_per_layout": runs,
+        "operator": dataclasses.asdict(operator or Operator()),
         "seed": seed,
     }
 
@@ -516,6 +519,18 @@ def _case_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
+def _operator_options(p: argparse.ArgumentParser) -> None:
+    d = Operator()
+    p.add_argument("--tremor-mm", type=float, default=1000 * d.tremor,
+                   help=f"operator tremor amplitude, ~9 Hz (default {1000 * d.tremor:g} mm)")
+    p.add_argument("--drift-mm", type=float, default=1000 * d.drift,
+                   help=f"operator lateral drift RMS (default {1000 * d.drift:g} mm)")
+
+
+def _operator(args) -> Operator:
+    return dataclasses.replace(Operator(), tremor=args.tremor_mm / 1000, drift=args.drift_mm / 1000)
+
+
 def register(subparsers) -> None:
     sim = subparsers.add_parser("simulate", help="teleoperated-feeding simulations (seed 001)")
     sub = sim.add_subparsers(dest="simulate_command", required=True, metavar="EXPERIMENT")
@@ -524,6 +539,7 @@ def register(subparsers) -> None:
     p.add_argument("--runs", type=int, default=10, help="feeds (default 10, the paper's)")
     p.add_argument("--mode", default="kinematic", choices=("kinematic", "dynamic"))
     p.add_argument("--meshcat-html", type=Path, help="write a static HTML replay of run 0")
+    _operator_options(p)
     p.set_defaults(func=cmd_feeding)
     p = sub.add_parser("circle", help="circle r 25 mm at 10 mm/s with injected joint error")
     _case_options(p)
@@ -537,6 +553,7 @@ def register(subparsers) -> None:
     p.add_argument("--random", type=int, default=20, help="random layouts (default 20)")
     p.add_argument("--runs", type=int, default=10, help="feeds per layout (default 10)")
     p.add_argument("--realizations", type=int, default=10, help="joint error draws (default 10)")
+    _operator_options(p)
     p.set_defaults(func=cmd_layouts)
 
 
@@ -572,8 +589,15 @@ def cmd_feeding(args) -> int:
 
         meshcat = Meshcat()
     t0 = time.perf_counter()
+    operator = _operator(args)
     result = run_feeding(
-        case, runs=args.runs, seed=args.seed, mode=args.mode, meshcat=meshcat, progress=progress
+        case,
+        runs=args.runs,
+        seed=args.seed,
+        mode=args.mode,
+        operator=operator,
+        meshcat=meshcat,
+        progress=progress,
     )
     if meshcat is not None:
         write_text_atomic(args.meshcat_html, meshcat.StaticHtml())
@@ -586,6 +610,7 @@ def cmd_feeding(args) -> int:
         "layout": {"base_xyz": xyz, "branch": branch, "source": source},
         "X_WBase": case.X_WBase,
         "X_WTarget": case.X_WTarget,
+        "operator": dataclasses.asdict(operator),
         "runs": runs,
         "realtime_factor": result["realtime_factor"],
         "summary": {
@@ -652,6 +677,7 @@ def cmd_layouts(args) -> int:
         seed=args.seed,
         robot_placement=args.robot_placement,
         realizations=args.realizations,
+        operator=_operator(args),
         progress=progress,
     )
     args.out.mkdir(parents=True, exist_ok=True)

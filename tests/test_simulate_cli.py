@@ -28,6 +28,7 @@ def test_feeding_writes_the_runs(tmp_path):
         assert run["max_vf_violation"] < 0.001 and not run["collision_alarm"]
         assert run["reached_target"]
     assert data["realtime_factor"] > 0
+    assert data["operator"]["tremor"] == pytest.approx(5e-5)
     assert data["runs"][0]["joint_travel"] != data["runs"][1]["joint_travel"]
     assert (out / "feeding_travel.png").stat().st_size > 0
 
@@ -76,6 +77,7 @@ def test_layouts_ranks_and_plots(tmp_path):
         (["simulate", "feeding", "--plan", "/nonexistent.json"], "--plan"),
         (["simulate", "circle", "--scenario", "standing"], "--scenario"),
         (["analyze", "layouts", "--random", "0"], "--random"),
+        (["simulate", "feeding", "--tremor-mm", "-1"], "tremor"),
     ],
 )
 def test_bad_input_exits_2(tmp_path, capsys, argv, field):
