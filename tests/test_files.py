@@ -42,3 +42,12 @@ def test_bad_files_name_the_field(tmp_path):
     old.write_text('{"schema_version": 99}')
     with pytest.raises(InputError, match="schema_version 99"):
         files.read_json(old)
+
+
+def test_written_files_get_the_usual_mode(tmp_path):
+    import os
+
+    path = files.write_json(tmp_path / "m.json", {"v": 1})
+    mask = os.umask(0)
+    os.umask(mask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~mask
