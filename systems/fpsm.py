@@ -199,7 +199,7 @@ def _rho_on_slice(rho, j, theta):
 def _point_d_safe(rho, slice_z, shrink, x, y, z, r):
     """Eq. 10-11 with the throat rule for one point inside or below the slices."""
     m = slice_z.size
-    theta = np.arctan2(y, x)
+    theta = np.arctan2(y + 0.0, x + 0.0)  # + 0.0 turns -0.0 into 0.0: angle 0 on the axis
     if m == 1:
         radius = _rho_on_slice(rho, 0, theta)
     else:
@@ -253,7 +253,7 @@ def _line_kernel(
                         on_plane = True
                     x = x0 + s * ux
                     y = y0 + s * uy
-                    d = _rho_on_slice(rho, j, np.arctan2(y, x)) - r - np.hypot(x, y)
+                    d = _rho_on_slice(rho, j, np.arctan2(y + 0.0, x + 0.0)) - r - np.hypot(x, y)
                     total += d
                     n += 1
                     lowest = min(lowest, d)
@@ -486,7 +486,7 @@ class Fpsm:
     def _d_safe(self, p: np.ndarray, radius: float = 0.0) -> np.ndarray:
         """Eq. 10-11 with the out-of-range rules, no input checks; ``radius`` shrinks (Eq. 12)."""
         x, y, z = p[..., 0], p[..., 1], p[..., 2]
-        theta = np.arctan2(y, x)
+        theta = np.arctan2(y + 0.0, x + 0.0)  # on the axis (x = y = +-0) the angle is 0
         d = self._radius(theta, z) - radius - np.hypot(x, y)
         z_lo, z_hi = self.z_range
         # throat side: collision; the shrink applies to the throat end too, so that
@@ -642,7 +642,7 @@ class Fpsm:
         S[:, M + 1] = s_far
         P = p0[:, None, :] + S[..., None] * u[:, None, :]
         x, y, z = P[..., 0], P[..., 1], P[..., 2]
-        theta = np.arctan2(y, x)
+        theta = np.arctan2(y + 0.0, x + 0.0)  # as the compiled kernel: angle 0 on the axis
         j_end, w_end = self._locate(z[:, M:])
         j_all = np.empty((K, M + 4), dtype=np.int64)
         j_all[:, :M] = np.arange(M)

@@ -243,3 +243,17 @@ def test_single_slice_model():
         np.array([[0.005, 0, 0.01]]), np.array([[0, 0, 1.0]]), np.array([np.inf]), 0.0, 0.5, 0.5
     )
     assert ref.f_safe[0] == pytest.approx(0.015)
+
+
+def test_kernels_agree_on_the_axis_with_negative_zero():
+    """Found by hypothesis: a line starting at (-0, -0, -0) on the axis. atan2(-0, -0) = -pi, so
+    without normalizing the sign of zero the two kernels read rho at different angles."""
+    rho = np.random.default_rng(2).uniform(0.03, 0.05, (5, 7))
+    f = Fpsm(np.array([0.0, 0.02, 0.05, 0.06, 0.1]), rho)
+    starts = np.full((2, 3), -0.0)
+    u = np.tile([0.0, 0.0, 1.0], (2, 1))
+    a = f._line_safety(starts, u, np.full(2, np.inf), np.zeros(2), 0.4, 0.6)
+    b = f._line_safety_numpy(starts, u, np.full(2, np.inf), np.zeros(2), 0.4, 0.6)
+    np.testing.assert_allclose(a.f_safe, b.f_safe, rtol=1e-12)
+    # on the axis every point of a slice is at rho(0) from the wall
+    np.testing.assert_allclose(f.d_safe(np.array([[-0.0, -0.0, 0.02]])), rho[1, 0], rtol=1e-12)
