@@ -92,7 +92,7 @@ def as_rigid_transform(X, field_name: str = "X_WBase") -> RigidTransform:
     return RigidTransform(RotationMatrix.ProjectToRotationMatrix(R), X[:3, 3])
 
 
-def _scene_directives(scenario: str, X_WBase, limits: str, tool: bool):
+def scene_directives(scenario: str, X_WBase, limits: str, tool: bool):
     """Load the scenario's directives and edit them in memory; returns (directives, X_WBase)."""
     if limits not in ARM_FILES:
         raise InputError("limits", f"expected '175' or '360', got {limits!r}")
@@ -146,7 +146,7 @@ def build_plant(
     Returns:
         The built Diagram, its MultibodyPlant and SceneGraph, and :class:`PlantHandles`.
     """
-    directives, X_used = _scene_directives(scenario, X_WBase, limits, tool)
+    directives, X_used = scene_directives(scenario, X_WBase, limits, tool)
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlantSceneGraph(builder, time_step=time_step)
     parser = Parser(plant)

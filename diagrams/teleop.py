@@ -192,7 +192,7 @@ class Teleop:
 
 def _add_scene(builder, case: TeleopCase, mode: str, plant_step: float):
     """The case's scene (diagrams.plant directives, base welded at X_WBase) in ``builder``."""
-    directives, _ = scene._scene_directives(case.scenario, case.X_WBase, case.limits, True)
+    directives, _ = scene.scene_directives(case.scenario, case.X_WBase, case.limits, True)
     if mode == "dynamic":
         plant, scene_graph = AddMultibodyPlantSceneGraph(builder, time_step=plant_step)
     else:

@@ -1,8 +1,17 @@
 """Fixtures shared by several test files."""
 
+import os
+
 import pytest
+from hypothesis import settings
 
 from analyses.cli import main
+
+# CI runs the property tests derandomized (the same examples every run: a red CI is then always
+# reproducible); locally they explore new examples each run.
+settings.register_profile("ci", derandomize=True, print_blob=True)
+if os.environ.get("CI"):
+    settings.load_profile("ci")
 
 
 @pytest.fixture(scope="session")
