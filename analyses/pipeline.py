@@ -65,9 +65,10 @@ def fit_stage(case: Case, *, progress=None) -> FitResult:
     return FitResult(scanned, opened, fpsm, time.perf_counter() - t0)
 
 
-def placement_stage(case: Case, fpsm: Fpsm, *, progress=None) -> list[Placement]:
-    """Stage 2 for every site; a site without a collision-free placement is a planning failure
-    that names the site and the reason."""
+def placement_stage(case: Case, fpsm: Fpsm, *, progress=None, require_valid: bool = True
+                    ) -> list[Placement]:
+    """Stage 2 for every site; with ``require_valid`` a site without a collision-free placement
+    is a planning failure that names the site and the reason."""
     out = []
     for k, site in enumerate(case.sites):
         p = place_instrument(
@@ -83,7 +84,7 @@ def placement_stage(case: Case, fpsm: Fpsm, *, progress=None) -> list[Placement]
             progress.step(k, len(case.sites), f"site {site.name}: d_T {p.d_T * 1e3:.1f} mm, "
                           f"theta_T {np.rad2deg(p.theta_T):.1f} deg, F_safe {p.F_safe:.4f}, "
                           f"{'valid' if p.valid else 'INVALID'}")
-        if not p.valid:
+        if require_valid and not p.valid:
             raise PlanningFailure(f"site {site.name}: no collision-free instrument placement "
                                   f"({p.reason})", result={"site": site.name, **p.to_dict()})
         out.append(p)

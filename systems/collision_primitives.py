@@ -235,36 +235,42 @@ def _point_box(px, py, pz, hx, hy, hz):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
+def _segment_box(ax, ay, az, dx, dy, dz, hx, hy, hz, iterations):  # pragma: no cover - compiled
+    """Distance from the segment a + t d, t in [0, 1] (box frame) to an axis-aligned box of half
+    sizes h: the point-box distance is convex along the segment, so a golden-section search on t
+    finds its minimum (``iterations`` steps shrink the bracket by 0.618 each), then the ends."""
+    g = 0.6180339887498949
+    lo, hi = 0.0, 1.0
+    t1 = hi - g * (hi - lo)
+    t2 = lo + g * (hi - lo)
+    f1 = _point_box(ax + t1 * dx, ay + t1 * dy, az + t1 * dz, hx, hy, hz)
+    f2 = _point_box(ax + t2 * dx, ay + t2 * dy, az + t2 * dz, hx, hy, hz)
+    for _ in range(iterations):
+        if f1 <= f2:
+            hi = t2
+            t2 = t1
+            f2 = f1
+            t1 = hi - g * (hi - lo)
+            f1 = _point_box(ax + t1 * dx, ay + t1 * dy, az + t1 * dz, hx, hy, hz)
+        else:
+            lo = t1
+            t1 = t2
+            f1 = f2
+            t2 = lo + g * (hi - lo)
+            f2 = _point_box(ax + t2 * dx, ay + t2 * dy, az + t2 * dz, hx, hy, hz)
+    best = min(f1, f2)
+    best = min(best, _point_box(ax, ay, az, hx, hy, hz))
+    return min(best, _point_box(ax + dx, ay + dy, az + dz, hx, hy, hz))
+
+
+@numba.njit(cache=True)
 def _seg_box_batch(S, H, out):  # pragma: no cover - compiled
     """Segment-to-box distance: the point-box distance is convex along the segment, so a
     golden-section search on t in [0, 1] finds its minimum (to ~1e-9 of the segment length)."""
-    g = 0.6180339887498949
     for n in range(S.shape[0]):
         ax, ay, az = S[n, 0, 0], S[n, 0, 1], S[n, 0, 2]
         dx, dy, dz = S[n, 1, 0] - ax, S[n, 1, 1] - ay, S[n, 1, 2] - az
-        hx, hy, hz = H[n, 0], H[n, 1], H[n, 2]
-        lo, hi = 0.0, 1.0
-        t1 = hi - g * (hi - lo)
-        t2 = lo + g * (hi - lo)
-        f1 = _point_box(ax + t1 * dx, ay + t1 * dy, az + t1 * dz, hx, hy, hz)
-        f2 = _point_box(ax + t2 * dx, ay + t2 * dy, az + t2 * dz, hx, hy, hz)
-        for _ in range(45):
-            if f1 <= f2:
-                hi = t2
-                t2 = t1
-                f2 = f1
-                t1 = hi - g * (hi - lo)
-                f1 = _point_box(ax + t1 * dx, ay + t1 * dy, az + t1 * dz, hx, hy, hz)
-            else:
-                lo = t1
-                t1 = t2
-                f1 = f2
-                t2 = lo + g * (hi - lo)
-                f2 = _point_box(ax + t2 * dx, ay + t2 * dy, az + t2 * dz, hx, hy, hz)
-        best = min(f1, f2)
-        best = min(best, _point_box(ax, ay, az, hx, hy, hz))
-        best = min(best, _point_box(ax + dx, ay + dy, az + dz, hx, hy, hz))
-        out[n] = best
+        out[n] = _segment_box(ax, ay, az, dx, dy, dz, H[n, 0], H[n, 1], H[n, 2], 45)
 
 
 def segment_box_distance(seg, X_AB, half_size) -> np.ndarray:
@@ -339,7 +345,6 @@ def min_capsule_clearance(seg_a, r_a, seg_b, r_b, pairs=None) -> np.ndarray:
 
 @numba.njit(cache=True)
 def _min_boxes(S, r, R, P, H, out):  # pragma: no cover - compiled
-    g = 0.6180339887498949
     for n in range(S.shape[0]):
         best = np.inf
         for b in range(R.shape[0]):
@@ -358,27 +363,7 @@ def _min_boxes(S, r, R, P, H, out):  # pragma: no cover - compiled
                 dx = R[b, 0, 0] * vx + R[b, 1, 0] * vy + R[b, 2, 0] * vz
                 dy = R[b, 0, 1] * vx + R[b, 1, 1] * vy + R[b, 2, 1] * vz
                 dz = R[b, 0, 2] * vx + R[b, 1, 2] * vy + R[b, 2, 2] * vz
-                lo, hi = 0.0, 1.0
-                t1 = hi - g * (hi - lo)
-                t2 = lo + g * (hi - lo)
-                f1 = _point_box(ax + t1 * dx, ay + t1 * dy, az + t1 * dz, hx, hy, hz)
-                f2 = _point_box(ax + t2 * dx, ay + t2 * dy, az + t2 * dz, hx, hy, hz)
-                for _ in range(32):
-                    if f1 <= f2:
-                        hi = t2
-                        t2 = t1
-                        f2 = f1
-                        t1 = hi - g * (hi - lo)
-                        f1 = _point_box(ax + t1 * dx, ay + t1 * dy, az + t1 * dz, hx, hy, hz)
-                    else:
-                        lo = t1
-                        t1 = t2
-                        f1 = f2
-                        t2 = lo + g * (hi - lo)
-                        f2 = _point_box(ax + t2 * dx, ay + t2 * dy, az + t2 * dz, hx, hy, hz)
-                d = min(f1, f2)
-                d = min(d, _point_box(ax, ay, az, hx, hy, hz))
-                d = min(d, _point_box(ax + dx, ay + dy, az + dz, hx, hy, hz)) - r[k]
+                d = _segment_box(ax, ay, az, dx, dy, dz, hx, hy, hz, 32) - r[k]
                 if d < best:
                     best = d
         out[n] = best
