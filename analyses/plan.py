@@ -157,7 +157,8 @@ def _plan_into(case: Case, out: Path, *, runs, html_scene: bool, quiet: bool) ->
     from analyses.report import write_report
 
     write_report(out / "report.html", plan, figs)
-    prog.say(f"wrote plan.json, report.html and {len(figs)} figures")
+    n_png = sum(1 for _ in (out / "figures").rglob("*.png"))
+    prog.say(f"wrote plan.json, report.html and {n_png} figures")
     return plan
 
 
