@@ -19,7 +19,7 @@ import trimesh
 
 from analyses.case import Case
 from systems import moprp
-from systems.errors import PlanningFailure
+from systems.errors import InputError, PlanningFailure
 from systems.fpsm import Fpsm
 from systems.fpsm_fit import fit_fpsm
 from systems.frames import transform
@@ -47,6 +47,14 @@ def fit_stage(case: Case, *, progress=None) -> FitResult:
             info = opened.metadata.get("implantplan", {}).get("open_mouth", {})
             progress.say(f"mouth opened by {case.mouth_opening_deg:g} deg "
                          f"({info.get('moved_vertices', '?')} vertices moved)")
+    lo, hi = opened.bounds
+    if np.any(case.center_origin < lo) or np.any(case.center_origin > hi):
+        raise InputError(
+            "center.origin_mm",
+            f"{np.round(case.center_origin * 1e3, 1).tolist()} mm lies outside the mesh's "
+            f"bounding box {np.round(lo * 1e3, 1).tolist()} .. {np.round(hi * 1e3, 1).tolist()} "
+            f"mm (mesh read in {case.units}); check mesh.units and the Center origin",
+        )
     X_WC = center_frame(case.center_origin, case.center_z, x_hint=case.center_x_hint)
     fpsm = fit_fpsm(
         opened,
@@ -71,15 +79,18 @@ def placement_stage(case: Case, fpsm: Fpsm, *, progress=None, require_valid: boo
     is a planning failure that names the site and the reason."""
     out = []
     for k, site in enumerate(case.sites):
-        p = place_instrument(
-            fpsm,
-            site.position,
-            site.axis,
-            rod_radius=site.rod_radius,
-            implant_length=site.implant_length,
-            objective=case.objective,
-            seed=case.seed + k,
-        )
+        try:
+            p = place_instrument(
+                fpsm,
+                site.position,
+                site.axis,
+                rod_radius=site.rod_radius,
+                implant_length=site.implant_length,
+                objective=case.objective,
+                seed=case.seed + k,
+            )
+        except InputError as exc:  # name the case's field, not the placement's argument
+            raise InputError(f"sites[{k}] (site {site.name})", str(exc)) from None
         if progress is not None:
             progress.step(k, len(case.sites), f"site {site.name}: d_T {p.d_T * 1e3:.1f} mm, "
                           f"theta_T {np.rad2deg(p.theta_T):.1f} deg, F_safe {p.F_safe:.4f}, "

@@ -117,7 +117,10 @@ CATALOGUE = {
     "unknown key (a typo)": ({"fpsm.slice": 15}, 2, "fpsm.slice: unknown key"),
     "inverted z range": ({"fpsm.z_range_mm": [65.0, 0.0]}, 2, "fpsm.z_range_mm"),
     "zero axis": ({"sites.0.axis": [0, 0, 0]}, 2, "sites[0].axis: expected a non-zero"),
-    "site outside the cavity": ({"sites.0.position_mm": [0.0, -200.0, 37.1]}, 2, "hole"),
+    "site outside the cavity": ({"sites.0.position_mm": [0.0, -200.0, 37.1]}, 2,
+                                "sites[0] (site 36): hole: lies 166"),
+    "mesh in mm read as m": ({"mesh.units": "m"}, 2, "center.origin_mm: [135.0, 0.0, 90.0] mm "
+                             "lies outside the mesh's bounding box"),
     "axis into the bone": ({"sites.0.axis": [0.258819, -0.965926, 0.0]}, 3, "site 36"),
     "no base reaches the sites": ("far-scenario", 3, "no base position in the bounds"),
     "contradicting posture and scenario": ({"robot.scenario": "sitting"}, 2,
