@@ -305,6 +305,10 @@ def simulation_stage(case: Case, fit: FitResult, placements: list[Placement],
     from diagrams.teleop import TeleopCase
 
     runs = case.sim_runs if runs is None else runs
+    if runs == 0:
+        if progress is not None:
+            progress.say("no feeding runs asked for (simulation.runs = 0 / --runs 0)")
+        return []
     sc = robot.scenario
     X_WC = sc.X_WO @ robot.X_OC
     out = []

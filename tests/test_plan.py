@@ -163,3 +163,17 @@ def test_case_loader_reads_the_default_case():
 def test_case_loader_requires_sites(tmp_path):
     with pytest.raises(InputError, match="sites: expected a list"):
         load_case(_case(tmp_path, sites=[]))
+
+
+def test_rerun_into_the_same_folder_replaces_the_plan_without_simulation(tmp_path):
+    case = _case(tmp_path)
+    out = tmp_path / "out"
+    args = ["plan", str(case), "--out", str(out), "--runs", "0", "--no-html-scene", "--quiet"]
+    assert main(args) == 0
+    (out / "stale.txt").write_text("from the previous run")
+    assert main(args) == 0
+    plan = json.loads((out / "plan.json").read_text())
+    assert all(s["simulation"] is None for s in plan["sites"])
+    assert not any("feed" in c["name"] for c in plan["checks"])
+    assert not (out / "stale.txt").exists()  # the folder is the new run's, whole
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["case.yaml", "out"]
