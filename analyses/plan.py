@@ -166,11 +166,13 @@ def _plan_into(case: Case, out: Path, *, runs, html_scene: bool, quiet: bool) ->
 
 
 def _check(name: str, value: float, limit: float, *, unit: str, upper: bool, site=None) -> dict:
-    """A check with its margin (> 0 passes): value <= limit when ``upper``, else value > limit."""
+    """A check and its margin: an upper limit passes when value <= limit (margin limit - value
+    >= 0, so "0 alarms <= 0" passes), a lower limit when value > limit (strictly: a clearance
+    of exactly 0 is contact)."""
     margin = (limit - value) if upper else (value - limit)
+    passed = margin >= 0 if upper else margin > 0
     return {"name": name, "site": site, "value": float(value), "limit": float(limit),
-            "unit": unit, "margin": float(margin), "pass": bool(margin > 0 or (upper and
-                                                                               margin == 0))}
+            "unit": unit, "margin": float(margin), "pass": bool(passed)}
 
 
 def plan_dict(case: Case, fit, placements, robot, cap, sims) -> dict:

@@ -179,3 +179,15 @@ def test_rerun_into_the_same_folder_replaces_the_plan_without_simulation(tmp_pat
     assert sim_checks.isdisjoint(c["name"] for c in plan["checks"])
     assert not (out / "stale.txt").exists()  # the folder is the new run's, whole
     assert sorted(p.name for p in tmp_path.iterdir()) == ["case.yaml", "out"]
+
+
+def test_check_margins_and_limits():
+    from analyses.plan import _check
+
+    assert _check("alarms", 0, 0, unit="runs", upper=True)["pass"]
+    assert not _check("alarms", 1, 0, unit="runs", upper=True)["pass"]
+    c = _check("clearance", 0.004, 0.0, unit="m", upper=False)
+    assert c["pass"] and c["margin"] == pytest.approx(0.004)
+    assert not _check("clearance", 0.0, 0.0, unit="m", upper=False)["pass"]  # contact
+    c = _check("violation", 0.0015, 0.001, unit="m", upper=True)
+    assert not c["pass"] and c["margin"] == pytest.approx(-0.0005)
