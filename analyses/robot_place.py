@@ -52,7 +52,6 @@ from analyses.progress import Progress
 from systems import moprp
 from systems.errors import InputError, PlanningFailure
 from systems.files import read_json, write_json
-from systems.frames import transform
 from systems.nsga2 import non_dominated_sort, nsga2
 
 
@@ -443,12 +442,11 @@ def plot_placement(sc: moprp.Scenario, out: dict, out_dir: Path, *, html: bool =
 
 
 def write_layout_html(sc: moprp.Scenario, xyz, branch: int, path: Path) -> Path:
-    """Meshcat static HTML of the selected layout: the Drake plant (arm + actuator) at the base
-    pose, the scenario's cart, patient and chair primitives, and the feed animated from the
-    pre-feed pose (t = 0) to the target (t = 1 s) on the selected branch. Headless Meshcat on an
-    ephemeral port."""
-    from pydrake.geometry import Box, Capsule, Meshcat, MeshcatParams, Rgba
-    from pydrake.math import RigidTransform, RotationMatrix
+    """Meshcat static HTML of the selected layout: the Drake plant of the scenario (arm +
+    actuator at the base pose, the scenario's cart, patient and chair from
+    diagrams.plant.add_scenario_geometry), and the feed animated from the pre-feed pose (t = 0)
+    to the target (t = 1 s) on the selected branch. Headless Meshcat on an ephemeral port."""
+    from pydrake.geometry import Meshcat, MeshcatParams
 
     from diagrams.plant import build_plant
     from systems import kinematics as kin
@@ -456,29 +454,8 @@ def write_layout_html(sc: moprp.Scenario, xyz, branch: int, path: Path) -> Path:
 
     meshcat = Meshcat(MeshcatParams(port=0))
     X_WB = sc.X_WO @ moprp.base_pose(xyz)
-    diagram, plant, _, handles = build_plant(scenario="arm", tool=True, X_WBase=X_WB,
+    diagram, plant, _, handles = build_plant(scenario=sc, tool=True, X_WBase=X_WB,
                                              limits=sc.limits, meshcat=meshcat)
-
-    def rt(X):
-        return RigidTransform(RotationMatrix(X[:3, :3]), X[:3, 3])
-
-    X_WC = X_WB @ sc.X_BC
-    meshcat.SetObject("/layout/cart", Box(*(2 * sc.cabinet_half)), Rgba(0.5, 0.5, 0.55, 0.6))
-    meshcat.SetTransform("/layout/cart", rt(X_WC))
-    for o in sc.obstacles:
-        name = f"/layout/{o.name}"
-        if o.kind == "box":
-            meshcat.SetObject(name, Box(*(2 * o.half_size)), Rgba(0.8, 0.7, 0.5, 0.6))
-            meshcat.SetTransform(name, rt(o.X_WB))
-        else:
-            axis = o.p1 - o.p0
-            length = float(np.linalg.norm(axis))
-            z = axis / length if length > 0 else np.array([0.0, 0.0, 1.0])
-            x = np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0])
-            x /= np.linalg.norm(x)
-            R = np.column_stack([x, np.cross(z, x), z])
-            meshcat.SetObject(name, Capsule(o.radius, length), Rgba(1.0, 0.85, 0.7, 0.6))
-            meshcat.SetTransform(name, rt(transform(R, (o.p0 + o.p1) / 2)))
     feed = moprp.feed_poses(xyz, sc.feed_length, sc.feed_samples)
     q_path = kin.ik(feed, limits=sc.limits, X_FT=sc.X_FT).q[:, branch]
     context = diagram.CreateDefaultContext()

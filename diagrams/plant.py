@@ -1,15 +1,26 @@
-"""Build the MultibodyPlant + SceneGraph of a scene: AUBO-i10, implanting actuator, cart, chair.
+"""Build the MultibodyPlant + SceneGraph of a scene: AUBO-i10, implanting actuator, cart, patient.
 
-Scenes are model directives in ``models/scenes/<scenario>.dmd.yaml`` (DESIGN.md section 5:
-patient lying or sitting). :func:`build_plant` loads them with the ``implantplan`` package
-registered on the parser (nothing is downloaded), replaces the world -> base_link weld by the
-pose it is given, and optionally adds a Meshcat visualizer. ``scenario="arm"`` is the bare arm
-(with the actuator when ``tool``), for kinematics checks.
+One model of the room: the MOPRP scenario (``models/scenarios/<name>.yaml``, read by
+``systems.moprp.load_scenario``; DESIGN.md section 5: patient lying or sitting) is the source of
+truth for the patient, the chair, the cart and the Oral (mouth) frame. :func:`build_plant` loads
+the model files (arm, actuator) through in-memory model directives (:func:`scene_directives`,
+the ``implantplan`` package registered on the parser, nothing downloaded), welds base_link at
+the pose it is given, and for a scenario adds the scenario's geometry
+(:func:`add_scenario_geometry`): the obstacles as World-fixed capsules and boxes (collision +
+visual, the scenario's names) on a ``patient`` body welded to World, with a ``mouth`` frame at
+the scenario's X_WO, and the cart box on a ``cart`` body welded to base_link at the scenario's
+``cabinet.box`` pose in Base. ``scenario="arm"`` is the bare arm (with the actuator when
+``tool``), for kinematics checks. Meshcat visualization is optional.
 
 Collision filtering: adjacent arm links are filtered by the URDF's collision filter groups (and
-by MultibodyPlant's parent/child rule); everything welded to the world (cart, chair, patient,
-base) is filtered among itself by MultibodyPlant; the actuator is welded to wrist3_Link, so it is
-filtered against the flange only. Every other pair is checked.
+by MultibodyPlant's parent/child rule); everything welded to the world (cart, patient, base) is
+filtered among itself by MultibodyPlant; the actuator is welded to wrist3_Link, so it is
+filtered against the flange. Against the environment (patient, chair, cart) only the parts that
+``systems.moprp.ENV_PARTS`` tests are checked (:data:`ENV_GEOMETRY`, applied by
+:func:`filter_environment_pairs`): the rod, head and implant enter the mouth by design (their
+clearance is the FPSM's job, seed 000) and the base, shoulder and upper-arm housing sit on the
+cart, so MOPRP's capsule model and SceneGraph answer the same question. Every other pair is
+checked.
 """
 
 from __future__ import annotations
@@ -19,22 +30,63 @@ from pathlib import Path
 
 import numpy as np
 from pydrake.common.schema import Transform
-from pydrake.geometry import MeshcatVisualizer, MeshcatVisualizerParams, Role, SceneGraph
+from pydrake.geometry import (
+    Box,
+    Capsule,
+    CollisionFilterDeclaration,
+    GeometrySet,
+    MeshcatVisualizer,
+    MeshcatVisualizerParams,
+    Role,
+    SceneGraph,
+)
 from pydrake.math import RigidTransform, RotationMatrix
-from pydrake.multibody.parsing import LoadModelDirectives, Parser, ProcessModelDirectives
-from pydrake.multibody.plant import AddMultibodyPlantSceneGraph, MultibodyPlant
-from pydrake.multibody.tree import Frame, JacobianWrtVariable, ModelInstanceIndex
+from pydrake.multibody.parsing import (
+    AddModel,
+    AddWeld,
+    ModelDirective,
+    ModelDirectives,
+    Parser,
+    ProcessModelDirectives,
+)
+from pydrake.multibody.plant import AddMultibodyPlantSceneGraph, CoulombFriction, MultibodyPlant
+from pydrake.multibody.tree import (
+    FixedOffsetFrame,
+    Frame,
+    JacobianWrtVariable,
+    ModelInstanceIndex,
+    SpatialInertia,
+)
 from pydrake.systems.framework import Diagram, DiagramBuilder
 
 import models
+from systems import moprp
 from systems.errors import InputError
+from systems.frames import frame_from_z
 
 SCENARIOS = ("lying", "sitting", "arm")
 ARM_FILES = {
     "175": "package://implantplan/aubo_i10/aubo_i10.urdf",
     "360": "package://implantplan/aubo_i10/aubo_i10_360.urdf",
 }
+ACTUATOR_FILE = "package://implantplan/tools/implanting_actuator.urdf"
 ARM, CART, ACTUATOR, PATIENT = "aubo", "cart", "actuator", "patient"
+# Default base positions in Oral (m) of the bundled scenarios: the knee of 100 random feasible
+# MOPRP bases (analyses.simulate.select_layout, seed 0), rounded to 1 cm; tests/test_models.py
+# checks they stay feasible for MOPRP and collision-free in SceneGraph along the feed.
+DEFAULT_BASE_XYZ = {"lying": (0.56, -0.15, -0.25), "sitting": (0.56, -0.33, -0.25)}
+# moprp.ENV_PARTS (capsule names) -> the plant's collision geometry (SceneGraph name) that
+# model the same part; the actuator URDF has no motor body, so "actuator_body" has none.
+ENV_GEOMETRY = {
+    "upper_arm": f"{ARM}::upperArm_Link_collision_1",
+    "forearm_housing": f"{ARM}::foreArm_Link_collision_0",
+    "forearm": f"{ARM}::foreArm_Link_collision_1",
+    "wrist1": f"{ARM}::wrist1_Link_collision_0",
+    "wrist2": f"{ARM}::wrist2_Link_collision_0",
+    "wrist3": f"{ARM}::wrist3_Link_collision_0",
+}
+OBSTACLE_RGBA = {"capsule": (1.0, 0.85, 0.7, 0.6), "box": (0.8, 0.7, 0.5, 0.6)}
+CART_RGBA = (0.5, 0.5, 0.55, 0.6)
 
 
 @dataclass
@@ -45,10 +97,12 @@ class PlantHandles:
         arm, actuator, cart, patient: model instances (None when not in the scene).
         base, flange: the arm's base_link and wrist3_Link frames.
         tcp, implant_tip: the actuator's frames (None without the tool).
-        mouth: the patient's ``mouth`` frame (None for ``scenario="arm"``).
+        mouth: the scenario's Oral (feeding target) frame at X_WO, on the patient body (None for
+            ``scenario="arm"``).
         X_WBase: the base pose used, 4x4.
         scenario: the scenario name; limits: "175" or "360".
         visualizer: the MeshcatVisualizer, or None.
+        environment: SceneGraph ids of the patient/chair/cart collision geometries.
     """
 
     arm: ModelInstanceIndex
@@ -64,14 +118,44 @@ class PlantHandles:
     scenario: str
     limits: str
     visualizer: MeshcatVisualizer | None = field(default=None)
+    environment: tuple = field(default=())
 
 
-def directives_path(scenario: str) -> Path:
-    """The model directives file of a scenario ("arm" uses the lying file, trimmed)."""
-    if scenario not in SCENARIOS:
-        raise InputError("scenario", f"expected one of {', '.join(SCENARIOS)}, got {scenario!r}")
-    name = "lying" if scenario == "arm" else scenario
-    return models.model_path(f"scenes/{name}.dmd.yaml")
+@dataclass(frozen=True)
+class ScenarioGeometry:
+    """What :func:`add_scenario_geometry` added: model instances, the mouth frame, geometry ids."""
+
+    patient: ModelInstanceIndex
+    cart: ModelInstanceIndex
+    mouth: Frame
+    environment: tuple
+
+
+def resolve_scenario(scenario) -> moprp.Scenario | None:
+    """The MOPRP scenario of ``scenario``: None for "arm", a bundled name, a YAML path or a
+    :class:`systems.moprp.Scenario` (returned as is)."""
+    if isinstance(scenario, moprp.Scenario):
+        return scenario
+    if isinstance(scenario, (str, Path)):
+        if str(scenario) == "arm":
+            return None
+        if str(scenario) in moprp.BUNDLED or Path(scenario).is_file():
+            return moprp.load_scenario(scenario)
+    raise InputError(
+        "scenario",
+        f"expected one of {', '.join(SCENARIOS)}, a scenario YAML file or a Scenario, "
+        f"got {scenario!r}",
+    )
+
+
+def default_base_pose(sc: moprp.Scenario | None) -> np.ndarray:
+    """X_WBase used when none is given: identity for the bare arm, :data:`DEFAULT_BASE_XYZ` for
+    the bundled scenarios, else the centre of the scenario's base bounds (not checked for
+    collisions: pass X_WBase for other scenarios)."""
+    if sc is None:
+        return np.eye(4)
+    xyz = DEFAULT_BASE_XYZ.get(sc.name, (sc.lower + sc.upper) / 2)
+    return sc.X_WO @ moprp.base_pose(np.asarray(xyz, dtype=float))
 
 
 def as_rigid_transform(X, field_name: str = "X_WBase") -> RigidTransform:
@@ -92,40 +176,125 @@ def as_rigid_transform(X, field_name: str = "X_WBase") -> RigidTransform:
     return RigidTransform(RotationMatrix.ProjectToRotationMatrix(R), X[:3, 3])
 
 
-def scene_directives(scenario: str, X_WBase, limits: str, tool: bool):
-    """Load the scenario's directives and edit them in memory; returns (directives, X_WBase)."""
+def scene_directives(scenario, X_WBase, limits: str, tool: bool):
+    """Model directives of the model files of a scene: the arm (base_link welded to World at
+    X_WBase, or the scenario's default) and the actuator on the flange when ``tool``.
+
+    The scenario's environment is not a model file: add it with :func:`add_scenario_geometry`.
+
+    Returns:
+        ``(directives, X_WBase)``, the pose as a RigidTransform.
+    """
+    sc = resolve_scenario(scenario)
     if limits not in ARM_FILES:
         raise InputError("limits", f"expected '175' or '360', got {limits!r}")
-    directives = LoadModelDirectives(str(directives_path(scenario)))
-    keep_models = {ARM} | ({ACTUATOR} if tool else set())
-    if scenario != "arm":
-        keep_models |= {CART, PATIENT}
-    kept = []
-    X_used = None
-    for d in directives.directives:
-        if d.add_model is not None:
-            if d.add_model.name not in keep_models:
-                continue
-            if d.add_model.name == ARM:
-                d.add_model.file = ARM_FILES[limits]
-        elif d.add_weld is not None:
-            owner = d.add_weld.child.split("::")[0]
-            if owner not in keep_models:
-                continue
-            if d.add_weld.child == f"{ARM}::base_link":
-                if X_WBase is not None:
-                    d.add_weld.X_PC = Transform(as_rigid_transform(X_WBase))
-                elif scenario == "arm":
-                    d.add_weld.X_PC = Transform(RigidTransform())
-                X_used = d.add_weld.X_PC.GetDeterministicValue()
-        kept.append(d)
-    directives.directives = kept
-    return directives, X_used
+    X = as_rigid_transform(default_base_pose(sc) if X_WBase is None else X_WBase)
+    items = [
+        ModelDirective(add_model=AddModel(name=ARM, file=ARM_FILES[limits])),
+        ModelDirective(
+            add_weld=AddWeld(parent="world", child=f"{ARM}::base_link", X_PC=Transform(X))
+        ),
+    ]
+    if tool:
+        items += [
+            ModelDirective(add_model=AddModel(name=ACTUATOR, file=ACTUATOR_FILE)),
+            ModelDirective(
+                add_weld=AddWeld(parent=f"{ARM}::wrist3_Link", child=f"{ACTUATOR}::actuator_base")
+            ),
+        ]
+    return ModelDirectives(directives=items), X
+
+
+def _rt(X) -> RigidTransform:
+    return RigidTransform(RotationMatrix(np.asarray(X)[:3, :3]), np.asarray(X)[:3, 3])
+
+
+def add_scenario_geometry(plant: MultibodyPlant, sc: moprp.Scenario) -> ScenarioGeometry:
+    """Add a scenario's environment to an unfinalized plant that holds the arm.
+
+    The obstacles become collision + visual geometry (the scenario's names) on a ``patient``
+    body welded to World at the identity, so they are World-fixed; the ``mouth`` frame on it is
+    the scenario's Oral pose X_WO. The cart box (``cabinet.box``) goes on a ``cart`` body welded
+    to base_link at X_BC. Both bodies are massless (welded, they carry no dynamics).
+    """
+    friction = CoulombFriction(0.5, 0.5)
+    patient = plant.AddModelInstance(PATIENT)
+    body = plant.AddRigidBody(PATIENT, patient, SpatialInertia.Zero())
+    plant.WeldFrames(plant.world_frame(), body.body_frame())
+    ids = []
+    for o in sc.obstacles:
+        if o.kind == "box":
+            shape, X = Box(*(2 * o.half_size)), o.X_WB
+        else:
+            axis = o.p1 - o.p0
+            length = float(np.linalg.norm(axis))
+            z = axis / length if length > 0 else np.array([0.0, 0.0, 1.0])
+            shape, X = Capsule(o.radius, length), frame_from_z((o.p0 + o.p1) / 2, z)
+        ids.append(plant.RegisterCollisionGeometry(body, _rt(X), shape, o.name, friction))
+        plant.RegisterVisualGeometry(body, _rt(X), shape, o.name, np.array(OBSTACLE_RGBA[o.kind]))
+    mouth = plant.AddFrame(FixedOffsetFrame("mouth", body.body_frame(), _rt(sc.X_WO)))
+    cart = plant.AddModelInstance(CART)
+    cart_body = plant.AddRigidBody(CART, cart, SpatialInertia.Zero())
+    plant.WeldFrames(plant.GetFrameByName("base_link"), cart_body.body_frame(), _rt(sc.X_BC))
+    box = Box(*(2 * sc.cabinet_half))
+    ids.append(plant.RegisterCollisionGeometry(cart_body, RigidTransform(), box, CART, friction))
+    plant.RegisterVisualGeometry(cart_body, RigidTransform(), box, CART, np.array(CART_RGBA))
+    return ScenarioGeometry(patient=patient, cart=cart, mouth=mouth, environment=tuple(ids))
+
+
+def filter_environment_pairs(scene_graph: SceneGraph, environment) -> None:
+    """Exclude environment vs robot pairs that MOPRP does not test (see the module docstring):
+    every proximity geometry that is neither in the environment nor in :data:`ENV_GEOMETRY`."""
+    inspector = scene_graph.model_inspector()
+    env = set(environment)
+    tested = set(ENV_GEOMETRY.values())
+    untested = [
+        g for g in inspector.GetAllGeometryIds(Role.kProximity)
+        if g not in env and inspector.GetName(g) not in tested
+    ]
+    scene_graph.collision_filter_manager().Apply(
+        CollisionFilterDeclaration().ExcludeBetween(GeometrySet(list(env)), GeometrySet(untested))
+    )
+
+
+def environment_distance(query, inspector, environment, max_distance: float) -> float:
+    """Smallest signed distance (m) of the unfiltered robot-vs-environment pairs of a SceneGraph
+    query object, or +inf when none is within ``max_distance``."""
+    env = set(environment)
+    d = [
+        p.distance
+        for p in query.ComputeSignedDistancePairwiseClosestPoints(max_distance=max_distance)
+        if (p.id_A in env) != (p.id_B in env)
+    ]
+    return min(d, default=float("inf"))
+
+
+def add_scene(plant: MultibodyPlant, scene_graph: SceneGraph, scenario, X_WBase, limits: str,
+              tool: bool):
+    """Fill an empty plant registered with ``scene_graph`` with a scene and finalize it: the
+    model files (:func:`scene_directives`), the scenario's geometry
+    (:func:`add_scenario_geometry`) and its collision filters (:func:`filter_environment_pairs`).
+    The one recipe of :func:`build_plant` and of diagrams.teleop's own diagram.
+
+    Returns:
+        ``(X_WBase, geometry)``: the base pose used (RigidTransform) and the
+        :class:`ScenarioGeometry` (None for "arm").
+    """
+    sc = resolve_scenario(scenario)
+    directives, X_used = scene_directives(sc if sc is not None else "arm", X_WBase, limits, tool)
+    parser = Parser(plant)
+    models.add_package(parser.package_map())
+    ProcessModelDirectives(directives, plant, parser)
+    env = add_scenario_geometry(plant, sc) if sc is not None else None
+    plant.Finalize()
+    if env is not None:
+        filter_environment_pairs(scene_graph, env.environment)
+    return X_used, env
 
 
 def build_plant(
     *,
-    scenario: str = "lying",
+    scenario="lying",
     X_WBase=None,
     limits: str = "175",
     tool: bool = True,
@@ -135,9 +304,10 @@ def build_plant(
     """Build plant + scene graph of a scene and return ``(diagram, plant, scene_graph, handles)``.
 
     Args:
-        scenario: "lying", "sitting" (patient in the chair, robot on its cart) or "arm" (bare arm).
+        scenario: "lying", "sitting" (the bundled MOPRP scenarios), a scenario YAML path, a
+            :class:`systems.moprp.Scenario`, or "arm" (bare arm).
         X_WBase: pose of base_link in World (4x4 or RigidTransform); None keeps the scenario's
-            default layout (identity for "arm").
+            default layout (:func:`default_base_pose`; identity for "arm").
         limits: "175" or "360", which arm URDF to load.
         tool: weld the implanting actuator to the flange.
         time_step: MultibodyPlant time step (0 = continuous).
@@ -146,40 +316,40 @@ def build_plant(
     Returns:
         The built Diagram, its MultibodyPlant and SceneGraph, and :class:`PlantHandles`.
     """
-    directives, X_used = scene_directives(scenario, X_WBase, limits, tool)
+    sc = resolve_scenario(scenario)
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlantSceneGraph(builder, time_step=time_step)
-    parser = Parser(plant)
-    models.add_package(parser.package_map())
-    ProcessModelDirectives(directives, plant, parser)
-    plant.Finalize()
+    X_used, env = add_scene(
+        plant, scene_graph, sc if sc is not None else "arm", X_WBase, limits, tool
+    )
     visualizer = None
     if meshcat is not None:
         visualizer = MeshcatVisualizer.AddToBuilder(
             builder, scene_graph, meshcat, MeshcatVisualizerParams(role=Role.kIllustration)
         )
     diagram = builder.Build()
-    diagram.set_name(f"implantplan_{scenario}")
+    name = "arm" if sc is None else sc.name
+    diagram.set_name(f"implantplan_{name}")
 
-    def instance(name):
-        return plant.GetModelInstanceByName(name) if plant.HasModelInstanceNamed(name) else None
+    def instance(n):
+        return plant.GetModelInstanceByName(n) if plant.HasModelInstanceNamed(n) else None
 
     arm, actuator = instance(ARM), instance(ACTUATOR)
-    patient = instance(PATIENT)
     handles = PlantHandles(
         arm=arm,
         actuator=actuator,
-        cart=instance(CART),
-        patient=patient,
+        cart=env.cart if env else None,
+        patient=env.patient if env else None,
         base=plant.GetFrameByName("base_link", arm),
         flange=plant.GetFrameByName("wrist3_Link", arm),
         tcp=plant.GetFrameByName("tcp", actuator) if actuator is not None else None,
         implant_tip=plant.GetFrameByName("implant_tip", actuator) if actuator is not None else None,
-        mouth=plant.GetFrameByName("mouth", patient) if patient is not None else None,
+        mouth=env.mouth if env else None,
         X_WBase=np.asarray(X_used.GetAsMatrix4()),
-        scenario=scenario,
+        scenario=name,
         limits=limits,
         visualizer=visualizer,
+        environment=env.environment if env else (),
     )
     return diagram, plant, scene_graph, handles
 

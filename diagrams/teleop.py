@@ -22,9 +22,10 @@ out of the mouth, z along the implant axis) is End rotated by R_ET = R_OE^T (sys
 = Tool, and End's axes in Oral are R_OE). The FPSM and the virtual fixture live in the Center
 frame, placed in World by ``X_WCenter``.
 
-The scene (arm, actuator, cart, chair and patient) comes from diagrams.plant's model directives;
-build_plant returns a finished diagram, so this module adds the same directives to its own
-builder through diagrams.plant's directive loader.
+The scene (arm, actuator, cart, chair and patient) is diagrams.plant's: build_plant returns a
+finished diagram, so this module adds the same model directives and the same scenario geometry
+(diagrams.plant.add_scenario_geometry, the MOPRP scenario's patient/chair/cart) to its own
+builder, with the same collision filters.
 """
 
 from __future__ import annotations
@@ -35,7 +36,6 @@ from dataclasses import dataclass, field
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.geometry import (
-    CollisionFilterDeclaration,
     MeshcatVisualizer,
     MeshcatVisualizerParams,
     Role,
@@ -46,16 +46,13 @@ from pydrake.multibody.inverse_kinematics import (
     DifferentialInverseKinematicsIntegrator,
     DifferentialInverseKinematicsParameters,
 )
-from pydrake.multibody.parsing import Parser, ProcessModelDirectives
 from pydrake.multibody.plant import AddMultibodyPlantSceneGraph, MultibodyPlant
-from pydrake.multibody.tree import BodyIndex
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.controllers import InverseDynamicsController
 from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import LogVectorOutput, StateInterpolatorWithDiscreteDerivative
 from pydrake.systems.rendering import MultibodyPositionToGeometryPose
 
-import models
 from diagrams import plant as scene
 from diagrams import tools
 from systems import kinematics as kin
@@ -191,29 +188,20 @@ class Teleop:
 
 
 def _add_scene(builder, case: TeleopCase, mode: str, plant_step: float):
-    """The case's scene (diagrams.plant directives, base welded at X_WBase) in ``builder``."""
-    directives, _ = scene.scene_directives(case.scenario, case.X_WBase, case.limits, True)
+    """The case's scene (diagrams.plant.add_scene: model directives with the base welded at
+    X_WBase, the scenario's patient/chair/cart geometry and its collision filters) in
+    ``builder``. Contact stays on in dynamic mode: the robot meets the same environment as
+    MOPRP, with the rod, head and implant filtered against it (they enter the mouth, which the
+    FPSM estimator guards)."""
     if mode == "dynamic":
         plant, scene_graph = AddMultibodyPlantSceneGraph(builder, time_step=plant_step)
     else:
         scene_graph = builder.AddSystem(SceneGraph())
         plant = MultibodyPlant(0.0)
         plant.RegisterAsSourceForSceneGraph(scene_graph)
-    parser = Parser(plant)
-    models.add_package(parser.package_map())
-    ProcessModelDirectives(directives, plant, parser)
-    plant.Finalize()
+    scene.add_scene(plant, scene_graph, case.scenario, case.X_WBase, case.limits, True)
     if plant.num_positions() != 6:
         raise InputError("scenario", f"expected a 6-DOF scene, got {plant.num_positions()} q")
-    if mode == "dynamic":
-        # No contact forces: the patient model has no mouth (the FPSM estimator stands in for
-        # the cavity) and the feed is a free-space motion; dynamic mode is about tracking.
-        everything = plant.CollectRegisteredGeometries(
-            [plant.get_body(BodyIndex(b)) for b in range(plant.num_bodies())]
-        )
-        scene_graph.collision_filter_manager().Apply(
-            CollisionFilterDeclaration().ExcludeWithin(everything)
-        )
     return plant, scene_graph
 
 

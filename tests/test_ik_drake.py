@@ -11,6 +11,8 @@ from diagrams.ik_drake import DrakeIk, ik_drake
 from diagrams.plant import build_plant
 from systems import kinematics
 from systems.errors import InputError
+from systems.frames import transform
+from systems.moprp import R_OE
 
 LIM175 = np.deg2rad(175.0)
 
@@ -97,10 +99,9 @@ def test_min_distance_keeps_only_collision_free_branches():
         min_distance=0.005,
     )
     free = DrakeIk(plant=plant, diagram=diagram, tool_frame="wrist3_Link", X_FT=tools.X_FT())
-    # The default lying layout's task: TCP at the mouth, implant axis up, rod from the side.
-    X_WT = np.eye(4)
-    X_WT[:3, :3] = np.column_stack([[1, 0, 0], [0, 0, 1], [0, -1, 0]])
-    X_WT[:3, 3] = [-0.06, 0.0, 0.83]
+    # The default lying layout's task: TCP at the mouth frame (Oral), End axes R_OE in Oral.
+    X_WO = h.mouth.CalcPoseInWorld(plant.CreateDefaultContext()).GetAsMatrix4()
+    X_WT = X_WO @ transform(R_OE, np.zeros(3))
     X_BT = np.linalg.solve(h.X_WBase, X_WT)
     q_all, _ = free.solve(X_BT, seed=0)
     q_safe, info = s.solve(X_BT, seed=0)

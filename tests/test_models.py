@@ -14,9 +14,10 @@ from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import MultibodyPlant
 
 import models
+from diagrams import plant as scene
 from diagrams import tools
 from diagrams.plant import build_plant
-from systems import kinematics
+from systems import kinematics, moprp
 from systems.errors import InputError
 from systems.frames import rpy_to_rotation
 
@@ -143,37 +144,105 @@ def test_home_pose_collision_free(scenario):
 
 def test_real_collisions_are_detected():
     diagram, plant, sg, _ = build_plant(scenario="lying")
-    # Upper arm swung down onto the cabinet below the base (condition 1 of seed 001).
-    pairs, clearance = _collision_pairs(diagram, plant, sg, [0, 2.0, 0, 0, 0, 0])
-    assert ("aubo::upperArm_Link", "cart::cart_top") in pairs
+    # Upper arm swung down onto the cart below the base (condition 1 of seed 001).
+    pairs, clearance = _collision_pairs(diagram, plant, sg, [0, -2.0, 0, 0, 0, 0])
+    assert pairs == {("aubo::upperArm_Link", "cart::cart")}
     assert clearance < 0
+    # Swung the other way (towards the mouth, World -x) onto the lying patient.
+    pairs, _ = _collision_pairs(diagram, plant, sg, [0, 2.0, 0, 0, 0, 0])
+    assert ("aubo::upperArm_Link", "patient::patient") in pairs
     # Elbow folded: the wrist (outboard of the forearm, in the upper arm's plane) lands on the
     # upper arm.
     pairs, _ = _collision_pairs(diagram, plant, sg, [0, 0, np.deg2rad(170), 0, 0, 0])
     assert ("aubo::upperArm_Link", "aubo::wrist1_Link") in pairs
 
 
-def task_at_mouth(plant, handles) -> np.ndarray:
-    """X_WT of the scenes' documented task: TCP at the mouth frame, implant axis (End y) along
-    the mouth's z, the rod coming from the robot's side (+y of World, End z = -y)."""
-    ctx = plant.CreateDefaultContext()
-    X_WM = plant.CalcRelativeTransform(ctx, plant.world_frame(), handles.mouth).GetAsMatrix4()
-    y = X_WM[:3, 2]
-    z = np.array([0.0, -1.0, 0.0])
-    X = np.eye(4)
-    X[:3, :3] = np.column_stack([np.cross(y, z), y, z])
-    X[:3, 3] = X_WM[:3, 3]
-    return X
-
-
 @pytest.mark.parametrize("scenario", ["lying", "sitting"])
 def test_default_layout_reaches_the_mouth_without_collision(scenario):
+    """The default base (scene.DEFAULT_BASE_XYZ) is a feasible MOPRP base, and on its selected
+    branch the TCP reaches the mouth frame (End axes R_OE in Oral) with SceneGraph finding the
+    pre-feed and target configurations clear of the environment by the scenario's clearance."""
+    sc = moprp.load_scenario(scenario)
+    xyz = np.array(scene.DEFAULT_BASE_XYZ[scenario])
+    ev = moprp.evaluate_bases(xyz[None], sc, np.random.default_rng(0))
+    assert ev.feasible[0]
     diagram, plant, sg, h = build_plant(scenario=scenario)
-    X_BT = np.linalg.solve(h.X_WBase, task_at_mouth(plant, h))
-    sol = kinematics.ik(X_BT, X_FT=tools.X_FT())
-    assert sol.valid.any()
-    free = [q for q in sol.q[sol.valid] if not _collision_pairs(diagram, plant, sg, q)[0]]
-    assert len(free) >= 1
+    np.testing.assert_allclose(h.X_WBase, sc.X_WO @ moprp.base_pose(xyz), atol=1e-15)
+    ctx = diagram.CreateDefaultContext()
+    pc = plant.GetMyMutableContextFromRoot(ctx)
+    query = sg.get_query_output_port()
+    for q in (ev.q_pre[0], ev.q[0]):
+        plant.SetPositions(pc, q)
+        d = scene.environment_distance(
+            query.Eval(sg.GetMyContextFromRoot(ctx)), sg.model_inspector(), h.environment, 1.0
+        )
+        assert d >= sc.clearance
+        assert not _collision_pairs(diagram, plant, sg, q)[0]
+    X_WM = plant.CalcRelativeTransform(pc, plant.world_frame(), h.mouth).GetAsMatrix4()
+    X_WE = plant.CalcRelativeTransform(pc, plant.world_frame(), h.tcp).GetAsMatrix4()
+    np.testing.assert_allclose(X_WE[:3, 3], X_WM[:3, 3], atol=1e-9)
+    np.testing.assert_allclose(X_WE[:3, :3], X_WM[:3, :3] @ moprp.R_OE, atol=1e-9)
+
+
+def test_environment_filters_follow_moprp_env_parts():
+    """Robot vs environment pairs are checked exactly for the parts moprp.ENV_PARTS tests."""
+    assert set(scene.ENV_GEOMETRY) == set(moprp.ENV_PARTS) - {"actuator_body"}
+    _, _, sg, h = build_plant(scenario="lying")
+    inspector = sg.model_inspector()
+    env = set(h.environment)
+    names = {inspector.GetName(g) for g in env}
+    assert names == {"patient::head", "patient::torso", "patient::legs", "patient::chair",
+                     "patient::chair_column", "cart::cart"}
+    robot = [g for g in inspector.GetAllGeometryIds(Role.kProximity) if g not in env]
+    tested = set(scene.ENV_GEOMETRY.values())
+    assert tested <= {inspector.GetName(g) for g in robot}
+    for g in robot:
+        for e in env:
+            assert inspector.CollisionFiltered(g, e) == (inspector.GetName(g) not in tested)
+
+
+def _agreement(n_per_base: int, seed: int) -> tuple[float, int]:
+    """Share of random configurations (uniform within the 175 deg limits) where SceneGraph and
+    moprp.collision_clearance agree on arm-vs-environment collision at the scenario's clearance,
+    at three base positions of the lying scenario."""
+    sc = moprp.load_scenario("lying")
+    rng = np.random.default_rng(seed)
+    bases = [scene.DEFAULT_BASE_XYZ["lying"], (0.45, -0.3, 0.3), (0.8, 0.0, -0.5)]
+    agree = total = 0
+    for xyz in np.array(bases):
+        diagram, plant, sg, h = build_plant(scenario=sc, X_WBase=sc.X_WO @ moprp.base_pose(xyz))
+        ctx = diagram.CreateDefaultContext()
+        pc = plant.GetMyMutableContextFromRoot(ctx)
+        sgc = sg.GetMyContextFromRoot(ctx)
+        inspector = sg.model_inspector()
+        q = rng.uniform(-np.deg2rad(175), np.deg2rad(175), (n_per_base, 6))
+        d_sg = np.empty(n_per_base)
+        for k, qk in enumerate(q):
+            plant.SetPositions(pc, qk)
+            d_sg[k] = scene.environment_distance(
+                sg.get_query_output_port().Eval(sgc), inspector, h.environment, 0.1
+            )
+        c = moprp.collision_clearance(q, np.repeat(xyz[None], n_per_base, axis=0), sc)
+        d_caps = np.minimum(c["environment"], c["cabinet"])
+        same = (d_sg < sc.clearance) == (d_caps < sc.clearance)
+        # both models see collisions and clear configurations (the check is not one-sided)
+        assert 0.1 < np.mean(d_caps < sc.clearance) < 0.9
+        agree += int(same.sum())
+        total += n_per_base
+    return agree / total, total
+
+
+def test_scene_graph_agrees_with_the_capsule_model():
+    share, total = _agreement(1000, seed=7)
+    print(f"SceneGraph vs capsule model: {100 * share:.2f}% of {total} configurations agree")
+    assert share >= 0.99
+
+
+@pytest.mark.slow
+def test_scene_graph_agrees_with_the_capsule_model_paper_scale():
+    share, total = _agreement(3334, seed=11)
+    print(f"SceneGraph vs capsule model: {100 * share:.2f}% of {total} configurations agree")
+    assert share >= 0.99
 
 
 def test_filtered_pairs_are_exactly_adjacent_links():
@@ -242,24 +311,52 @@ def test_scene_frames_and_base_pose():
     X = np.eye(4)
     X[:3, :3] = rpy_to_rotation(np.array([0.0, 0.0, 0.7]))
     X[:3, 3] = [0.3, 0.7, 0.6]
-    diagram, plant, _, h = build_plant(scenario="sitting", X_WBase=X, limits="360")
+    diagram, plant, sg, h = build_plant(scenario="sitting", X_WBase=X, limits="360")
     ctx = plant.GetMyContextFromRoot(diagram.CreateDefaultContext())
     X_WB = plant.CalcRelativeTransform(ctx, plant.world_frame(), h.base).GetAsMatrix4()
     np.testing.assert_allclose(X_WB, X, atol=1e-14)
     np.testing.assert_allclose(h.X_WBase, X, atol=1e-14)
     np.testing.assert_allclose(plant.GetPositionUpperLimits(), 2 * np.pi)
-    R_WM = plant.CalcRelativeTransform(ctx, plant.world_frame(), h.mouth).rotation().matrix()
-    np.testing.assert_allclose(R_WM[:, 2], [1, 0, 0], atol=1e-12)  # out of the mouth: forward
-    np.testing.assert_allclose(R_WM[:, 0], [0, 0, 1], atol=1e-12)  # towards the head top: up
-    diagram, plant, _, h = build_plant(scenario="lying")
-    ctx = plant.GetMyContextFromRoot(diagram.CreateDefaultContext())
-    R_WM = plant.CalcRelativeTransform(ctx, plant.world_frame(), h.mouth).rotation().matrix()
-    np.testing.assert_allclose(R_WM[:, 2], [0, 0, 1], atol=1e-12)  # out of the mouth: up
-    # The cart's top carries the base (welded to it).
+    # The mouth is the scenario's Oral frame: (0, 0, 1.20), rpy (90, 0, 0) deg.
+    X_WM = plant.CalcRelativeTransform(ctx, plant.world_frame(), h.mouth).GetAsMatrix4()
+    np.testing.assert_allclose(X_WM[:3, 3], [0.0, 0.0, 1.20], atol=1e-15)
+    np.testing.assert_allclose(X_WM[:3, 1], [0, 0, 1], atol=1e-12)  # Oral Y up
+    np.testing.assert_allclose(X_WM[:3, 2], [0, -1, 0], atol=1e-12)  # Oral Z = -World Y
+    # The cart box hangs under the base at the scenario's cabinet pose in Base.
     X_BC = plant.CalcRelativeTransform(
-        ctx, h.base, plant.GetFrameByName("cart_top", h.cart)
+        ctx, h.base, plant.GetFrameByName("cart", h.cart)
     ).GetAsMatrix4()
-    np.testing.assert_allclose(X_BC, np.eye(4), atol=1e-15)
+    np.testing.assert_allclose(X_BC[:3, 3], [0.15, 0.0, -1.0], atol=1e-15)
+    np.testing.assert_allclose(X_BC[:3, :3], np.eye(3), atol=1e-15)
+    # Obstacles are World-fixed with the scenario's names, shapes and poses.
+    inspector = sg.model_inspector()
+    query = sg.get_query_output_port().Eval(sg.GetMyContextFromRoot(
+        diagram.CreateDefaultContext()))
+    by_name = {inspector.GetName(g): g for g in h.environment}
+    head = inspector.GetShape(by_name["patient::head"])
+    assert (head.radius(), head.length()) == pytest.approx((0.10, 0.10))
+    X_WHead = query.GetPoseInWorld(by_name["patient::head"])
+    np.testing.assert_allclose(X_WHead.translation(), [0.0, 0.08, 1.21], atol=1e-12)
+    np.testing.assert_allclose(X_WHead.rotation().matrix()[:, 2], [0, 0, 1], atol=1e-12)
+    back = inspector.GetShape(by_name["patient::chair_back"])
+    assert (back.width(), back.depth(), back.height()) == pytest.approx((0.6, 0.1, 1.0))
+    np.testing.assert_allclose(query.GetPoseInWorld(by_name["patient::chair_back"]).translation(),
+                               [0.0, 0.40, 0.90], atol=1e-12)
+
+
+def test_scenario_as_object_or_file(tmp_path):
+    sc = moprp.load_scenario("lying")
+    _, _, _, h = build_plant(scenario=sc)
+    assert h.scenario == "lying"
+    np.testing.assert_allclose(h.X_WBase, scene.default_base_pose(sc), atol=1e-15)
+    text = moprp.scenario_path("lying").read_text().replace("name: lying", "name: custom")
+    path = tmp_path / "custom.yaml"
+    path.write_text(text)
+    _, _, _, h = build_plant(scenario=path)
+    assert h.scenario == "custom"
+    # not a bundled name: the default base is the centre of the bounds, (0.7, -0.2, 0) in Oral;
+    # Oral Y is World Z, the mouth at 0.85 m: the base at (0.7, 0, 0.65) in World
+    np.testing.assert_allclose(h.X_WBase[:3, 3], [0.7, 0.0, 0.65], atol=1e-12)
 
 
 def test_build_plant_rejects_bad_input():
@@ -285,6 +382,7 @@ def test_meshcat_is_optional_and_works_on_an_ephemeral_port():
     assert h.visualizer is not None
     diagram.ForcedPublish(diagram.CreateDefaultContext())
     assert meshcat.HasPath("/drake/visualizer/aubo/wrist3_Link")
+    assert meshcat.HasPath("/drake/visualizer/patient")
     assert build_plant(scenario="sitting")[3].visualizer is None
 
 

@@ -103,3 +103,37 @@ def test_bad_mode_is_an_input_error(case):
 
     with pytest.raises(InputError, match="mode"):
         build_teleop(case, MasterMotion(dt=0.01, p_M=np.zeros((2, 3))), mode="fast")
+
+
+def test_dynamic_mode_has_contact_with_the_moprp_environment(case):
+    """One model of the room: the dynamic plant checks the arm against the scenario's patient,
+    chair and cart (not filtered away), and the selected layout's feed never touches them."""
+    from pydrake.geometry import Role
+
+    from diagrams import plant as scene
+
+    start = case.X_WE(case.q_start)[:3, 3]
+    target = case.X_WTarget[:3, 3]
+    motion = feeding_runs(start, target, runs=1, seed=4)[0]
+    teleop = build_teleop(case, motion, mode="dynamic")
+    run = simulate(teleop, motion.duration + S.FINISH_SECONDS)
+    assert np.linalg.norm(run.p_WE[-1] - target) < 0.001
+    sg, plant = teleop.scene_graph, teleop.plant
+    inspector = sg.model_inspector()
+    proximity = inspector.GetAllGeometryIds(Role.kProximity)
+    env = [g for g in proximity
+           if inspector.GetName(inspector.GetFrameId(g)) in ("patient::patient", "cart::cart")]
+    by_name = {inspector.GetName(g): g for g in proximity}
+    assert len(env) == 6  # head, torso, legs, chair, chair_column, cart
+    assert not inspector.CollisionFiltered(by_name["aubo::wrist1_Link_collision_0"],
+                                           by_name["patient::head"])
+    assert inspector.CollisionFiltered(by_name["actuator::rod_collision"],
+                                       by_name["patient::head"])
+    context = teleop.diagram.CreateDefaultContext()
+    pc = plant.GetMyMutableContextFromRoot(context)
+    sgc = sg.GetMyContextFromRoot(context)
+    for q in run.q[:: max(1, len(run.q) // 20)]:
+        plant.SetPositions(pc, plant.GetModelInstanceByName("aubo"), q)
+        query = sg.get_query_output_port().Eval(sgc)
+        assert query.ComputePointPairPenetration() == []
+        assert scene.environment_distance(query, inspector, env, 1.0) > 0.005
