@@ -268,7 +268,7 @@ def capability_stage(case: Case, robot: RobotResult, *, progress=None) -> Capabi
     t0 = time.perf_counter()
     sc = robot.scenario
     X_FA = actuator_map_frame()
-    X_BE = invert(moprp.base_pose(robot.base_xyz)) @ robot.X_OT @ transform(moprp.R_OE, np.zeros(3))
+    X_BE = moprp.target_pose(robot.base_xyz, robot.X_OT)
     X_BA = X_BE @ invert(tools.X_FT()) @ X_FA
     params = cm.make_params(case.voxel, case.directions, limits=sc.limits, X_FT=X_FA,
                             tool="actuator")

@@ -31,7 +31,6 @@ from analyses.case import Case, default_case_path, load_case
 from analyses.progress import Progress
 from systems.errors import InputError
 from systems.files import write_json
-from systems.frames import invert
 
 DEMO_OUT = "implantplan-demo"
 # Pass/fail limits of the checks (DESIGN.md section 4 and issue 6 acceptance figures).
@@ -181,7 +180,6 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims) -> dict:
 
     sc = robot.scenario
     X_WC = sc.X_WO @ robot.X_OC
-    X_OB = moprp.base_pose(robot.base_xyz)
     d = fit.fpsm.diagnostics
     checks = [_check("fpsm dense-check penetration depth", d["dense_max_depth_m"],
                      MAX_PENETRATION_DEPTH, unit="m", upper=True)]
@@ -189,7 +187,7 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims) -> dict:
     for k, (site, p) in enumerate(zip(case.sites, placements, strict=True)):
         grid = (p.to_dict().get("grid_check") or {})
         X_WT = sc.X_WO @ robot.X_OT[k]
-        X_BE = invert(X_OB) @ robot.X_OT[k] @ moprp_R_OE()
+        X_BE = moprp.target_pose(robot.base_xyz, robot.X_OT[k])
         sim = sims[k] if k < len(sims) else None
         sites.append({
             "name": site.name,
@@ -275,13 +273,6 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims) -> dict:
         "checks": checks,
         "passed": all(c["pass"] for c in checks),
     }
-
-
-def moprp_R_OE() -> np.ndarray:
-    from systems import moprp
-    from systems.frames import transform
-
-    return transform(moprp.R_OE, np.zeros(3))
 
 
 # -- figures --------------------------------------------------------------------------------------

@@ -42,6 +42,7 @@ from pydrake.systems.framework import DiagramBuilder
 
 import models
 from systems.errors import InputError
+from systems.kinematics import wrapped_distance
 
 AXIS_POINT = 0.1  # m, distance of the two axis points constraining the orientation
 DEFAULT_URDF = {"175": "aubo_i10/aubo_i10.urdf", "360": "aubo_i10/aubo_i10_360.urdf"}
@@ -273,7 +274,7 @@ class DrakeIk:
             kept.append((q, dp, dR))
         distinct: list[tuple[np.ndarray, float, float]] = []
         for q, dp, dR in kept:
-            if all(_wrapped_distance(q, o[0]) > dedup_tol for o in distinct):
+            if all(float(wrapped_distance(q, o[0])) > dedup_tol for o in distinct):
                 distinct.append((q, dp, dR))
         q_out = np.array([d[0] for d in distinct]).reshape(-1, 6)
         order = np.lexsort(q_out.T[::-1]) if len(q_out) else np.zeros(0, dtype=int)
@@ -296,11 +297,6 @@ class DrakeIk:
             reason=reason,
         )
         return q_out[order], info
-
-
-def _wrapped_distance(qa: np.ndarray, qb: np.ndarray) -> float:
-    d = np.mod(qa - qb + np.pi, 2.0 * np.pi) - np.pi
-    return float(np.linalg.norm(d))
 
 
 def ik_drake(

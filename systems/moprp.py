@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+import models
 from systems import collision_primitives as cp
 from systems import kinematics as kin
 from systems import validate
@@ -54,6 +55,7 @@ R_OB = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 # End axes in Oral (columns): End X = -Oral Y, End Y = Oral Z, End Z = X x Y = -Oral X.
 R_OE = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 R_BE = R_OB.T @ R_OE
+X_OE = transform(R_OE, np.zeros(3))  # End in Oral (or in Tool, for a site's target)
 INDEX_NAMES = ("dexterity", "error_range", "joint_variation")
 
 # Which capsules are tested against which (names from collision_primitives).
@@ -171,7 +173,7 @@ BUNDLED = ("lying", "sitting")
 
 def scenario_path(name: str) -> Path:
     """Path of a bundled scenario file (models/scenarios/NAME.yaml)."""
-    return Path(__file__).resolve().parent.parent / "models" / "scenarios" / f"{name}.yaml"
+    return models.MODELS_DIR / "scenarios" / f"{name}.yaml"
 
 
 def load_scenario(spec: str | Path, *, X_FT=None) -> Scenario:
@@ -347,8 +349,7 @@ def target_pose(xyz, X_OT=None) -> np.ndarray:
     xyz = np.asarray(xyz, dtype=float)
     if X_OT is None:
         return transform(R_BE, -np.einsum("ji,...j->...i", R_OB, xyz))
-    X_OE = np.asarray(X_OT, dtype=float) @ transform(R_OE, np.zeros(3))
-    return invert(base_pose(xyz)) @ X_OE
+    return invert(base_pose(xyz)) @ np.asarray(X_OT, dtype=float) @ X_OE
 
 
 def feed_poses(xyz, feed_length: float, samples: int, X_OT=None) -> np.ndarray:
@@ -778,7 +779,6 @@ def gii_poses(n: int, rng: np.random.Generator, *, half_size=0.025,
     default 25 deg) about the target End pose (DESIGN.md section 5: 50 mm cube, 50 deg)."""
     dp = rng.uniform(-half_size, half_size, (n, 3))
     drpy = rng.uniform(-half_angle, half_angle, (n, 3))
-    X_OE = transform(R_OE, np.zeros(3))
     return X_OE @ transform(rpy_to_rotation(drpy), dp)
 
 

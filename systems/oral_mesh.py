@@ -30,12 +30,13 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+import models
 from systems.errors import InputError
 from systems.frames import frame_from_z, unit
 
 UNITS = {"mm": 1e-3, "m": 1.0}
 
-_MODELS = Path(__file__).resolve().parent.parent / "models" / "oral"
+_MODELS = models.MODELS_DIR / "oral"
 
 # The default case: models/oral/oralCavityMesh.obj (ArtiSynth jaw-tongue model, mm; see
 # models/oral/ATTRIBUTION.txt). Mesh axes: x front -> back (lips near x = 53.8 mm), y left-right,
