@@ -1,6 +1,6 @@
 """Benchmark of seed 004 for the AUBO-i10: capability maps and RASSCMAP setup planning.
 
-Run: ``python -m analyses.bench_capmap [--workers W] [--skip-fine] [--samples N]``
+Run: ``python -m implantplan.analyses.bench_capmap [--workers W] [--skip-fine] [--samples N]``
 
 Prints, side by side with the paper's figures (seed 004 Sec. 4-5, Table 1) and the public anchors
 for capability maps (~3,300 IK/s single-thread; a 5 cm x 200-direction map in ~25 min; 1.3-1.45 M
@@ -20,9 +20,9 @@ import time
 
 import numpy as np
 
-from systems import capability_map as cm
-from systems import rasscmap as rm
-from systems.kinematics import fk, ik
+from implantplan.systems import capability_map as cm
+from implantplan.systems import rasscmap as rm
+from implantplan.systems.kinematics import fk, ik
 
 CASES = os.path.join(
     os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "models", "capmap_cases"

@@ -1,6 +1,6 @@
 """Benchmark of the stage-1 FPSM fit on the default oral mesh (seed 000, paper Sec. 5.1).
 
-Run: ``python -m analyses.bench_fpsm [--quick]``. Prints, side by side in one run:
+Run: ``python -m implantplan.analyses.bench_fpsm [--quick]``. Prints, side by side in one run:
 
 1. ``paper`` vs ``exact`` fit time with 15 slices x 15 control points x 150 samples (the paper's
    C++ solver: 33.6 s) and their ratio; ``exact`` with 1 and 2 threads; and the paper's method
@@ -23,10 +23,16 @@ import time
 
 import numpy as np
 
-from systems.fpsm import TWO_PI, area_matrix, basis_matrix
-from systems.fpsm_fit import PAPER_SETTINGS, cast_walls, first_hits, fit_fpsm, ray_engine
-from systems.frames import apply
-from systems.oral_mesh import close_open_cuts, load_default_cavity
+from implantplan.systems.fpsm import TWO_PI, area_matrix, basis_matrix
+from implantplan.systems.fpsm_fit import (
+    PAPER_SETTINGS,
+    cast_walls,
+    first_hits,
+    fit_fpsm,
+    ray_engine,
+)
+from implantplan.systems.frames import apply
+from implantplan.systems.oral_mesh import close_open_cuts, load_default_cavity
 
 PAPER_CPP_SECONDS = 33.613  # Sec. 5.1, 15 slices x 15 control points x 150 samples
 TABLE1 = {

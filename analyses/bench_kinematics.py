@@ -8,7 +8,8 @@ Prints:
     (diagrams.plant.fk_jacobian_loop: SetPositions, CalcRelativeTransform and two
     CalcJacobianSpatialVelocity per configuration).
 
-Run: ``python -m analyses.bench_kinematics [--batch 100000] [--drake-poses 5] [--starts 64]``.
+Run: ``python -m implantplan.analyses.bench_kinematics [--batch 100000] [--drake-poses 5]
+[--starts 64]``.
 """
 
 from __future__ import annotations
@@ -36,9 +37,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--plant-configs", type=int, default=2000)
     args = parser.parse_args(argv)
 
-    from diagrams.ik_drake import DrakeIk
-    from diagrams.plant import fk_jacobian_loop
-    from systems import kinematics as kin
+    from implantplan.diagrams.ik_drake import DrakeIk
+    from implantplan.diagrams.plant import fk_jacobian_loop
+    from implantplan.systems import kinematics as kin
 
     rng = np.random.default_rng(0)
     lim = np.deg2rad(175.0)

@@ -1,4 +1,6 @@
-"""MOPRP benchmark: run ``python -m analyses.bench_moprp [--scenario lying] [--agreement N]``.
+"""MOPRP benchmark.
+
+Run: ``python -m implantplan.analyses.bench_moprp [--scenario lying] [--agreement N]``.
 
 Prints, measured side by side in one run:
 
@@ -26,8 +28,8 @@ import time
 
 import numpy as np
 
-from systems import moprp
-from systems.nsga2 import hypervolume, nsga2
+from implantplan.systems import moprp
+from implantplan.systems.nsga2 import hypervolume, nsga2
 
 # capsule name -> body name in the Drake plant (arm URDF + actuator URDF)
 BODY_OF = {
@@ -50,7 +52,7 @@ BODY_OF = {
 def evals_per_second(sc, n_closed=20000, n_drake=2, starts=64):
     """(closed-form evals/s, Drake evals/s, Drake IK poses solved, same surviving branches,
     largest objective difference on the Drake-evaluated bases)."""
-    from analyses.robot_place import drake_ik_solver
+    from implantplan.analyses.robot_place import drake_ik_solver
 
     rng = np.random.default_rng(0)
     X = sc.lower + rng.random((n_closed, 3)) * (sc.upper - sc.lower)
@@ -104,7 +106,7 @@ def scenegraph_agreement(n=10000, seed=0, limits="175"):
     these body pairs penetrates (Drake: ComputePointPairPenetration on the URDF geometry;
     capsules: clearance < 0). Returns a dict with the agreement and the confusion counts.
     """
-    from diagrams.plant import build_plant
+    from implantplan.diagrams.plant import build_plant
 
     diagram, plant, scene_graph, handles = build_plant(scenario="arm", tool=True, limits=limits)
     context = diagram.CreateDefaultContext()

@@ -1,6 +1,7 @@
 """Benchmark of stage 2 (seed 000, paper Sec. 5.2-5.3): PSO placement time and rod safety.
 
-Run: ``python -m analyses.bench_placement [--fpsm FPSM.json --hole-mm X Y Z --hole-axis DX DY DZ]
+Run: ``python -m implantplan.analyses.bench_placement [--fpsm FPSM.json --hole-mm X Y Z
+--hole-axis DX DY DZ]
 [--fpsm-rod-radius-mm R --fpsm-implant-length-mm D] [--rod-radius-mm 6] [--implant-length-mm 31]
 [--repeats 5]``. Prints, side by side in one run:
 
@@ -30,8 +31,8 @@ import time
 
 import numpy as np
 
-from systems.fpsm import Fpsm
-from systems.placement import (
+from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.placement import (
     PlacementProblem,
     default_bounds,
     hole_frame,
@@ -150,7 +151,9 @@ def bench_rods(fpsm: Fpsm, rod: float, n: int, loop_n: int, repeats: int) -> dic
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m analyses.bench_placement", description=__doc__)
+    ap = argparse.ArgumentParser(
+        prog="python -m implantplan.analyses.bench_placement", description=__doc__
+    )
     ap.add_argument("--fpsm", default=None, help="an FPSM JSON to time beside the cylinder")
     ap.add_argument("--hole-mm", nargs=3, type=float, default=None, metavar=("X", "Y", "Z"))
     ap.add_argument("--hole-axis", nargs=3, type=float, default=None, metavar=("DX", "DY", "DZ"))

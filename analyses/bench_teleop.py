@@ -1,6 +1,6 @@
 """Benchmark: realtime factor of the feeding diagram, kinematic vs dynamic, against a bare loop.
 
-Run: ``python -m analyses.bench_teleop [--runs K] [--seed S]``
+Run: ``python -m implantplan.analyses.bench_teleop [--runs K] [--seed S]``
 
 Prints, side by side in one run (targets from issue 6: kinematic >= 10x, dynamic >= 1x):
 
@@ -30,11 +30,11 @@ from pydrake.systems.controllers import InverseDynamicsController
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import StateInterpolatorWithDiscreteDerivative
 
-from analyses import simulate as S
-from diagrams import teleop as T
-from systems.fpsm_estimator import FpsmEstimator
-from systems.master_device import MasterDevice, feeding_runs
-from systems.vf_system import VirtualFixtureForceLaw
+from implantplan.analyses import simulate as S
+from implantplan.diagrams import teleop as T
+from implantplan.systems.fpsm_estimator import FpsmEstimator
+from implantplan.systems.master_device import MasterDevice, feeding_runs
+from implantplan.systems.vf_system import VirtualFixtureForceLaw
 
 CALLBACKS = {
     "MasterDevice": (MasterDevice, ("_calc_velocity", "_calc_offset", "_calc_handle")),

@@ -27,12 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
-from analyses.progress import Progress
-from systems import capability_map as cm
-from systems import rasscmap as rm
-from systems.errors import InputError
-from systems.files import write_json, write_text_atomic
-from systems.frames import invert, rot_x, transform
+from implantplan.analyses.progress import Progress
+from implantplan.systems import capability_map as cm
+from implantplan.systems import rasscmap as rm
+from implantplan.systems.errors import InputError
+from implantplan.systems.files import write_json, write_text_atomic
+from implantplan.systems.frames import invert, rot_x, transform
 
 
 def actuator_map_frame() -> np.ndarray:
@@ -41,7 +41,7 @@ def actuator_map_frame() -> np.ndarray:
     The actuator is a contra-angle piece: its implant axis is the TCP's y axis, perpendicular to
     the flange z, so roll about the approach axis is not free for this frame (it is sampled).
     """
-    from diagrams.tools import p_FTip
+    from implantplan.diagrams.tools import p_FTip
 
     return transform(rot_x(np.pi / 2), p_FTip())
 
@@ -472,6 +472,6 @@ def register(subparsers) -> None:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    from analyses.cli import main
+    from implantplan.analyses.cli import main
 
     sys.exit(main(["capmap", *sys.argv[1:]]))

@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-import models
-from systems import validate as v
-from systems.errors import InputError
-from systems.files import read_yaml
+from implantplan import models
+from implantplan.systems import validate as v
+from implantplan.systems.errors import InputError
+from implantplan.systems.files import read_yaml
 
 MM = 1e-3
 DEFAULT_CASE = "cases/default.yaml"  # under models/

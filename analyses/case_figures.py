@@ -1,8 +1,8 @@
 """Figures of a surgical case: the mouth opening and the instrument placements at its sites.
 
-``python -m analyses.case_figures [--case models/cases/default.yaml] [--out DIR]`` opens the
-case's mesh (:func:`systems.oral_mesh.open_mouth`), fits the FPSM, places the paper's tool at each
-site (:func:`systems.placement.place_instrument`) and writes
+``python -m implantplan.analyses.case_figures [--case models/cases/default.yaml] [--out DIR]``
+opens the case's mesh (:func:`systems.oral_mesh.open_mouth`), fits the FPSM, places the paper's tool
+at each site (:func:`systems.placement.place_instrument`) and writes
 
 * ``opening.png``: side views (mesh x-z, mm) of the scanned and the opened mesh in the
   mid-sagittal plane and in the sites' sagittal planes, with the hinge and the occlusal plane;
@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from analyses.case import default_case_path
+from implantplan.analyses.case import default_case_path
 
 MM = 1e-3
 
@@ -40,8 +40,8 @@ def build_case(case_path):
     """
     import time
 
-    from analyses.case import load_case
-    from analyses.pipeline import fit_stage, placement_stage
+    from implantplan.analyses.case import load_case
+    from implantplan.analyses.pipeline import fit_stage, placement_stage
 
     case = load_case(case_path)
     fit = fit_stage(case)
@@ -242,7 +242,12 @@ def scan_sites(
         dicts sorted by F (best first): slice, angle_deg, lingual/mesial tilt (deg), site (m),
         axis, F, f_safe_line1/2 (m), d_T (m), theta_T (rad), valid (both f_safe > 0).
     """
-    from systems.placement import PlacementProblem, default_bounds, grid_search, hole_frame
+    from implantplan.systems.placement import (
+        PlacementProblem,
+        default_bounds,
+        grid_search,
+        hole_frame,
+    )
 
     js = range(1, fpsm.slices - 1) if slices is None else slices
     bounds = default_bounds(fpsm, implant_length)

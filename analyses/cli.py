@@ -12,16 +12,16 @@ import argparse
 import importlib
 import sys
 
-from systems.errors import InputError, PlanningFailure
+from implantplan.systems.errors import InputError, PlanningFailure
 
 # Modules that add subcommands, in the order they appear in --help.
 COMMAND_MODULES: tuple[str, ...] = (
-    "analyses.plan",
-    "analyses.fpsm_commands",
-    "analyses.instrument",
-    "analyses.capmap",
-    "analyses.robot_place",
-    "analyses.simulate",
+    "implantplan.analyses.plan",
+    "implantplan.analyses.fpsm_commands",
+    "implantplan.analyses.instrument",
+    "implantplan.analyses.capmap",
+    "implantplan.analyses.robot_place",
+    "implantplan.analyses.simulate",
 )
 
 

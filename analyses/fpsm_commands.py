@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from analyses.progress import Progress
-from systems.errors import InputError
-from systems.files import write_atomic
+from implantplan.analyses.progress import Progress
+from implantplan.systems.errors import InputError
+from implantplan.systems.files import write_atomic
 
 
 def register(subparsers) -> None:
@@ -97,8 +97,8 @@ def register(subparsers) -> None:
 
 
 def _fit(args: argparse.Namespace) -> int:
-    from systems.fpsm_fit import fit_fpsm
-    from systems.oral_mesh import center_frame, load_oral_mesh
+    from implantplan.systems.fpsm_fit import fit_fpsm
+    from implantplan.systems.oral_mesh import center_frame, load_oral_mesh
 
     progress = Progress("fpsm fit", quiet=args.quiet)
     scale = 1e-3
@@ -135,7 +135,7 @@ def _fit(args: argparse.Namespace) -> int:
 
 
 def _cylinder(args: argparse.Namespace) -> int:
-    from systems.fpsm import Fpsm
+    from implantplan.systems.fpsm import Fpsm
 
     fpsm = Fpsm.cylinder(
         args.radius_mm * 1e-3,
@@ -189,8 +189,8 @@ def plot_fit(fpsm, mesh, out_dir) -> list[Path]:
     from matplotlib.collections import LineCollection
     from trimesh.intersections import mesh_plane
 
-    from systems.fpsm import evaluate
-    from systems.frames import apply, invert
+    from implantplan.systems.fpsm import evaluate
+    from implantplan.systems.frames import apply, invert
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

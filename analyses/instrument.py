@@ -22,12 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
-from analyses.progress import Progress
-from systems.errors import InputError, PlanningFailure
-from systems.files import write_json
-from systems.fpsm import Fpsm
-from systems.frames import invert
-from systems.placement import Placement, default_bounds, place_instrument
+from implantplan.analyses.progress import Progress
+from implantplan.systems.errors import InputError, PlanningFailure
+from implantplan.systems.files import write_json
+from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.frames import invert
+from implantplan.systems.placement import Placement, default_bounds, place_instrument
 
 MM = 1e-3
 
@@ -208,7 +208,7 @@ def _mesh_in_center(fpsm: Fpsm):
     source = fpsm.settings.get("mesh")
     if not source or not Path(str(source)).is_file():
         return None
-    from systems.oral_mesh import load_oral_mesh
+    from implantplan.systems.oral_mesh import load_oral_mesh
 
     first = fpsm.settings.get("mesh_units", "mm")
     size = max(float(np.max(np.abs(fpsm.rho))), fpsm.z_range[1] - fpsm.z_range[0])

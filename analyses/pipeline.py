@@ -17,15 +17,15 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
-from analyses.case import Case
-from systems import moprp
-from systems.errors import InputError, PlanningFailure
-from systems.fpsm import Fpsm
-from systems.fpsm_fit import fit_fpsm
-from systems.frames import transform
-from systems.nsga2 import non_dominated_sort, nsga2
-from systems.oral_mesh import center_frame, load_oral_mesh, open_mouth
-from systems.placement import Placement, place_instrument
+from implantplan.analyses.case import Case
+from implantplan.systems import moprp
+from implantplan.systems.errors import InputError, PlanningFailure
+from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.fpsm_fit import fit_fpsm
+from implantplan.systems.frames import transform
+from implantplan.systems.nsga2 import non_dominated_sort, nsga2
+from implantplan.systems.oral_mesh import center_frame, load_oral_mesh, open_mouth
+from implantplan.systems.placement import Placement, place_instrument
 
 
 @dataclass
@@ -160,8 +160,8 @@ def robot_stage(case: Case, placements: list[Placement], *, progress=None) -> Ro
 
     Departure from seed 001 for several sites: the objectives are the worst index over the sites
     and a base is feasible only if every site has a surviving branch."""
-    from analyses.robot_place import initial_population
-    from diagrams import tools
+    from implantplan.analyses.robot_place import initial_population
+    from implantplan.diagrams import tools
 
     t0 = time.perf_counter()
     sc = moprp.load_scenario(case.scenario, X_FT=tools.X_FT())
@@ -259,11 +259,11 @@ def capability_stage(case: Case, robot: RobotResult, *, progress=None) -> Capabi
     base: the voxels of the 3x3x3 neighbourhood of every target, all approach directions and
     sampled rolls (the contra-angle's roll is not free). Only these voxels are built: the check
     needs the map where the tasks are, not the whole workspace (a full 5 cm map takes minutes)."""
-    from analyses.capmap import actuator_map_frame
-    from diagrams import tools
-    from systems import capability_map as cm
-    from systems import kinematics as kin
-    from systems.frames import invert
+    from implantplan.analyses.capmap import actuator_map_frame
+    from implantplan.diagrams import tools
+    from implantplan.systems import capability_map as cm
+    from implantplan.systems import kinematics as kin
+    from implantplan.systems.frames import invert
 
     t0 = time.perf_counter()
     sc = robot.scenario
@@ -301,8 +301,8 @@ def simulation_stage(case: Case, fit: FitResult, placements: list[Placement],
     """A short teleop feeding simulation per site (seed 001's feeding test on the Drake diagram):
     scripted operator feeds from the pre-feed configuration to the feeding target, VF active,
     FPSM estimator watching."""
-    from analyses.simulate import run_feeding
-    from diagrams.teleop import TeleopCase
+    from implantplan.analyses.simulate import run_feeding
+    from implantplan.diagrams.teleop import TeleopCase
 
     runs = case.sim_runs if runs is None else runs
     if runs == 0:

@@ -26,11 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
-from analyses import pipeline
-from analyses.case import Case, default_case_path, load_case
-from analyses.progress import Progress
-from systems.errors import InputError
-from systems.files import write_json
+from implantplan.analyses import pipeline
+from implantplan.analyses.case import Case, default_case_path, load_case
+from implantplan.analyses.progress import Progress
+from implantplan.systems.errors import InputError
+from implantplan.systems.files import write_json
 
 DEMO_OUT = "implantplan-demo"
 # Pass/fail limits of the checks (DESIGN.md section 4 and issue 6 acceptance figures).
@@ -153,7 +153,7 @@ def _plan_into(case: Case, out: Path, *, runs, html_scene: bool, quiet: bool) ->
     figs = make_figures(case, fit, placements, robot, cap, sims, figures,
                         html_scene=html_scene, out=out)
     write_json(out / "plan.json", plan, kind="plan")
-    from analyses.report import write_report
+    from implantplan.analyses.report import write_report
 
     write_report(out / "report.html", plan, figs)
     n_png = sum(1 for _ in (out / "figures").rglob("*.png"))
@@ -175,8 +175,8 @@ def _check(name: str, value: float, limit: float, *, unit: str, upper: bool, sit
 
 
 def plan_dict(case: Case, fit, placements, robot, cap, sims) -> dict:
-    from diagrams import tools
-    from systems import moprp
+    from implantplan.diagrams import tools
+    from implantplan.systems import moprp
 
     sc = robot.scenario
     X_WC = sc.X_WO @ robot.X_OC
@@ -281,14 +281,14 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims) -> dict:
 def make_figures(case, fit, placements, robot, cap, sims, fig_dir: Path, *, html_scene: bool,
                  out: Path) -> dict:
     """Every figure of the report, by section; paths relative to the output folder."""
-    from analyses.capmap import plot_map_slices
-    from analyses.case_figures import plot_mouth_opening
-    from analyses.fpsm_commands import plot_fit
-    from analyses.instrument import plot_placement
-    from analyses.robot_place import plot_placement as plot_robot
-    from analyses.robot_place import write_layout_html
-    from analyses.simulate import plot_feeding
-    from systems import moprp
+    from implantplan.analyses.capmap import plot_map_slices
+    from implantplan.analyses.case_figures import plot_mouth_opening
+    from implantplan.analyses.fpsm_commands import plot_fit
+    from implantplan.analyses.instrument import plot_placement
+    from implantplan.analyses.robot_place import plot_placement as plot_robot
+    from implantplan.analyses.robot_place import write_layout_html
+    from implantplan.analyses.simulate import plot_feeding
+    from implantplan.systems import moprp
 
     def rel(paths):
         return [str(Path(p).relative_to(out)) for p in paths]

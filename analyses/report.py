@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from systems.files import write_text_atomic
+from implantplan.systems.files import write_text_atomic
 
 _CSS = """
 body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1100px; color: #222; }
@@ -170,6 +170,6 @@ def render(plan: dict, figs: dict) -> str:
 
 
 def write_report(path: Path, plan: dict, figs: dict) -> Path:
-    from systems.files import to_jsonable
+    from implantplan.systems.files import to_jsonable
 
     return write_text_atomic(path, render(to_jsonable(plan), figs))

@@ -48,11 +48,11 @@ from pathlib import Path
 
 import numpy as np
 
-from analyses.progress import Progress
-from systems import moprp
-from systems.errors import InputError, PlanningFailure
-from systems.files import read_json, write_json
-from systems.nsga2 import non_dominated_sort, nsga2
+from implantplan.analyses.progress import Progress
+from implantplan.systems import moprp
+from implantplan.systems.errors import InputError, PlanningFailure
+from implantplan.systems.files import read_json, write_json
+from implantplan.systems.nsga2 import non_dominated_sort, nsga2
 
 
 def register(subparsers) -> None:
@@ -117,7 +117,7 @@ def oral_pose_from_plan(path: Path) -> tuple[np.ndarray, str]:
 def _tool_pose(sc: moprp.Scenario) -> np.ndarray:
     """TCP in the flange frame from the modelled actuator (diagrams.tools), one place for it."""
     try:
-        from diagrams.tools import X_FT
+        from implantplan.diagrams.tools import X_FT
     except ImportError:  # the diagrams package needs pydrake only for other modules
         return sc.actuator.X_FT()
     return X_FT(sc.actuator.rod_length)
@@ -158,7 +158,7 @@ def drake_ik_solver(*, starts: int, seed: int, limits: str, X_FT):
     """
     from scipy.optimize import linear_sum_assignment
 
-    from diagrams.ik_drake import DrakeIk
+    from implantplan.diagrams.ik_drake import DrakeIk
 
     solver = DrakeIk(X_FT=X_FT, limits=limits)
     rng = np.random.default_rng(seed)
@@ -448,9 +448,9 @@ def write_layout_html(sc: moprp.Scenario, xyz, branch: int, path: Path) -> Path:
     to the target (t = 1 s) on the selected branch. Headless Meshcat on an ephemeral port."""
     from pydrake.geometry import Meshcat, MeshcatParams
 
-    from diagrams.plant import build_plant
-    from systems import kinematics as kin
-    from systems.files import write_text_atomic
+    from implantplan.diagrams.plant import build_plant
+    from implantplan.systems import kinematics as kin
+    from implantplan.systems.files import write_text_atomic
 
     meshcat = Meshcat(MeshcatParams(port=0))
     X_WB = sc.X_WO @ moprp.base_pose(xyz)
@@ -475,7 +475,7 @@ def write_layout_html(sc: moprp.Scenario, xyz, branch: int, path: Path) -> Path:
 def _plot_layout(sc, xyz, q, path, title) -> Path:
     import matplotlib.pyplot as plt
 
-    from systems import collision_primitives as cp
+    from implantplan.systems import collision_primitives as cp
 
     model = moprp.CollisionModel.for_scenario(sc)
     seg_B, rad = cp.arm_capsules(q, model.capsules)

@@ -56,18 +56,18 @@ from pathlib import Path
 
 import numpy as np
 
-from analyses.progress import Progress
-from diagrams import tools
-from diagrams.teleop import TeleopCase, build_teleop, simulate
-from systems import kinematics as kin
-from systems import moprp
-from systems.errors import InputError, PlanningFailure
-from systems.files import read_json, write_json, write_text_atomic
-from systems.fpsm import Fpsm
-from systems.frames import invert, transform
-from systems.master_device import Operator, feeding_runs
-from systems.placement import place_instrument
-from systems.virtual_fixture import VirtualFixture
+from implantplan.analyses.progress import Progress
+from implantplan.diagrams import tools
+from implantplan.diagrams.teleop import TeleopCase, build_teleop, simulate
+from implantplan.systems import kinematics as kin
+from implantplan.systems import moprp
+from implantplan.systems.errors import InputError, PlanningFailure
+from implantplan.systems.files import read_json, write_json, write_text_atomic
+from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.frames import invert, transform
+from implantplan.systems.master_device import Operator, feeding_runs
+from implantplan.systems.placement import place_instrument
+from implantplan.systems.virtual_fixture import VirtualFixture
 
 FINISH_SECONDS = 2.0  # simulated time after the script for the operator to finish by eye
 TARGET_TOLERANCE = 0.001  # m: the feed "reaches the target" within this

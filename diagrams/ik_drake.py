@@ -40,9 +40,9 @@ from pydrake.multibody.tree import JacobianWrtVariable, JointIndex
 from pydrake.solvers import IpoptSolver, SnoptSolver
 from pydrake.systems.framework import DiagramBuilder
 
-import models
-from systems.errors import InputError
-from systems.kinematics import wrapped_distance
+from implantplan import models
+from implantplan.systems.errors import InputError
+from implantplan.systems.kinematics import wrapped_distance
 
 AXIS_POINT = 0.1  # m, distance of the two axis points constraining the orientation
 DEFAULT_URDF = {"175": "aubo_i10/aubo_i10.urdf", "360": "aubo_i10/aubo_i10_360.urdf"}

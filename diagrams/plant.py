@@ -59,10 +59,10 @@ from pydrake.multibody.tree import (
 )
 from pydrake.systems.framework import Diagram, DiagramBuilder
 
-import models
-from systems import moprp
-from systems.errors import InputError
-from systems.frames import frame_from_z
+from implantplan import models
+from implantplan.systems import moprp
+from implantplan.systems.errors import InputError
+from implantplan.systems.frames import frame_from_z
 
 SCENARIOS = ("lying", "sitting", "arm")
 ARM_FILES = {

@@ -53,17 +53,17 @@ from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import LogVectorOutput, StateInterpolatorWithDiscreteDerivative
 from pydrake.systems.rendering import MultibodyPositionToGeometryPose
 
-from diagrams import plant as scene
-from diagrams import tools
-from systems import kinematics as kin
-from systems.errors import InputError
-from systems.fpsm import Fpsm
-from systems.fpsm_estimator import FpsmEstimator, ToolLines
-from systems.frames import transform
-from systems.master_device import IncrementalMapping, MasterDevice, MasterMotion
-from systems.moprp import R_OE
-from systems.vf_system import VirtualFixtureForceLaw
-from systems.virtual_fixture import VirtualFixture
+from implantplan.diagrams import plant as scene
+from implantplan.diagrams import tools
+from implantplan.systems import kinematics as kin
+from implantplan.systems.errors import InputError
+from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.fpsm_estimator import FpsmEstimator, ToolLines
+from implantplan.systems.frames import transform
+from implantplan.systems.master_device import IncrementalMapping, MasterDevice, MasterMotion
+from implantplan.systems.moprp import R_OE
+from implantplan.systems.vf_system import VirtualFixtureForceLaw
+from implantplan.systems.virtual_fixture import VirtualFixture
 
 MODES = ("kinematic", "dynamic")
 X_ET = transform(R_OE.T, np.zeros(3))  # seed 000's Tool frame in the plant's TCP frame (End)

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from systems.errors import InputError
+from implantplan.systems.errors import InputError
 
 ROD_RADIUS = 0.006  # m, seed 000 Sec. 5.2
 IMPLANT_LENGTH = 0.031  # m, d12 in seed 000 Sec. 5.2
@@ -185,8 +185,8 @@ def actuator_urdf(
 
 def write_default(path=None) -> str:
     """Write the default actuator to ``models/tools/implanting_actuator.urdf``; return the path."""
-    from models import MODELS_DIR
-    from systems.files import write_text_atomic
+    from implantplan.models import MODELS_DIR
+    from implantplan.systems.files import write_text_atomic
 
     target = MODELS_DIR / "tools" / "implanting_actuator.urdf" if path is None else path
     write_text_atomic(target, actuator_urdf())

@@ -55,10 +55,19 @@ import h5py
 import numba
 import numpy as np
 
-from systems.errors import InputError
-from systems.files import write_atomic
-from systems.frames import invert
-from systems.kinematics import DH_A2, DH_A3, DH_D1, DH_D4, DH_D5, DH_D6, ik, joint_limits
+from implantplan.systems.errors import InputError
+from implantplan.systems.files import write_atomic
+from implantplan.systems.frames import invert
+from implantplan.systems.kinematics import (
+    DH_A2,
+    DH_A3,
+    DH_D1,
+    DH_D4,
+    DH_D5,
+    DH_D6,
+    ik,
+    joint_limits,
+)
 
 KIND = "capability_map"
 SCHEMA_VERSION = 1
@@ -265,7 +274,11 @@ def self_collision_free(q: np.ndarray) -> np.ndarray:
     """(..., 6) joint vectors -> (...) bool: no overlap between arm capsules (DESIGN.md 8
     primitives, :data:`systems.collision_primitives.ARM_CAPSULES`) on links two or more apart.
     The arm capsules are symmetric about the joint-6 axis, so q6 never matters (roll stays free)."""
-    from systems.collision_primitives import ARM_CAPSULES, arm_capsules, capsule_clearance
+    from implantplan.systems.collision_primitives import (
+        ARM_CAPSULES,
+        arm_capsules,
+        capsule_clearance,
+    )
 
     links = np.array([c.link for c in ARM_CAPSULES])
     ia, ib = np.nonzero(links[None, :] - links[:, None] >= 2)

@@ -21,8 +21,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from systems.errors import InputError
-from systems.kinematics import joint_frames
+from implantplan.systems.errors import InputError
+from implantplan.systems.kinematics import joint_frames
 
 
 @dataclass(frozen=True)

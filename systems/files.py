@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from systems.errors import InputError
+from implantplan.systems.errors import InputError
 
 SCHEMA_VERSION = 1
 

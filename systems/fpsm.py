@@ -25,8 +25,8 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from systems.errors import InputError
-from systems.files import read_json, write_json
+from implantplan.systems.errors import InputError
+from implantplan.systems.files import read_json, write_json
 
 TWO_PI = 2.0 * np.pi
 

@@ -30,9 +30,9 @@ from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, LeafSystem, ValueProducer
 
-from systems.errors import InputError
-from systems.fpsm import Fpsm
-from systems.frames import apply, invert
+from implantplan.systems.errors import InputError
+from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.frames import apply, invert
 
 
 @dataclass(frozen=True)

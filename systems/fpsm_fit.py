@@ -61,9 +61,9 @@ import numpy as np
 import trimesh
 from scipy.optimize import linprog
 
-from systems.errors import InputError
-from systems.fpsm import TWO_PI, area, area_matrix, basis_matrix
-from systems.frames import apply
+from implantplan.systems.errors import InputError
+from implantplan.systems.fpsm import TWO_PI, area, area_matrix, basis_matrix
+from implantplan.systems.frames import apply
 
 METHODS = ("exact", "paper")
 PRE_ASSIGN_RAYS = 100_000  # with Embree, pre-assign by slab from this many rays on
@@ -426,8 +426,8 @@ def fit_fpsm(
     Returns:
         :class:`systems.fpsm.Fpsm` with settings and per-slice diagnostics.
     """
-    from systems.fpsm import Fpsm
-    from systems.oral_mesh import close_open_cuts as _close
+    from implantplan.systems.fpsm import Fpsm
+    from implantplan.systems.oral_mesh import close_open_cuts as _close
 
     t_start = time.perf_counter()
     say = progress.say if progress is not None else (lambda message: None)

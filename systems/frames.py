@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from systems.errors import InputError
+from implantplan.systems.errors import InputError
 
 
 def transform(R: np.ndarray, p: np.ndarray) -> np.ndarray:

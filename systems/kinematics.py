@@ -37,8 +37,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from systems.errors import InputError
-from systems.frames import invert, rpy_to_rotation, transform
+from implantplan.systems.errors import InputError
+from implantplan.systems.frames import invert, rpy_to_rotation, transform
 
 PI = np.pi
 JOINT_NAMES = (
@@ -319,7 +319,7 @@ def _ik_kernel(R, p, q_out, code_out, singular_out):  # pragma: no cover - compi
             for iw in range(2):
                 s5 = s5abs if iw == 0 else -s5abs
                 t5 = np.arctan2(s5, c5)
-                sing = s5abs < 1e-9
+                sing = s5abs < 1e-10  # fixed theta6 errs ~2|s5| rad; atan2 above errs ~1e-32/s5^2 m
                 if sing:
                     # theta6 is free with theta4 (joints 4 and 6 aligned): prefer q6 = 0; if the
                     # elbow cannot reach with it, take the theta6 that minimizes |cos theta3|
@@ -472,7 +472,7 @@ def wrapped_distance(qa, qb) -> np.ndarray:
 
 def pose_error(X_a, X_b) -> tuple[np.ndarray, np.ndarray]:
     """(position error m, rotation error rad) between pose batches."""
-    from systems.frames import rotation_angle
+    from implantplan.systems.frames import rotation_angle
 
     dp = np.linalg.norm(X_a[..., :3, 3] - X_b[..., :3, 3], axis=-1)
     dR = rotation_angle(np.swapaxes(X_a[..., :3, :3], -1, -2) @ X_b[..., :3, :3])

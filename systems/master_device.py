@@ -40,8 +40,8 @@ from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from systems.errors import InputError
-from systems.files import write_text_atomic
+from implantplan.systems.errors import InputError
+from implantplan.systems.files import write_text_atomic
 
 
 @dataclass(frozen=True)

@@ -42,13 +42,13 @@ from pathlib import Path
 
 import numpy as np
 
-import models
-from systems import collision_primitives as cp
-from systems import kinematics as kin
-from systems import validate
-from systems.errors import InputError
-from systems.files import read_yaml
-from systems.frames import invert, rpy_to_rotation, transform
+from implantplan import models
+from implantplan.systems import collision_primitives as cp
+from implantplan.systems import kinematics as kin
+from implantplan.systems import validate
+from implantplan.systems.errors import InputError
+from implantplan.systems.files import read_yaml
+from implantplan.systems.frames import invert, rpy_to_rotation, transform
 
 # Base axes in Oral (columns): Base X = Oral X, Base Y = -Oral Z, Base Z = Oral Y.
 R_OB = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])

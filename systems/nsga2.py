@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
-from systems.errors import InputError
+from implantplan.systems.errors import InputError
 
 
 def dominates(F_a, F_b) -> np.ndarray:

@@ -30,9 +30,9 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-import models
-from systems.errors import InputError
-from systems.frames import frame_from_z, unit
+from implantplan import models
+from implantplan.systems.errors import InputError
+from implantplan.systems.frames import frame_from_z, unit
 
 UNITS = {"mm": 1e-3, "m": 1.0}
 

@@ -50,9 +50,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from systems.errors import InputError
-from systems.fpsm import Fpsm
-from systems.frames import rot_z, transform, unit
+from implantplan.systems.errors import InputError
+from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.frames import rot_z, transform, unit
 
 OBJECTIVES = ("eq14", "eq21", "eq22")
 
@@ -475,7 +475,7 @@ def place_instrument(
         ``valid`` is False (with ``reason``) when a line is unsafe at the
         optimum (f_safe <= 0), which callers report as a planning failure.
     """
-    from systems.virtual_fixture import VirtualFixture
+    from implantplan.systems.virtual_fixture import VirtualFixture
 
     if not isinstance(fpsm, Fpsm):
         raise InputError("fpsm", "expected an Fpsm")

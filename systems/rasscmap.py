@@ -66,10 +66,10 @@ import numba
 import numpy as np
 from scipy.optimize import brentq
 
-from systems.capability_map import CapabilityMap, direction_of, golden_spiral, lookup
-from systems.errors import InputError, PlanningFailure
-from systems.files import read_yaml, write_atomic
-from systems.frames import invert, rot_x, rot_y, rot_z, rpy_to_rotation, transform
+from implantplan.systems.capability_map import CapabilityMap, direction_of, golden_spiral, lookup
+from implantplan.systems.errors import InputError, PlanningFailure
+from implantplan.systems.files import read_yaml, write_atomic
+from implantplan.systems.frames import invert, rot_x, rot_y, rot_z, rpy_to_rotation, transform
 
 SCHEMA_VERSION = 1
 STORE_VERSION = 1  # bump when the RASSCMAP algorithm changes (invalidates stored maps)

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from systems.errors import InputError
+from implantplan.systems.errors import InputError
 
 
 def mapping(value: Any, field: str) -> dict:

@@ -23,9 +23,9 @@ from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from systems.errors import InputError
-from systems.frames import invert
-from systems.virtual_fixture import VirtualFixture
+from implantplan.systems.errors import InputError
+from implantplan.systems.frames import invert
+from implantplan.systems.virtual_fixture import VirtualFixture
 
 
 def _rotation_from_vector(w: np.ndarray) -> np.ndarray:

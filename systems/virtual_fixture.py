@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from systems.errors import InputError
+from implantplan.systems.errors import InputError
 
 
 def _perpendicular(u: np.ndarray) -> np.ndarray:

@@ -5,7 +5,7 @@ import os
 import pytest
 from hypothesis import settings
 
-from analyses.cli import main
+from implantplan.analyses.cli import main
 
 # CI runs the property tests derandomized (the same examples every run: a red CI is then always
 # reproducible); locally they explore new examples each run.

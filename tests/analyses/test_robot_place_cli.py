@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import yaml
 
-from analyses.cli import main
-from systems import moprp
-from systems.files import read_json, read_yaml, write_json
-from systems.nsga2 import domination_matrix
+from implantplan.analyses.cli import main
+from implantplan.systems import moprp
+from implantplan.systems.files import read_json, read_yaml, write_json
+from implantplan.systems.nsga2 import domination_matrix
 
 SMALL = ["--pop", "24", "--gen", "6", "--percentile-samples", "60", "--quiet"]
 
@@ -137,7 +137,7 @@ def test_drake_ik_path_matches_the_closed_form():
     closed-form branch, gives the same surviving branches and indices at a base."""
     import dataclasses
 
-    from analyses.robot_place import drake_ik_solver
+    from implantplan.analyses.robot_place import drake_ik_solver
 
     sc = dataclasses.replace(moprp.load_scenario("lying"), feed_samples=2)
     xyz = np.array([[0.6, -0.3, 0.0]])
@@ -154,7 +154,7 @@ def test_drake_ik_path_matches_the_closed_form():
 def test_capsules_agree_with_scenegraph():
     """The capsule model's collision verdict (condition 2 pairs) matches Drake's SceneGraph on
     the URDF geometry for nearly all random configurations (10,000 in the benchmark)."""
-    from analyses.bench_moprp import scenegraph_agreement
+    from implantplan.analyses.bench_moprp import scenegraph_agreement
 
     a = scenegraph_agreement(400, seed=1)
     assert a["both_collide"] > 20 and a["both_free"] > 200

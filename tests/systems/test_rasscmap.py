@@ -8,12 +8,12 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from systems import capability_map as cm
-from systems import rasscmap as rm
-from systems.errors import InputError, PlanningFailure
-from systems.frames import rot_x, transform
+from implantplan.systems import capability_map as cm
+from implantplan.systems import rasscmap as rm
+from implantplan.systems.errors import InputError, PlanningFailure
+from implantplan.systems.frames import rot_x, transform
 
-CASES = str(Path(__file__).resolve().parents[1] / "models" / "capmap_cases")
+CASES = str(Path(__file__).resolve().parents[2] / "models" / "capmap_cases")
 
 
 @pytest.fixture(scope="module")

@@ -7,10 +7,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from systems.errors import InputError
-from systems.fpsm import Fpsm
-from systems.placement import place_instrument
-from systems.virtual_fixture import VirtualFixture
+from implantplan.systems.errors import InputError
+from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.placement import place_instrument
+from implantplan.systems.virtual_fixture import VirtualFixture
 
 T15, T30 = np.tan(np.deg2rad(15)), np.tan(np.deg2rad(30))
 

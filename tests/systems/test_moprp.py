@@ -9,10 +9,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from systems import collision_primitives as cp
-from systems import kinematics as kin
-from systems import moprp, nsga2
-from systems.errors import InputError
+from implantplan.systems import collision_primitives as cp
+from implantplan.systems import kinematics as kin
+from implantplan.systems import moprp, nsga2
+from implantplan.systems.errors import InputError
 
 
 @pytest.fixture(scope="module")
@@ -228,7 +228,7 @@ def test_gii_poses_span_the_cube():
 
 
 def _raw():
-    from systems.files import read_yaml
+    from implantplan.systems.files import read_yaml
 
     return read_yaml(moprp.scenario_path("lying"))
 
@@ -370,7 +370,7 @@ def test_segment_box_distance_by_hand():
     assert cp.segment_box_distance(seg2, box, half) == pytest.approx(np.sqrt(2))
     assert cp.segment_box_distance(np.array([[-2.0, 0, 0], [2.0, 0, 0]]), box, half) == 0.0
     # batched version agrees with the single one, rotated box
-    from systems.frames import rot_z, transform
+    from implantplan.systems.frames import rot_z, transform
 
     Xb = transform(rot_z(np.pi / 4), [1.0, 0.0, 0.0])
     d1 = cp.segment_box_distance(seg, Xb, half)

@@ -9,8 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from systems.errors import InputError
-from systems.fpsm import Fpsm
+from implantplan.systems.errors import InputError
+from implantplan.systems.fpsm import Fpsm
 
 
 @pytest.fixture

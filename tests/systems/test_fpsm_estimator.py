@@ -5,10 +5,10 @@ import pytest
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 
-from systems.errors import InputError
-from systems.fpsm import Fpsm
-from systems.fpsm_estimator import FpsmEstimator, ToolLines, tool_safety
-from systems.frames import transform
+from implantplan.systems.errors import InputError
+from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.fpsm_estimator import FpsmEstimator, ToolLines, tool_safety
+from implantplan.systems.frames import transform
 
 R, D12 = 0.006, 0.031
 CYL = Fpsm.cylinder(0.05, 0.0, 0.1, slices=11)

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 import yaml
 
-from analyses.cli import main
-from systems import capability_map as cm
-from systems.files import read_json
-from systems.frames import rot_x, transform
+from implantplan.analyses.cli import main
+from implantplan.systems import capability_map as cm
+from implantplan.systems.files import read_json
+from implantplan.systems.frames import rot_x, transform
 
-CASES = str(Path(__file__).resolve().parents[1] / "models" / "capmap_cases")
+CASES = str(Path(__file__).resolve().parents[2] / "models" / "capmap_cases")
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +30,7 @@ def test_build_writes_a_loadable_map(map_path, capsys):
 
 
 def test_build_with_self_collision_and_actuator(tmp_path):
-    pytest.importorskip("diagrams.tools")
+    pytest.importorskip("implantplan.diagrams.tools")
     path = tmp_path / "a.h5"
     code = main(["capmap", "build", "--voxel-mm", "300", "--directions", "6", "--workers", "1",
                  "--tool", "actuator", "--rolls", "4", "--self-collision",

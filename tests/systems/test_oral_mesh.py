@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from systems.errors import InputError
-from systems.oral_mesh import (
+from implantplan.systems.errors import InputError
+from implantplan.systems.oral_mesh import (
     DEFAULT_CAVITY,
     boundary_loops,
     center_frame,

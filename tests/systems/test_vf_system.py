@@ -5,9 +5,9 @@ import pytest
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 
-from systems.frames import transform
-from systems.vf_system import VirtualFixtureForceLaw
-from systems.virtual_fixture import VirtualFixture
+from implantplan.systems.frames import transform
+from implantplan.systems.vf_system import VirtualFixtureForceLaw
+from implantplan.systems.virtual_fixture import VirtualFixture
 
 K, B = 2000.0, 100.0  # N/m, N s/m -> return gain 20 1/s
 # Fixture along Center +z through the target at the origin, cylinder of radius 6 mm up to the

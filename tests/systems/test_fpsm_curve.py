@@ -6,7 +6,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from systems import fpsm
+from implantplan.systems import fpsm
 
 
 def eq3_coefficients(rho: np.ndarray) -> np.ndarray:

@@ -13,13 +13,13 @@ from pydrake.geometry import Cylinder, Role
 from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import MultibodyPlant
 
-import models
-from diagrams import plant as scene
-from diagrams import tools
-from diagrams.plant import build_plant
-from systems import kinematics, moprp
-from systems.errors import InputError
-from systems.frames import rpy_to_rotation
+from implantplan import models
+from implantplan.diagrams import plant as scene
+from implantplan.diagrams import tools
+from implantplan.diagrams.plant import build_plant
+from implantplan.systems import kinematics, moprp
+from implantplan.systems.errors import InputError
+from implantplan.systems.frames import rpy_to_rotation
 
 AUBO = models.model_path("aubo_i10/aubo_i10.urdf")
 AUBO_360 = models.model_path("aubo_i10/aubo_i10_360.urdf")

@@ -8,10 +8,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from systems import capability_map as cm
-from systems.errors import InputError
-from systems.frames import rot_x, transform
-from systems.kinematics import fk, ik
+from implantplan.systems import capability_map as cm
+from implantplan.systems.errors import InputError
+from implantplan.systems.frames import rot_x, transform
+from implantplan.systems.kinematics import fk, ik
 
 
 @pytest.fixture(scope="module")

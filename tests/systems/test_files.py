@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from systems import files
-from systems.errors import InputError
+from implantplan.systems import files
+from implantplan.systems.errors import InputError
 
 
 def test_json_round_trip_and_header(tmp_path):

@@ -11,9 +11,9 @@ import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from systems.errors import InputError
-from systems.fpsm import TWO_PI, Fpsm, area, basis_matrix
-from systems.fpsm_fit import (
+from implantplan.systems.errors import InputError
+from implantplan.systems.fpsm import TWO_PI, Fpsm, area, basis_matrix
+from implantplan.systems.fpsm_fit import (
     axis_extent,
     cast_walls,
     first_hits,
@@ -22,8 +22,12 @@ from systems.fpsm_fit import (
     fit_slices_paper,
     ray_engine,
 )
-from systems.frames import apply, invert, rpy_to_rotation, transform
-from systems.oral_mesh import close_open_cuts, load_default_cavity, procedural_oral_cavity
+from implantplan.systems.frames import apply, invert, rpy_to_rotation, transform
+from implantplan.systems.oral_mesh import (
+    close_open_cuts,
+    load_default_cavity,
+    procedural_oral_cavity,
+)
 
 R_CYL, L_CYL, N_SIDES = 0.02, 0.06, 256
 

@@ -5,9 +5,9 @@ import json
 import numpy as np
 import pytest
 
-from analyses import simulate as S
-from analyses.cli import main
-from systems.fpsm import Fpsm
+from implantplan.analyses import simulate as S
+from implantplan.analyses.cli import main
+from implantplan.systems.fpsm import Fpsm
 
 
 def read(path):

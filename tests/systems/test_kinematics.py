@@ -6,9 +6,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from systems import kinematics as k
-from systems.errors import InputError
-from systems.frames import rot_z, transform
+from implantplan.systems import kinematics as k
+from implantplan.systems.errors import InputError
+from implantplan.systems.frames import rot_z, transform
 
 
 def random_q(n, seed=0, limit=np.pi):

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import yaml
 
-import models
-from analyses.case import default_case_path, load_case
-from analyses.cli import main
-from systems.errors import InputError
+from implantplan import models
+from implantplan.analyses.case import default_case_path, load_case
+from implantplan.analyses.cli import main
+from implantplan.systems.errors import InputError
 
 FAST = ["--runs", "1", "--no-html-scene", "--quiet"]
 
@@ -40,9 +40,9 @@ def test_demo_writes_a_complete_passing_plan(demo_plan):
 
 def test_feeding_targets_are_consistent_across_frames(demo_plan):
     """The End target from the plan's base pose and q reproduces the feeding target in World."""
-    from diagrams import tools
-    from systems import kinematics as kin
-    from systems.moprp import R_OE
+    from implantplan.diagrams import tools
+    from implantplan.systems import kinematics as kin
+    from implantplan.systems.moprp import R_OE
 
     plan = json.loads((demo_plan / "plan.json").read_text())
     X_WB = np.array(plan["base"]["X_WBase"])
@@ -182,7 +182,7 @@ def test_rerun_into_the_same_folder_replaces_the_plan_without_simulation(tmp_pat
 
 
 def test_check_margins_and_limits():
-    from analyses.plan import _check
+    from implantplan.analyses.plan import _check
 
     assert _check("alarms", 0, 0, unit="runs", upper=True)["pass"]
     assert not _check("alarms", 1, 0, unit="runs", upper=True)["pass"]

@@ -5,9 +5,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from systems.errors import InputError
-from systems.frames import rot_z
-from systems.master_device import (
+from implantplan.systems.errors import InputError
+from implantplan.systems.frames import rot_z
+from implantplan.systems.master_device import (
     IncrementalMapping,
     MasterDevice,
     MasterMotion,

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from analyses import simulate as S
-from diagrams.teleop import X_ET, ToolPose, build_teleop, simulate
-from systems.master_device import MasterMotion, feeding_runs
+from implantplan.analyses import simulate as S
+from implantplan.diagrams.teleop import X_ET, ToolPose, build_teleop, simulate
+from implantplan.systems.master_device import MasterMotion, feeding_runs
 
 
 @pytest.fixture(scope="module")
@@ -99,7 +99,7 @@ def test_dynamic_mode_tracks_the_kinematic_run(case):
 
 
 def test_bad_mode_is_an_input_error(case):
-    from systems.errors import InputError
+    from implantplan.systems.errors import InputError
 
     with pytest.raises(InputError, match="mode"):
         build_teleop(case, MasterMotion(dt=0.01, p_M=np.zeros((2, 3))), mode="fast")
@@ -110,7 +110,7 @@ def test_dynamic_mode_has_contact_with_the_moprp_environment(case):
     chair and cart (not filtered away), and the selected layout's feed never touches them."""
     from pydrake.geometry import Role
 
-    from diagrams import plant as scene
+    from implantplan.diagrams import plant as scene
 
     start = case.X_WE(case.q_start)[:3, 3]
     target = case.X_WTarget[:3, 3]

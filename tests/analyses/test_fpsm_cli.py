@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from analyses.cli import main
-from systems.fpsm import Fpsm
-from systems.oral_mesh import DEFAULT_CAVITY, procedural_oral_cavity
+from implantplan.analyses.cli import main
+from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.oral_mesh import DEFAULT_CAVITY, procedural_oral_cavity
 
 
 @pytest.fixture(scope="module")

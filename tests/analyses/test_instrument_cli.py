@@ -5,9 +5,9 @@ import json
 import numpy as np
 import pytest
 
-from analyses.cli import main
-from systems.fpsm import Fpsm
-from systems.virtual_fixture import VirtualFixture
+from implantplan.analyses.cli import main
+from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.virtual_fixture import VirtualFixture
 
 ORAL = "models/oral/oralCavityMesh.obj"
 
@@ -146,7 +146,7 @@ def test_real_oral_mesh_end_to_end(tmp_path):
     s = np.linspace(0, (fpsm.z_range[1] - start[2]) / u[2], 400)
     assert np.all(fpsm.d_safe(start + s[:, None] * u, radius=0.002) > -1e-4)
     # the plots find the fit's mesh and put it in Center, whatever units the settings claim
-    from analyses.instrument import _mesh_in_center
+    from implantplan.analyses.instrument import _mesh_in_center
 
     v, _ = _mesh_in_center(fpsm)
     d = fpsm.to_dict()
@@ -161,7 +161,7 @@ def test_real_oral_mesh_end_to_end(tmp_path):
 
 
 def test_bench_placement_runs_small(cyl_file, capsys):
-    from analyses.bench_placement import main as bench
+    from implantplan.analyses.bench_placement import main as bench
 
     assert (
         bench(["--fpsm", str(cyl_file), "--repeats", "1", "--rods", "500", "--loop-rods", "20"])

@@ -6,9 +6,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from systems.errors import InputError
-from systems.fpsm import Fpsm
-from systems.placement import (
+from implantplan.systems.errors import InputError
+from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.placement import (
     PlacementProblem,
     feeding_lines,
     hole_frame,

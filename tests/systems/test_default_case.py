@@ -16,11 +16,11 @@ import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from systems.errors import InputError
-from systems.files import read_yaml
-from systems.oral_mesh import center_frame, face_flips, load_oral_mesh, open_mouth
+from implantplan.systems.errors import InputError
+from implantplan.systems.files import read_yaml
+from implantplan.systems.oral_mesh import center_frame, face_flips, load_oral_mesh, open_mouth
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 CASE = ROOT / "models" / "cases" / "default.yaml"
 MM = 1e-3
 
@@ -188,8 +188,8 @@ def test_default_case_opens_the_real_mesh_cleanly():
 @pytest.fixture(scope="module")
 def default_plan():
     """The default case opened, fitted (exact, 15 x 15 x 150) and both sites placed."""
-    from systems.fpsm_fit import fit_fpsm
-    from systems.placement import place_instrument
+    from implantplan.systems.fpsm_fit import fit_fpsm
+    from implantplan.systems.placement import place_instrument
 
     case = read_yaml(CASE)
     assert case["schema_version"] == 1 and case["placement"]["objective"] == "eq14"
@@ -249,7 +249,7 @@ def test_default_case_sites_have_a_safe_placement_for_the_papers_tool(default_pl
 
 
 def test_case_figures_write_pngs(default_plan, tmp_path):
-    from analyses.case_figures import plot_mouth_opening, plot_placements
+    from implantplan.analyses.case_figures import plot_mouth_opening, plot_placements
 
     case, opened, X_WC, fpsm, placements = default_plan
     box = _box()
@@ -268,7 +268,7 @@ def test_case_figures_write_pngs(default_plan, tmp_path):
 
 
 def test_site_scan_finds_the_default_sites_valid(default_plan):
-    from analyses.case_figures import scan_sites
+    from implantplan.analyses.case_figures import scan_sites
 
     case, _, _, fpsm, placements = default_plan
     ranked = scan_sites(

@@ -5,14 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import models
-from diagrams import tools
-from diagrams.ik_drake import DrakeIk, ik_drake
-from diagrams.plant import build_plant
-from systems import kinematics
-from systems.errors import InputError
-from systems.frames import transform
-from systems.moprp import R_OE
+from implantplan import models
+from implantplan.diagrams import tools
+from implantplan.diagrams.ik_drake import DrakeIk, ik_drake
+from implantplan.diagrams.plant import build_plant
+from implantplan.systems import kinematics
+from implantplan.systems.errors import InputError
+from implantplan.systems.frames import transform
+from implantplan.systems.moprp import R_OE
 
 LIM175 = np.deg2rad(175.0)
 
