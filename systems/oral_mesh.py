@@ -62,7 +62,13 @@ DEFAULT_CAVITY = {
 
 
 def load_oral_mesh(path, *, units: str = "mm", field: str = "mesh") -> trimesh.Trimesh:
-    """Load a mesh file and return it validated, in metres.
+    """Load a scanner's mesh file and return it repaired, validated and in metres.
+
+    Every format loads to the same mesh: STL (binary or ASCII) stores each triangle with its own
+    three corners, so coincident vertices are merged (within trimesh's merge tolerance, 1e-8 m);
+    then zero-area and duplicate faces are dropped, unreferenced vertices removed, and the
+    winding made consistent across shared edges (the orientation of the first face wins, so a
+    cavity seen from the inside stays seen from the inside).
 
     Args:
         path: any file trimesh loads (STL, OBJ incl. quads, PLY, OFF, GLB; scenes are merged).
@@ -71,31 +77,81 @@ def load_oral_mesh(path, *, units: str = "mm", field: str = "mesh") -> trimesh.T
 
     Returns:
         A :class:`trimesh.Trimesh` in metres; ``mesh.metadata["implantplan"]`` records the source,
-        the input units and how many zero-area faces were removed.
+        the input units and the repairs (``repairs``: merged vertices, dropped zero-area and
+        duplicate faces, removed unreferenced vertices, flipped faces).
     """
     if units not in UNITS:
         raise InputError("units", f"expected one of {sorted(UNITS)}, got {units!r}")
     path = Path(path)
+    if path.is_dir():
+        raise InputError(field, f"{str(path)!r} is a folder; expected a mesh file")
     if not path.is_file():
         raise InputError(field, f"file {str(path)!r} does not exist")
     try:
+        with open(path, "rb") as stream:
+            stream.read(1)
+    except OSError as exc:
+        raise InputError(field, f"cannot read {str(path)!r}: {exc.strerror or exc}") from None
+    try:
         loaded = trimesh.load(path, process=False, force="mesh")
+    except ImportError:  # trimesh's text fallback wants an optional decoder for garbage bytes
+        raise InputError(
+            field, f"could not read {path} as a mesh: the file is corrupt or not a mesh format"
+        ) from None
     except Exception as exc:  # trimesh raises many types for unreadable files
         raise InputError(field, f"could not read {path} as a mesh ({exc})") from None
-    if not isinstance(loaded, trimesh.Trimesh):
+    if not isinstance(loaded, trimesh.Trimesh) or len(getattr(loaded, "faces", ())) == 0:
         raise InputError(field, f"{path} holds no triangle mesh")
     mesh = trimesh.Trimesh(
         vertices=np.asarray(loaded.vertices, dtype=float) * UNITS[units],
         faces=np.asarray(loaded.faces),
         process=False,
     )
-    mesh = validate_mesh(mesh, field=field)
+    mesh = repair_mesh(validate_mesh(mesh, field=field))
     mesh.metadata["implantplan"] = {
         **mesh.metadata.get("implantplan", {}),
         "source": str(path),
         "units_in": units,
     }
     return mesh
+
+
+def repair_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """Merge coincident vertices, drop duplicate faces and unused vertices, make the winding
+    consistent; the counts go to ``metadata["implantplan"]["repairs"]`` (with the zero-area faces
+    :func:`validate_mesh` removed). Returns a new mesh."""
+    out = mesh.copy()
+    meta = dict(mesh.metadata.get("implantplan", {}))
+    n_vertices = len(out.vertices)
+    out.merge_vertices()
+    merged = n_vertices - len(out.vertices)
+    # after merging, faces that collapsed to an edge or a point have zero area
+    tri = out.vertices[out.faces]
+    degenerate = ~(
+        (out.faces[:, 0] != out.faces[:, 1])
+        & (out.faces[:, 1] != out.faces[:, 2])
+        & (out.faces[:, 0] != out.faces[:, 2])
+    ) | (np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) == 0)
+    unique = np.zeros(len(out.faces), dtype=bool)
+    unique[out.unique_faces()] = True
+    keep = unique & ~degenerate
+    n_unreferenced = len(out.vertices)
+    out.update_faces(keep)
+    out.remove_unreferenced_vertices()
+    n_unreferenced -= len(out.vertices)
+    before = out.faces.copy()
+    trimesh.repair.fix_winding(out)
+    flipped = int(np.count_nonzero(np.any(out.faces != before, axis=1)))
+    meta["repairs"] = {
+        "merged_vertices": int(merged),
+        "removed_zero_area_faces": int(meta.get("removed_zero_area_faces", 0))
+        + int(np.count_nonzero(degenerate)),
+        "removed_duplicate_faces": int(np.count_nonzero(~unique & ~degenerate)),
+        "removed_unreferenced_vertices": int(n_unreferenced),
+        "flipped_faces": flipped,
+    }
+    out.metadata["implantplan"] = meta
+    return out
 
 
 def validate_mesh(mesh: trimesh.Trimesh, *, field: str = "mesh") -> trimesh.Trimesh:

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from implantplan import models
 from implantplan.systems.errors import InputError
 from implantplan.systems.oral_mesh import (
     DEFAULT_CAVITY,
@@ -15,6 +16,7 @@ from implantplan.systems.oral_mesh import (
     load_default_cavity,
     load_oral_mesh,
     procedural_oral_cavity,
+    repair_mesh,
     validate_mesh,
 )
 
@@ -55,6 +57,76 @@ def test_formats_round_trip(tmp_path, ext):
     mesh = load_oral_mesh(path, units="m")
     assert mesh.area == pytest.approx(cavity.mesh.area, rel=1e-6)
     assert len(mesh.faces) == len(cavity.mesh.faces)
+
+
+@pytest.fixture(scope="module")
+def scan_obj():
+    """The bundled scan as loaded from its OBJ (mm), the reference for the other formats."""
+    path = models.model_path("oral/oralCavityMesh.obj")
+    return path, load_oral_mesh(path, units="mm")
+
+
+@pytest.mark.parametrize(
+    "file_type, units, tol",
+    [
+        ("stl", "mm", 1e-8),  # binary STL stores float32: ~7.6e-6 mm at 100 mm
+        ("stl_ascii", "mm", 0.0),
+        ("ply", "mm", 1e-8),
+        ("stl", "m", 1e-8),
+        ("ply", "m", 1e-8),
+    ],
+)
+def test_scanner_formats_load_the_same_mesh_as_the_obj(tmp_path, scan_obj, file_type, units, tol):
+    path_obj, ref = scan_obj
+    raw = trimesh.load(path_obj, process=False, force="mesh")
+    if units == "m":
+        raw.apply_scale(1e-3)
+    path = tmp_path / f"scan.{'stl' if file_type.startswith('stl') else file_type}"
+    raw.export(path, file_type=file_type)
+    mesh = load_oral_mesh(path, units=units)
+    assert mesh.vertices.shape == ref.vertices.shape  # STL's 73,794 corners merged to 12,465
+    assert np.abs(mesh.vertices[mesh.faces] - ref.vertices[ref.faces]).max() <= tol
+    repairs = mesh.metadata["implantplan"]["repairs"]
+    assert repairs["merged_vertices"] == (3 * len(ref.faces) - len(ref.vertices)
+                                         if file_type.startswith("stl") else 0)
+    assert repairs["flipped_faces"] == 0
+    assert mesh.is_winding_consistent
+
+
+def test_repair_drops_duplicate_faces_and_fixes_a_flipped_face():
+    box = trimesh.creation.box()
+    faces = np.vstack([box.faces, box.faces[:1]])  # one face twice
+    faces[5] = faces[5][::-1]  # one face wound the other way
+    out = load_repaired(box.vertices, faces)
+    repairs = out.metadata["implantplan"]["repairs"]
+    assert repairs["removed_duplicate_faces"] == 1
+    assert repairs["flipped_faces"] == 1
+    assert len(out.faces) == 12 and out.is_winding_consistent and out.is_watertight
+
+
+def load_repaired(V, F):
+    return repair_mesh(validate_mesh(trimesh.Trimesh(V, F, process=False)))
+
+
+def test_corrupt_folder_and_unreadable_meshes_are_input_errors(tmp_path, monkeypatch):
+    corrupt = tmp_path / "scan.stl"
+    corrupt.write_bytes(b"solid x\n\x00\xff\xfe not a mesh" * 40)
+    with pytest.raises(InputError, match="mesh: could not read .*corrupt or not a mesh"):
+        load_oral_mesh(corrupt)
+    with pytest.raises(InputError, match="is a folder; expected a mesh file"):
+        load_oral_mesh(tmp_path)
+    locked = tmp_path / "locked.stl"
+    locked.write_bytes(b"x")
+    real_open = open
+
+    def deny(path, *args, **kwargs):  # root reads any file, so deny it the way the OS would
+        if str(path) == str(locked):
+            raise PermissionError(13, "Permission denied", str(path))
+        return real_open(path, *args, **kwargs)
+
+    monkeypatch.setattr("builtins.open", deny)
+    with pytest.raises(InputError, match="cannot read .*Permission denied"):
+        load_oral_mesh(locked)
 
 
 def test_units_must_be_known(tmp_path):

@@ -1,0 +1,57 @@
+"""The ``implantplan`` entry point: lazy command loading, help text on every option, OS errors."""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+
+import pytest
+
+from implantplan.analyses.cli import COMMANDS, build_parser, main
+
+
+def _walk(parser: argparse.ArgumentParser, path: str):
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, child in action.choices.items():
+                yield from _walk(child, f"{path} {name}")
+        else:
+            yield path, action
+
+
+def test_help_loads_no_command_module():
+    code = (
+        "import sys\n"
+        "from implantplan.analyses.cli import main\n"
+        "try:\n    main(['--help'])\nexcept SystemExit as e:\n    assert e.code == 0\n"
+        "heavy = [m for m in ('pydrake', 'numba', 'matplotlib', 'trimesh', 'scipy') "
+        "if m in sys.modules]\n"
+        "print('HEAVY:' + ','.join(heavy))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip().splitlines()[-1] == "HEAVY:"
+
+
+def test_help_lists_every_command_in_order(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = capsys.readouterr().out
+    positions = [text.index(f"    {name}") for name in COMMANDS]
+    assert positions == sorted(positions)
+
+
+def test_the_lazy_table_matches_what_the_modules_register():
+    full = build_parser()
+    sub = next(a for a in full._actions if isinstance(a, argparse._SubParsersAction))
+    assert list(sub.choices) == list(COMMANDS)
+    helps = {a.dest: a.help for a in sub._choices_actions}
+    assert helps == {name: h for name, (_, h) in COMMANDS.items()}
+
+
+def test_an_unwritable_output_is_exit_2_with_the_path(capsys):
+    code = main(["fpsm", "cylinder", "--radius-mm", "50", "--z-min-mm", "0", "--z-max-mm", "100",
+                 "--slices", "3", "--out", "/proc/no-such-dir/cyl.json"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "error" in err and "/proc/no-such-dir" in err and "Traceback" not in err
