@@ -58,11 +58,12 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"implantplan {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    wanted = set(COMMANDS) if argv is None else {_requested_command(argv)}
+    names = list(COMMANDS) if argv is None else [_requested_command(argv)]
+    wanted = {COMMANDS[name][0] for name in names if name in COMMANDS}
     for name, (module, help_text) in COMMANDS.items():
         if name in sub.choices:  # registered with an earlier command of the same module
             continue
-        if name in wanted:
+        if module in wanted:
             importlib.import_module(module).register(sub)
         else:
             sub.add_parser(name, help=help_text, add_help=False)

@@ -273,6 +273,70 @@ def _best_singular_t6(r, px, py, pz, c1, s1, c5, s5):  # pragma: no cover - comp
     return 0.5 * (lo + hi)
 
 
+@numba.njit(cache=True)
+def _assemble(q_row, t1, t2, t3, t4, t5, t6):  # pragma: no cover - compiled
+    """DH angles -> joint vector (offsets and joint 3's sign, DESIGN.md 8), wrapped to (-pi, pi]."""
+    q_row[0] = t1
+    q_row[1] = t2 + PI / 2
+    q_row[2] = -t3
+    q_row[3] = t4 + PI / 2
+    q_row[4] = t5
+    q_row[5] = t6 - PI
+    for j in range(6):
+        v = q_row[j] - 2.0 * PI * np.floor((q_row[j] + PI) / (2.0 * PI))
+        if v <= -PI:
+            v += 2.0 * PI
+        q_row[j] = v
+
+
+@numba.njit(cache=True)
+def _within_limits(q_row, lo, hi):  # pragma: no cover - compiled
+    """Move each joint to its 2*pi copy within [lo, hi] (in place); False if one has none."""
+    for j in range(6):
+        v = q_row[j]
+        if lo[j] <= v <= hi[j]:
+            continue
+        if lo[j] <= v + 2.0 * PI <= hi[j]:
+            q_row[j] = v + 2.0 * PI
+        elif lo[j] <= v - 2.0 * PI <= hi[j]:
+            q_row[j] = v - 2.0 * PI
+        else:
+            return False
+    return True
+
+
+@numba.njit(cache=True)
+def _singular_retry(R, p, q, code, singular, lo, hi):  # pragma: no cover - compiled
+    """At a wrist singularity theta6 is free (joints 4 and 6 aligned): a branch whose q6 = 0
+    solution breaks a joint limit is solved again over 720 values of theta6, keeping the
+    solution within the limits with the smallest |q6| (the pose is reproduced for any theta6)."""
+    a2, a3 = DH_A2, DH_A3
+    row = np.empty(6)
+    for n in range(q.shape[0]):
+        r = R[n]
+        px, py, pz = p[n, 0], p[n, 1], p[n, 2]
+        for b in range(8):
+            if not (singular[n, b] and code[n, b] == REASON_LIMITS):
+                continue
+            t1, t5 = q[n, b, 0], q[n, b, 4]
+            c1, s1, c5, s5 = np.cos(t1), np.sin(t1), np.cos(t5), np.sin(t5)
+            best = 1e300
+            for m in range(720):
+                t6 = -PI + 2.0 * PI * (m + 1) / 720.0
+                x14, y14, t234, c3v = _planar(r, px, py, pz, c1, s1, c5, s5, t6)
+                if abs(c3v) > 1.0 + 1e-9:
+                    continue
+                t3 = np.arccos(max(-1.0, min(1.0, c3v)))
+                if b % 2 == 1:
+                    t3 = -t3
+                t2 = np.arctan2(y14, x14) - np.arctan2(a3 * np.sin(t3), a2 + a3 * np.cos(t3))
+                _assemble(row, t1, t2, t3, t234 - t2 - t3, t5, t6)
+                if _within_limits(row, lo, hi) and abs(row[5]) < best:
+                    best = abs(row[5])
+                    q[n, b, :] = row
+                    code[n, b] = REASON_OK
+
+
 @numba.njit(cache=True, fastmath=False)
 def _ik_kernel(R, p, q_out, code_out, singular_out):  # pragma: no cover - compiled
     """Closed-form UR inverse on flattened poses: R (n,3,3), p (n,3) of the flange in base."""
@@ -345,21 +409,9 @@ def _ik_kernel(R, p, q_out, code_out, singular_out):  # pragma: no cover - compi
                     t3 = t3abs if ie == 0 else -t3abs
                     s3 = np.sin(t3)
                     t2 = np.arctan2(y14, x14) - np.arctan2(a3 * s3, a2 + a3 * np.cos(t3))
-                    t4 = t234 - t2 - t3
                     b = base + ie
-                    q_out[n, b, 0] = t1
-                    q_out[n, b, 1] = t2 + PI / 2
-                    q_out[n, b, 2] = -t3
-                    q_out[n, b, 3] = t4 + PI / 2
-                    q_out[n, b, 4] = t5
-                    q_out[n, b, 5] = t6 - PI
+                    _assemble(q_out[n, b], t1, t2, t3, t234 - t2 - t3, t5, t6)
                     singular_out[n, b] = sing
-                    for j in range(6):  # wrap into (-pi, pi]
-                        v = q_out[n, b, j]
-                        v = v - 2.0 * PI * np.floor((v + PI) / (2.0 * PI))
-                        if v <= -PI:
-                            v += 2.0 * PI
-                        q_out[n, b, j] = v
 
 
 @dataclass
@@ -413,6 +465,7 @@ def ik(X_BT, *, limits: str | np.ndarray = "175", X_FT=None) -> IkResult:
     singular = np.empty((n, 8), dtype=bool)
     _ik_kernel(R, p, q, code, singular)
     _apply_limits(q, code, lim[0], lim[1])
+    _singular_retry(R, p, q, code, singular, lim[0], lim[1])
     valid = code == REASON_OK
     return IkResult(
         q=q.reshape(shape + (8, 6)),
@@ -428,19 +481,8 @@ def _apply_limits(q, code, lo, hi):  # pragma: no cover - compiled
     REASON_LIMITS when neither it nor a 2*pi copy is within (q, code modified in place)."""
     for n in range(q.shape[0]):
         for b in range(8):
-            if code[n, b] != REASON_OK:
-                continue
-            for j in range(6):
-                v = q[n, b, j]
-                if lo[j] <= v <= hi[j]:
-                    continue
-                if lo[j] <= v + 2.0 * PI <= hi[j]:
-                    q[n, b, j] = v + 2.0 * PI
-                elif lo[j] <= v - 2.0 * PI <= hi[j]:
-                    q[n, b, j] = v - 2.0 * PI
-                else:
-                    code[n, b] = REASON_LIMITS
-                    break
+            if code[n, b] == REASON_OK and not _within_limits(q[n, b], lo, hi):
+                code[n, b] = REASON_LIMITS
 
 
 def joint_copies(q, *, limits: str | np.ndarray = "360") -> tuple[np.ndarray, np.ndarray]:
