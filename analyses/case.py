@@ -66,11 +66,12 @@ class Case:
     directions: int
     sim_runs: int
     sim_mode: str
+    site_tolerance: float = 1e-3  # m: largest distance of a site from the scanned tissue
     extra: dict = field(default_factory=dict)
 
 
-_TOP = ("schema_version", "name", "seed", "mesh", "center", "fpsm", "sites", "placement",
-        "patient", "robot", "capability", "simulation")
+_TOP = ("schema_version", "name", "seed", "mesh", "center", "fpsm", "sites", "site_check",
+        "placement", "patient", "robot", "capability", "simulation")
 
 
 def resolve_path(value: str, base_dir: Path, field_name: str) -> Path:
@@ -166,6 +167,9 @@ def case_from_dict(data: dict, *, source: Path) -> Case:
                                 nonneg=True) * MM,
         ))
 
+    site_check = v.mapping(data.get("site_check"), "site_check")
+    v.unknown_keys(site_check, ("tolerance_mm",), "site_check.")
+
     placement = v.mapping(data.get("placement"), "placement")
     v.unknown_keys(placement, ("objective",), "placement.")
     patient = v.mapping(data.get("patient"), "patient")
@@ -208,6 +212,8 @@ def case_from_dict(data: dict, *, source: Path) -> Case:
         margin=v.number(fp.get("margin_mm", 0.0), "fpsm.margin_mm", nonneg=True) * MM,
         z_range=z_range,
         sites=tuple(sites),
+        site_tolerance=v.number(site_check.get("tolerance_mm", 1.0), "site_check.tolerance_mm",
+                                positive=True) * MM,
         objective=v.choice(placement.get("objective", "eq14"), "placement.objective",
                            ("eq14", "eq21", "eq22")),
         posture=posture,

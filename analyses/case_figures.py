@@ -72,6 +72,8 @@ def scan_sites(
     mesial_tilts_deg=(0.0, 10.0, 20.0),
     grid=(41, 73),
     objective: str = "eq14",
+    mesh=None,
+    X_WC=None,
 ) -> list[dict]:
     """Rank candidate implant sites on the lower half of a fitted FPSM by their best placement.
 
@@ -80,7 +82,10 @@ def scan_sites(
     Center +Y tilted towards the mid-sagittal plane by each lingual tilt and then towards +Z
     (out of the mouth) by each mesial tilt. Each is scored by the exhaustive placement grid
     (:func:`systems.placement.grid_search`, ``grid`` points over the default bounds), which is
-    how the default case's sites were chosen.
+    how the default case's sites were chosen. With the scan (``mesh`` and the Center pose
+    ``X_WC`` in it) each candidate is then moved along -axis onto the tissue
+    (:func:`systems.sites.project_to_tissue`), where a site must lie; candidates whose axis
+    meets no tissue are left out.
 
     Returns:
         dicts sorted by F (best first): slice, angle_deg, lingual/mesial tilt (deg), site (m),
@@ -92,6 +97,7 @@ def scan_sites(
         grid_search,
         hole_frame,
     )
+    from implantplan.systems.sites import project_to_tissue
 
     js = range(1, fpsm.slices - 1) if slices is None else slices
     bounds = default_bounds(fpsm, implant_length)
@@ -110,6 +116,10 @@ def scan_sites(
                     a = np.cos(np.deg2rad(t_z)) * a + np.sin(np.deg2rad(t_z)) * np.array(
                         [0.0, 0.0, 1.0]
                     )
+                    if mesh is not None:
+                        site = project_to_tissue(mesh, X_WC, site, a)[0]
+                        if not np.all(np.isfinite(site)):
+                            continue
                     problem = PlacementProblem(
                         fpsm, hole_frame(site, a), rod_radius, implant_length, objective
                     )
@@ -195,7 +205,8 @@ def main(argv=None) -> int:
     if args.scan:
         site0 = out["case"].sites[0]
         ranked = scan_sites(
-            out["fpsm"], rod_radius=site0.rod_radius, implant_length=site0.implant_length
+            out["fpsm"], rod_radius=site0.rod_radius, implant_length=site0.implant_length,
+            mesh=out["opened"], X_WC=out["X_WC"],
         )
         print(f"scan: {sum(c['valid'] for c in ranked)} of {len(ranked)} candidates valid")
         # the sides of the arch: lower-lateral quadrants, away from the throat and the lips

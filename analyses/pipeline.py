@@ -30,6 +30,7 @@ from implantplan.systems.frames import invert, transform
 from implantplan.systems.nsga2 import non_dominated_sort, nsga2
 from implantplan.systems.oral_mesh import center_frame, load_oral_mesh, open_mouth
 from implantplan.systems.placement import Placement, place_instrument
+from implantplan.systems.sites import SiteCheck, check_sites, site_problems
 
 
 @dataclass
@@ -75,6 +76,19 @@ def fit_stage(case: Case, *, progress=None) -> FitResult:
     )
     fpsm.settings["mesh_units"] = case.units
     return FitResult(scanned, opened, fpsm, time.perf_counter() - t0)
+
+
+def site_stage(case: Case, fit: FitResult) -> SiteCheck:
+    """Every site on the scanned tissue with its axis into the cavity (systems.sites); the first
+    site that is not is an input error naming it (exit 2), with the likely slip when one fits."""
+    positions = np.array([s.position for s in case.sites])
+    axes = np.array([s.axis for s in case.sites])
+    check = check_sites(fit.opened, fit.fpsm.X_WC, positions, axes,
+                        tolerance=case.site_tolerance)
+    for k, problem in enumerate(site_problems(check, fit.opened, fit.fpsm.X_WC, positions)):
+        if problem is not None:
+            raise InputError(f"sites[{k}] ({case.sites[k].name})", problem)
+    return check
 
 
 def placement_stage(case: Case, fpsm: Fpsm, *, progress=None, require_valid: bool = True

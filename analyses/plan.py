@@ -19,6 +19,7 @@ exits 3 with the reason; bad input exits 2 naming the field.
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import tempfile
 import time
@@ -30,6 +31,7 @@ from implantplan.analyses import pipeline
 from implantplan.analyses.case import Case, default_case_path, load_case
 from implantplan.analyses.figures.plan import make_figures
 from implantplan.analyses.progress import Progress
+from implantplan.analyses.provenance import provenance
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import write_json
 from implantplan.systems.frames import wrap_angle
@@ -98,8 +100,13 @@ def plan_case(case: Case, out_dir: Path, *, runs: int | None = None, html_scene:
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError("--out", f"{out_dir} exists and is not a folder")
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    try:
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    except OSError as exc:
+        raise InputError("--out", f"cannot create a plan folder in {str(out_dir.parent)!r}: "
+                         f"{exc.strerror or exc}") from None
+    staging.chmod(0o777 & ~_umask())  # mkdtemp makes it 0700; a plan folder is for colleagues too
     try:
         plan = _plan_into(case, staging, runs=runs, html_scene=html_scene, quiet=quiet)
         _swap_in(staging, out_dir)
@@ -107,6 +114,12 @@ def plan_case(case: Case, out_dir: Path, *, runs: int | None = None, html_scene:
         if staging.exists():
             shutil.rmtree(staging)
     return plan
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def _swap_in(staging: Path, out_dir: Path) -> None:
@@ -131,6 +144,11 @@ def _plan_into(case: Case, out: Path, *, runs, html_scene: bool, quiet: bool) ->
     prog.say(f"fitted {case.slices} slices x {case.control_points} control points "
              f"in {prog.elapsed:.2f} s")
 
+    sites_checked = pipeline.site_stage(case, fit)
+    prog.say("sites on the tissue: " + ", ".join(
+        f"{s.name} {d * 1e3:.2f} mm" for s, d in zip(case.sites, sites_checked.distance,
+                                                    strict=True)))
+
     prog = Progress("2/5 placement", quiet=quiet)
     placements = pipeline.placement_stage(case, fit.fpsm, progress=prog)
     timing["placement"] = prog.elapsed
@@ -150,8 +168,10 @@ def _plan_into(case: Case, out: Path, *, runs, html_scene: bool, quiet: bool) ->
     timing["simulation"] = prog.elapsed
 
     prog = Progress("report", quiet=quiet)
-    plan = plan_dict(case, fit, placements, robot, cap, sims)
+    plan = plan_dict(case, fit, placements, robot, cap, sims, sites_checked)
     plan["timing"] = timing
+    plan["provenance"] = provenance(case_file=case.source, meshes=[case.mesh_path],
+                                    seed=case.seed)
     figs = make_figures(case, fit, placements, robot, cap, sims, figures,
                         html_scene=html_scene, out=out)
     write_json(out / "plan.json", plan, kind="plan")
@@ -166,24 +186,27 @@ def _plan_into(case: Case, out: Path, *, runs, html_scene: bool, quiet: bool) ->
 # -- the plan ------------------------------------------------------------------------------------
 
 
-def _check(name: str, value: float, limit: float, *, unit: str, upper: bool, site=None) -> dict:
-    """A check and its margin: an upper limit passes when value <= limit (margin limit - value
-    >= 0, so "0 alarms <= 0" passes), a lower limit when value > limit (strictly: a clearance
-    of exactly 0 is contact)."""
+def _check(check_id: str, name: str, value: float, limit: float, *, unit: str, upper: bool,
+           site=None) -> dict:
+    """A check and its margin. ``id`` is stable (README: which requirement it verifies);
+    ``bound`` says whether the limit is a maximum or a minimum. A maximum passes when value <=
+    limit (margin limit - value >= 0, so "0 alarms <= 0" passes), a minimum when value > limit
+    (strictly: a clearance of exactly 0 is contact)."""
     margin = (limit - value) if upper else (value - limit)
     passed = margin >= 0 if upper else margin > 0
-    return {"name": name, "site": site, "value": float(value), "limit": float(limit),
-            "unit": unit, "margin": float(margin), "pass": bool(passed)}
+    return {"id": check_id, "name": name, "site": site, "value": float(value),
+            "limit": float(limit), "bound": "max" if upper else "min", "unit": unit,
+            "margin": float(margin), "pass": bool(passed)}
 
 
-def plan_dict(case: Case, fit, placements, robot, cap, sims) -> dict:
+def plan_dict(case: Case, fit, placements, robot, cap, sims, sites_checked) -> dict:
     from implantplan.systems import actuator, moprp
 
     sc = robot.scenario
     X_WC = sc.X_WO @ robot.X_OC
     d = fit.fpsm.diagnostics
-    checks = [_check("fpsm dense-check penetration depth", d["dense_max_depth_m"],
-                     MAX_PENETRATION_DEPTH, unit="m", upper=True)]
+    checks = [_check("fpsm.penetration_depth", "fpsm dense-check penetration depth",
+                     d["dense_max_depth_m"], MAX_PENETRATION_DEPTH, unit="m", upper=True)]
     sites = []
     for k, (site, p) in enumerate(zip(case.sites, placements, strict=True)):
         grid = (p.to_dict().get("grid_check") or {})
@@ -195,6 +218,9 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims) -> dict:
             "hole": {"position": site.position, "axis": site.axis, "frame": "Center"},
             "implant_length": site.implant_length,
             "rod_radius": site.rod_radius,
+            "site_check": {"distance_to_tissue": float(sites_checked.distance[k]),
+                           "tolerance": sites_checked.tolerance,
+                           "axis_into_cavity": bool(sites_checked.axis_into_cavity[k])},
             "placement": {key: val for key, val in p.to_dict().items()
                           if key not in ("history", "vf")},
             "feeding_target": {"X_CT": p.X_CT, "X_WT": X_WT, "X_BaseEnd": X_BE,
@@ -213,32 +239,35 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims) -> dict:
                 "realtime_factor": sim["realtime_factor"]},
         })
         n = site.name
-        checks.append(_check("line1 (rod) clearance", p.d_safe_min_line1, 0.0, unit="m",
-                             upper=False, site=n))
-        checks.append(_check("line2 (implant path) clearance", p.d_safe_min_line2, 0.0,
-                             unit="m", upper=False, site=n))
+
+        def add(check_id, name, value, limit, unit, upper, site=n):
+            checks.append(_check(check_id, name, value, limit, unit=unit, upper=upper, site=site))
+
+        add("site.on_tissue", "site on the scanned tissue", sites_checked.distance[k],
+            sites_checked.tolerance, "m", True)
+        add("placement.line1_clearance", "line1 (rod) clearance", p.d_safe_min_line1, 0.0,
+            "m", False)
+        add("placement.line2_clearance", "line2 (implant path) clearance", p.d_safe_min_line2,
+            0.0, "m", False)
         if "x" in grid:
-            dd = abs(p.d_T - float(grid["x"][0]))
-            dth = abs(wrap_angle(p.theta_T - float(grid["x"][1])))
-            checks.append(_check("PSO vs grid optimum, d_T", dd, GRID_TOL_D, unit="m",
-                                 upper=True, site=n))
-            checks.append(_check("PSO vs grid optimum, theta_T", dth, GRID_TOL_THETA,
-                                 unit="rad", upper=True, site=n))
-        checks.append(_check("IK branches at the feeding target", cap.ik_branches[k], 0,
-                             unit="branches", upper=False, site=n))
-        checks.append(_check("capability index around the target", cap.neighbourhood_index[k],
-                             MIN_CAPABILITY, unit="1", upper=False, site=n))
+            add("placement.grid_d_T", "PSO vs grid optimum, d_T",
+                abs(p.d_T - float(grid["x"][0])), GRID_TOL_D, "m", True)
+            add("placement.grid_theta_T", "PSO vs grid optimum, theta_T",
+                abs(wrap_angle(p.theta_T - float(grid["x"][1]))), GRID_TOL_THETA, "rad", True)
+        add("robot.ik_branches", "IK branches at the feeding target", cap.ik_branches[k], 0,
+            "branches", False)
+        add("capability.neighbourhood_index", "capability index around the target",
+            cap.neighbourhood_index[k], MIN_CAPABILITY, "1", False)
         if sim is not None and sim["runs"]:
             runs = sim["runs"]
-            checks.append(_check("feeds missing the target", sum(not r["reached_target"]
-                                 for r in runs), 0, unit="runs", upper=True, site=n))
-            checks.append(_check("max VF violation", max(r["max_vf_violation"] for r in runs),
-                                 MAX_VF_VIOLATION, unit="m", upper=True, site=n))
-            checks.append(_check("min d_safe of the rod during feeds",
-                                 min(r["min_d_safe"] for r in runs), 0.0, unit="m",
-                                 upper=False, site=n))
-            checks.append(_check("FPSM collision alarms", sum(r["collision_alarm"]
-                                 for r in runs), 0, unit="runs", upper=True, site=n))
+            add("feeding.missed_target", "feeds missing the target",
+                sum(not r["reached_target"] for r in runs), 0, "runs", True)
+            add("feeding.vf_violation", "max VF violation",
+                max(r["max_vf_violation"] for r in runs), MAX_VF_VIOLATION, "m", True)
+            add("feeding.rod_d_safe", "min d_safe of the rod during feeds",
+                min(r["min_d_safe"] for r in runs), 0.0, "m", False)
+            add("feeding.collision_alarms", "FPSM collision alarms",
+                sum(r["collision_alarm"] for r in runs), 0, "runs", True)
     return {
         "case": {"name": case.name, "source": str(case.source), "seed": case.seed},
         "fpsm": {

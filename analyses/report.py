@@ -70,12 +70,15 @@ def render(plan: dict, figs: dict) -> str:
         f"{plan['case']['seed']}; all checks: <span class='{'pass' if ok else 'fail'}'>"
         f"{'PASS' if ok else 'FAIL'}</span></p>",
         "<h2>Checks</h2>",
-        _table(["check", "site", "value", "limit", "margin", "result"], [
-            [c["name"], c["site"] or "", _fmt(c["value"], c["unit"]),
-             _fmt(c["limit"], c["unit"]), _fmt(c["margin"], c["unit"]),
+        _table(["check", "id", "site", "value", "limit", "bound", "margin", "result"], [
+            [c["name"], c.get("id", ""), c["site"] or "", _fmt(c["value"], c["unit"]),
+             _fmt(c["limit"], c["unit"]),
+             {"max": "maximum (value <= limit)", "min": "minimum (value > limit)"}.get(
+                 c.get("bound"), ""),
+             _fmt(c["margin"], c["unit"]),
              f"<span class='{'pass' if c['pass'] else 'fail'}'>"
              f"{'pass' if c['pass'] else 'FAIL'}</span>"]
-            for c in plan["checks"]], left=2),
+            for c in plan["checks"]], left=3),
     ]
 
     f = plan["fpsm"]
@@ -165,8 +168,28 @@ def render(plan: dict, figs: dict) -> str:
                   "first site from the pre-feed pose (t = 0) to the target (t = 1 s). "
                   f"<a href='{html.escape(figs['scene'])}'>Open full page</a>.</p>",
                   f"<iframe src='{html.escape(figs['scene'])}' title='3D scene'></iframe>"]
+    parts += _provenance(plan.get("provenance"))
     parts.append("</body></html>")
     return "\n".join(parts)
+
+
+def _provenance(block: dict | None) -> list[str]:
+    """The provenance table: software, inputs with their sha256, command, time, seed."""
+    if not block:
+        return []
+    git = block.get("git") or {}
+    rows = [["implantplan", block["software"].get("implantplan", "")]]
+    if git:
+        rows.append(["git commit", git["commit"] + (" (uncommitted changes)" if git["dirty"]
+                                                     else "")])
+    rows += [[name, v] for name, v in block["software"].items() if name != "implantplan"]
+    rows += [["command", " ".join(block["command"])], ["UTC time", block["utc"]],
+             ["platform", block.get("platform", "")], ["seed", block["seed"]]]
+    inputs = block["inputs"]
+    files = ([["case", inputs["case"]["path"], inputs["case"]["sha256"]]] if "case" in inputs
+             else []) + [["mesh", m["path"], m["sha256"]] for m in inputs["meshes"]]
+    return ["<h2>Provenance</h2>", _table(["what", "value"], rows),
+            _table(["input", "file", "sha256"], files, left=3)]
 
 
 def write_report(path: Path, plan: dict, figs: dict) -> Path:

@@ -81,22 +81,35 @@ def write_json(path: str | os.PathLike, data: dict, *, kind: str | None = None) 
 def read_json(path: str | os.PathLike, *, kind: str | None = None, field: str = "file") -> dict:
     """Load a project JSON file, checking it exists, parses, and has a known schema_version."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(field, f"file {str(path)!r} does not exist")
+    text = _read_text(path, field)
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = json.loads(text)
     except json.JSONDecodeError as exc:
         raise InputError(field, f"{path} is not valid JSON ({exc})") from None
     return _check_header(data, path, kind, field)
 
 
-def read_yaml(path: str | os.PathLike, *, field: str = "file") -> dict:
-    """Load a YAML mapping with a clear error for a missing file or malformed YAML."""
+def _read_text(path: Path, field: str) -> str:
+    """A text file's content; a missing, folder, unreadable or non-UTF-8 file is an InputError."""
     path = Path(path)
+    if path.is_dir():
+        raise InputError(field, f"{str(path)!r} is a folder; expected a file")
     if not path.is_file():
         raise InputError(field, f"file {str(path)!r} does not exist")
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        return path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise InputError(field, f"cannot read {str(path)!r}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError:
+        raise InputError(field, f"{str(path)!r} is not a UTF-8 text file") from None
+
+
+def read_yaml(path: str | os.PathLike, *, field: str = "file") -> dict:
+    """Load a YAML mapping with a clear error for a missing file or malformed YAML."""
+    path = Path(path)
+    yaml_text = _read_text(path, field)
+    try:
+        data = yaml.safe_load(yaml_text)
     except yaml.YAMLError as exc:
         raise InputError(field, f"{path} is not valid YAML ({exc})") from None
     if not isinstance(data, dict):

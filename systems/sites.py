@@ -137,3 +137,30 @@ def site_problems(
             parts.append(msg)
         out.append("; ".join(parts))
     return out
+
+
+def project_to_tissue(
+    mesh: trimesh.Trimesh, X_WC: np.ndarray, positions_C: np.ndarray, axes_C: np.ndarray
+) -> np.ndarray:
+    """Move each site along its -axis (into the jaw) to the first scanned tissue it meets.
+
+    Sites proposed on the FPSM's wall lie in the air (the model is conservative: inside the free
+    space), up to a few mm from the tissue; this is where the implant axis meets the jaw.
+
+    Returns:
+        (n, 3) positions in Center (m); NaN rows where the ray meets no tissue.
+    """
+    p_C = np.atleast_2d(np.asarray(positions_C, dtype=float))
+    u_C = np.atleast_2d(np.asarray(axes_C, dtype=float))
+    u_C = u_C / np.linalg.norm(u_C, axis=1, keepdims=True)
+    p_W = apply(X_WC, p_C)
+    u_W = u_C @ np.asarray(X_WC)[:3, :3].T
+    locations, ray_ids, _ = mesh.ray.intersects_location(p_W, -u_W, multiple_hits=True)
+    out = np.full_like(p_C, np.nan)
+    if len(ray_ids):
+        depth = np.einsum("ij,ij->i", locations - p_W[ray_ids], -u_W[ray_ids])
+        order = np.lexsort((depth, ray_ids))
+        first = order[np.r_[True, ray_ids[order][1:] != ray_ids[order][:-1]]]
+        X_CW = np.linalg.inv(np.asarray(X_WC, dtype=float))
+        out[ray_ids[first]] = apply(X_CW, locations[first])
+    return out

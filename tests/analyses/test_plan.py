@@ -12,6 +12,7 @@ import yaml
 from implantplan import models
 from implantplan.analyses.case import default_case_path, load_case
 from implantplan.analyses.cli import main
+from implantplan.analyses.provenance import without_volatile
 from implantplan.systems.errors import InputError
 
 FAST = ["--runs", "1", "--no-html-scene", "--quiet"]
@@ -84,14 +85,9 @@ def test_same_seed_same_plan(tmp_path):
     for name in ("a", "b"):
         assert main(["plan", str(case), "--out", str(tmp_path / name), *FAST]) == 0
         plan = json.loads((tmp_path / name / "plan.json").read_text())
-        plan.pop("timing")
-        for s in plan["sites"]:
-            s["placement"].pop("seconds")
-            for r in s["simulation"]["runs"]:
-                r.pop("wall_seconds")
-            s["simulation"].pop("realtime_factor")
+        assert plan["provenance"]["seed"] == plan["case"]["seed"]
         plans.append(plan)
-    assert plans[0] == plans[1]
+    assert without_volatile(plans[0]) == without_volatile(plans[1])
 
 
 def _nan_mesh(tmp_path) -> Path:
@@ -108,41 +104,111 @@ def _far_scenario(tmp_path) -> Path:
     return path
 
 
-# (edits, expected exit code, a piece of the message)
+def _box_mouth(tmp_path) -> Path:
+    """A 300 mm box around the Center origin used as "the mouth": every site is far from it."""
+    import trimesh
+
+    box = trimesh.creation.box(extents=[300.0, 300.0, 300.0])
+    box.apply_translation([135.0, 0.0, 90.0])
+    path = tmp_path / "box.stl"
+    box.export(path)
+    return path
+
+
+def _written(tmp_path, name: str, content: bytes | str) -> Path:
+    path = tmp_path / name
+    path.write_bytes(content if isinstance(content, bytes) else content.encode())
+    return path
+
+
+SITE_36 = np.array([14.3, -25.5, 37.1])  # mm in Center, on the tissue (models/cases/default.yaml)
+AXIS_36 = np.array([-0.258819, 0.965926, 0.0])
+
+# name -> (how to make the case: edits of the default case, or a callable(tmp_path) -> case path,
+#          expected exit code, a piece of the message)
 CATALOGUE = {
-    "missing case file": (None, 2, "case: file"),
+    "missing case file": (lambda t: t / "missing.yaml", 2, "case: file"),
+    "case is a folder": (lambda t: t, 2, "case: "),
+    "case is not YAML": (lambda t: _written(t, "c.yaml", "mesh: [unclosed\n"), 2,
+                         "is not valid YAML"),
+    "case is a list": (lambda t: _written(t, "c.yaml", "- 1\n- 2\n"), 2,
+                       "must hold a YAML mapping"),
+    "case is binary": (lambda t: _written(t, "c.yaml", b"\xff\xfe\x00\x81"), 2,
+                       "is not a UTF-8 text file"),
+    "unknown schema version": ({"schema_version": 2}, 2, "schema_version: expected 1"),
     "missing mesh file": ({"mesh.path": "nowhere.obj"}, 2, "mesh.path: file"),
+    "mesh is a folder": ("mesh-folder", 2, "mesh.path: "),
+    "corrupt STL": ("corrupt-stl", 2, "the file is corrupt or not a mesh format"),
     "wrong units": ({"mesh.units": "cm"}, 2, "mesh.units: expected one of mm, m"),
     "NaN vertices": ("nan-mesh", 2, "NaN"),
+    "close_open_cuts not a bool": ({"mesh.close_open_cuts": "yes"}, 2,
+                                   "mesh.close_open_cuts: expected true or false"),
+    "mouth opened too far": ({"mesh.mouth_opening_deg": 60}, 2, "mesh.mouth_opening_deg"),
     "unknown key (a typo)": ({"fpsm.slice": 15}, 2, "fpsm.slice: unknown key"),
+    "too few slices": ({"fpsm.slices": 1}, 2, "fpsm.slices"),
+    "unknown fit method": ({"fpsm.method": "fast"}, 2, "fpsm.method"),
     "inverted z range": ({"fpsm.z_range_mm": [65.0, 0.0]}, 2, "fpsm.z_range_mm"),
+    "zero Center axis": ({"center.z_axis": [0, 0, 0]}, 2, "center.z_axis"),
+    "no sites": ({"sites": []}, 2, "sites: expected a list of at least one"),
     "zero axis": ({"sites.0.axis": [0, 0, 0]}, 2, "sites[0].axis: expected a non-zero"),
-    "site outside the cavity": ({"sites.0.position_mm": [0.0, -200.0, 37.1]}, 2,
-                                "sites[0] (site 36): hole: lies 166"),
+    "negative implant length": ({"sites.0.implant_length_mm": -5}, 2,
+                                "sites[0].implant_length_mm"),
+    "negative rod radius": ({"sites.0.rod_radius_mm": -1}, 2, "sites[0].rod_radius_mm"),
+    "duplicate site names": ({"sites.1.name": "36"}, 2, "sites[1].name"),
+    "site far outside the cavity": ({"sites.0.position_mm": [0.0, -200.0, 37.1]}, 2,
+                                    "sites[0] (36): lies 1"),
+    "site 5 mm off the jaw into the air": (
+        {"sites.0.position_mm": (SITE_36 + 5 * AXIS_36).tolist()}, 2,
+        "mm from the scanned tissue, expected at most 1 mm"),
+    "site 10 mm off the jaw into the air": (
+        {"sites.0.position_mm": (SITE_36 + 10 * AXIS_36).tolist()}, 2,
+        "mm from the scanned tissue, expected at most 1 mm"),
+    "site typed in metres": ({"sites.0.position_mm": (SITE_36 / 1000).tolist()}, 2,
+                             "looks like metres typed into an _mm field"),
+    "axis into the bone": ({"sites.0.axis": (-AXIS_36).tolist()}, 2,
+                           "reversed axis would point into the cavity"),
+    "a box as the mouth": ("box-mouth", 2, "sites[0] (36): lies"),
+    "site tolerance not positive": ({"site_check.tolerance_mm": 0}, 2,
+                                    "site_check.tolerance_mm"),
     "mesh in mm read as m": ({"mesh.units": "m"}, 2, "center.origin_mm: [135.0, 0.0, 90.0] mm "
                              "lies outside the mesh's bounding box"),
-    "axis into the bone": ({"sites.0.axis": [0.258819, -0.965926, 0.0]}, 3, "site 36"),
-    "no base reaches the sites": ("far-scenario", 3, "no base position in the bounds"),
+    "unknown objective": ({"placement.objective": "eq99"}, 2, "placement.objective"),
+    "unknown posture": ({"patient.posture": "standing"}, 2, "patient.posture"),
     "contradicting posture and scenario": ({"robot.scenario": "sitting"}, 2,
                                            "robot.scenario: the bundled scenario"),
-    "duplicate site names": ({"sites.1.name": "36"}, 2, "sites[1].name"),
+    "population too small": ({"robot.pop": 2}, 2, "robot.pop"),
+    "voxel too small": ({"capability.voxel_mm": 1}, 2, "capability.voxel_mm"),
+    "unknown simulation mode": ({"simulation.mode": "fast"}, 2, "simulation.mode"),
+    "negative seed": ({"seed": -1}, 2, "seed"),
+    "no base reaches the sites": ("far-scenario", 3, "no base position in the bounds"),
 }
+
+
+def _make_case(tmp_path, how) -> Path:
+    if callable(how):
+        return how(tmp_path)
+    if how == "nan-mesh":
+        return _case(tmp_path, **{"mesh.path": str(_nan_mesh(tmp_path))})
+    if how == "far-scenario":
+        return _case(tmp_path, **{"robot.scenario": str(_far_scenario(tmp_path))})
+    if how == "mesh-folder":
+        return _case(tmp_path, **{"mesh.path": str(tmp_path)})
+    if how == "corrupt-stl":
+        bad = _written(tmp_path, "scan.stl", b"solid x\n\x00\xff\xfe not a mesh" * 40)
+        return _case(tmp_path, **{"mesh.path": str(bad)})
+    if how == "box-mouth":
+        return _case(tmp_path, **{"mesh.path": str(_box_mouth(tmp_path)),
+                                  "mesh.close_open_cuts": False})
+    return _case(tmp_path, **how)
 
 
 @pytest.mark.parametrize("name", list(CATALOGUE))
 def test_bad_inputs_fail_cleanly_and_keep_the_previous_plan(name, tmp_path, capsys, demo_plan):
-    edits, code, message = CATALOGUE[name]
+    how, code, message = CATALOGUE[name]
     out = tmp_path / "out"
     shutil.copytree(demo_plan, out)  # a previous plan that must survive the failed run
     before = (out / "plan.json").read_bytes()
-    if edits is None:
-        case = tmp_path / "missing.yaml"
-    elif edits == "nan-mesh":
-        case = _case(tmp_path, **{"mesh.path": str(_nan_mesh(tmp_path))})
-    elif edits == "far-scenario":
-        case = _case(tmp_path, **{"robot.scenario": str(_far_scenario(tmp_path))})
-    else:
-        case = _case(tmp_path, **edits)
+    case = _make_case(tmp_path, how)
     assert main(["plan", str(case), "--out", str(out), *FAST]) == code
     err = capsys.readouterr().err
     assert message in err, err
@@ -151,11 +217,41 @@ def test_bad_inputs_fail_cleanly_and_keep_the_previous_plan(name, tmp_path, caps
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
 
 
+def test_the_catalogue_has_at_least_30_bad_inputs():
+    assert len(CATALOGUE) >= 30
+
+
+@pytest.mark.parametrize("where", ["/proc/no-such-dir/plan", "file-as-parent"])
+def test_an_unwritable_out_folder_is_exit_2_naming_out(where, tmp_path, capsys):
+    if where == "file-as-parent":
+        (tmp_path / "f").write_text("x")
+        where = str(tmp_path / "f" / "plan")
+    case = _case(tmp_path)
+    assert main(["plan", str(case), "--out", where, *FAST]) == 2
+    err = capsys.readouterr().err
+    assert "--out: cannot create a plan folder" in err and "Traceback" not in err
+
+
+def test_an_unreadable_case_file_is_exit_2_naming_the_case(tmp_path, capsys, monkeypatch):
+    case = _case(tmp_path)
+    real = Path.read_text
+
+    def deny(self, *args, **kwargs):  # root reads any file, so deny it the way the OS would
+        if self == case:
+            raise PermissionError(13, "Permission denied", str(self))
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "read_text", deny)
+    assert main(["plan", str(case), "--out", str(tmp_path / "out"), *FAST]) == 2
+    err = capsys.readouterr().err
+    assert "case: cannot read" in err and "Permission denied" in err
+
+
 def test_case_loader_reads_the_default_case():
     case = load_case(default_case_path())
     assert case.name == "default" and len(case.sites) == 2
     assert case.mouth_opening_deg == 25 and case.opening["blend"] == pytest.approx(0.02)
-    np.testing.assert_allclose(case.sites[0].position, [0.0139, -0.0241, 0.0371])
+    np.testing.assert_allclose(case.sites[0].position, SITE_36 * 1e-3)
     assert case.sites[0].rod_radius == pytest.approx(0.006)
     assert case.posture == "lying" and case.scenario == "lying"
 
@@ -184,10 +280,35 @@ def test_rerun_into_the_same_folder_replaces_the_plan_without_simulation(tmp_pat
 def test_check_margins_and_limits():
     from implantplan.analyses.plan import _check
 
-    assert _check("alarms", 0, 0, unit="runs", upper=True)["pass"]
-    assert not _check("alarms", 1, 0, unit="runs", upper=True)["pass"]
-    c = _check("clearance", 0.004, 0.0, unit="m", upper=False)
-    assert c["pass"] and c["margin"] == pytest.approx(0.004)
-    assert not _check("clearance", 0.0, 0.0, unit="m", upper=False)["pass"]  # contact
-    c = _check("violation", 0.0015, 0.001, unit="m", upper=True)
-    assert not c["pass"] and c["margin"] == pytest.approx(-0.0005)
+    assert _check("a.alarms", "alarms", 0, 0, unit="runs", upper=True)["pass"]
+    assert not _check("a.alarms", "alarms", 1, 0, unit="runs", upper=True)["pass"]
+    c = _check("a.clearance", "clearance", 0.004, 0.0, unit="m", upper=False)
+    assert c["pass"] and c["margin"] == pytest.approx(0.004) and c["bound"] == "min"
+    assert not _check("a.clearance", "clearance", 0.0, 0.0, unit="m", upper=False)["pass"]
+    c = _check("a.violation", "violation", 0.0015, 0.001, unit="m", upper=True)
+    assert not c["pass"] and c["margin"] == pytest.approx(-0.0005) and c["bound"] == "max"
+    assert c["id"] == "a.violation"
+
+
+def test_every_check_of_the_demo_has_a_stable_unique_id_and_a_bound(demo_plan):
+    plan = json.loads((demo_plan / "plan.json").read_text())
+    keys = [(c["id"], c["site"]) for c in plan["checks"]]
+    assert len(set(keys)) == len(keys)
+    assert all(c["bound"] in ("min", "max") for c in plan["checks"])
+    assert {c["id"] for c in plan["checks"]} >= {"fpsm.penetration_depth", "site.on_tissue",
+                                                  "placement.line1_clearance"}
+    html = (demo_plan / "report.html").read_text()
+    assert "maximum (value &lt;= limit)" in html and "Provenance" in html
+    assert plan["provenance"]["inputs"]["case"]["sha256"]
+
+
+def test_the_demo_plan_validates_against_the_shipped_json_schema(demo_plan):
+    jsonschema = pytest.importorskip("jsonschema")
+    schema = json.loads(models.model_path("schemas/plan.schema.json").read_text())
+    jsonschema.Draft202012Validator.check_schema(schema)
+    plan = json.loads((demo_plan / "plan.json").read_text())
+    jsonschema.Draft202012Validator(schema).validate(plan)
+    broken = json.loads(json.dumps(plan))
+    broken["checks"][0]["bound"] = "at most"  # the schema would catch a wrong check
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate(broken, schema, cls=jsonschema.Draft202012Validator)

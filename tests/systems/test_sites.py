@@ -66,3 +66,13 @@ def test_unit_slips_are_named(cavity):
     msgs = site_problems(check, cavity, X_WC, [too_small, too_large])
     assert "metres typed into an _mm field (x1000" in msgs[0]
     assert "mm read as metres (/1000" in msgs[1]
+
+
+def test_project_to_tissue_moves_a_site_along_its_axis_onto_the_wall(cavity):
+    from implantplan.systems.sites import project_to_tissue
+
+    p, a = _wall(45, 0.03, inset=0.004)  # 4 mm off the wall, axis into the cavity
+    q = project_to_tissue(cavity, np.eye(4), [p, p], [a, -a])
+    assert np.linalg.norm(q[0] - (p - 0.004 * a)) < 2e-6  # back along -axis onto the wall
+    assert np.linalg.norm(q[1] - (p + 0.036 * a)) < 2e-6  # reversed: the opposite wall, 36 mm
+    assert check_sites(cavity, np.eye(4), q, [a, -a]).ok.all()
