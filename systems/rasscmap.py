@@ -397,16 +397,12 @@ def unconstrained_index(cmap: CapabilityMap, X_WB: np.ndarray, points_W: np.ndar
     return cmap.voxel_index(points_W, invert(np.asarray(X_WB).reshape(-1, 4, 4)))
 
 
-NEIGHBOURS = np.stack(np.meshgrid(*[[-1, 0, 1]] * 3, indexing="ij"), -1).reshape(-1, 3)
-
-
 def task_margin(cmap: CapabilityMap, X_BT: np.ndarray) -> np.ndarray:
-    """Tie-break score: mean CMAP index over the 27 voxels around each task position, averaged
-    over the task poses (nb, m, 4, 4) -> (nb,). High = the setup tolerates a base placed a voxel
-    off. (Our addition: with a 6-axis arm half the map has index 1, so Sec. 4.2's cost ties.)"""
-    p = X_BT[..., None, :3, 3] + cmap.params.voxel * NEIGHBOURS
-    idx = cmap.voxel_index(p.reshape(-1, 3)).reshape(p.shape[:-1])
-    return idx.mean(axis=(-1, -2))
+    """Tie-break score: mean CMAP index over the 27 voxels around each task position
+    (CapabilityMap.neighbourhood_index), averaged over the task poses (nb, m, 4, 4) -> (nb,).
+    High = the setup tolerates a base placed a voxel off. (Our addition: with a 6-axis arm half
+    the map has index 1, so Sec. 4.2's cost ties.)"""
+    return cmap.neighbourhood_index(X_BT[..., :3, 3]).mean(axis=-1)
 
 
 # ---------------------------------------------------------------------------------------------
