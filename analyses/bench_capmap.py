@@ -21,7 +21,9 @@ import timeit
 import numpy as np
 
 from implantplan.systems import capability_map as cm
-from implantplan.systems import rasscmap as rm
+from implantplan.systems import map_store as ms
+from implantplan.systems import rasscmap_inputs as rin
+from implantplan.systems import setup_search as ss
 from implantplan.systems.kinematics import fk, ik
 
 CASES = os.path.join(
@@ -64,11 +66,11 @@ def bench_query(m: cm.CapabilityMap, n: int = 2_000_000) -> float:
 
 
 def _problem(cmap, patient, task, robot, store=None):
-    return rm.SetupProblem(
+    return ss.SetupProblem(
         cmap,
-        rm.load_patient(os.path.join(CASES, patient)),
-        rm.load_task(os.path.join(CASES, task)),
-        rm.load_robot(os.path.join(CASES, robot)),
+        rin.load_patient(os.path.join(CASES, patient)),
+        rin.load_task(os.path.join(CASES, task)),
+        rin.load_robot(os.path.join(CASES, robot)),
         store=store,
     )
 
@@ -117,7 +119,7 @@ def main(argv=None) -> int:
     pedi = _problem(m100, "pedicle_patient.yaml", "pedicle_task.yaml", "pedicle_robot.yaml")
     pedi.evaluate(np.arange(3))  # warm up
     pedi = _problem(m100, "pedicle_patient.yaml", "pedicle_task.yaml", "pedicle_robot.yaml")
-    ex = rm.exhaustive_search(pedi)
+    ex = ss.exhaustive_search(pedi)
     n_pts = len(pedi.points_W)
     _row(
         f"unconstrained RASSCMAP per base ({n_pts} pts, 800 bases)",
@@ -129,7 +131,7 @@ def main(argv=None) -> int:
     ga_times, ga_costs, ga_book = [], [], []
     for seed in range(5):
         p = _problem(m100, "pedicle_patient.yaml", "pedicle_task.yaml", "pedicle_robot.yaml")
-        r = rm.genetic_search(p, seed=seed)
+        r = ss.genetic_search(p, seed=seed)
         ga_times.append(r.seconds)
         ga_costs.append(r.cost)
         ga_book.append((r.seconds - p.eval_seconds) / max(r.generations, 1))
@@ -139,7 +141,7 @@ def main(argv=None) -> int:
     print(f"    best cost exhaustive {ex.cost:.4f}; GA over 5 seeds {ga_range}")
 
     with tempfile.TemporaryDirectory() as tmp:
-        store = rm.RasscmapStore(tmp)
+        store = ms.RasscmapStore(tmp)
         lap = _problem(
             m100,
             "laparoscopy_patient.yaml",
@@ -167,7 +169,7 @@ def main(argv=None) -> int:
             "laparoscopy_robot_fixed.yaml",
             store,
         )
-        rf = rm.exhaustive_search(fixed)
+        rf = ss.exhaustive_search(fixed)
         _row("laparoscopy fixed base, 5 APs, 200 tasks (stored maps)", rf.seconds, 0.33, "s")
         _row("  same + building its 5 maps [b]", t_build_fixed + rf.seconds, 5 * 8.7 + 0.33, "s")
         t_build_rail = timeit.timeit(lambda: lap.evaluate(np.arange(lap.n)), number=1)
@@ -178,12 +180,12 @@ def main(argv=None) -> int:
             "laparoscopy_robot_rail.yaml",
             store,
         )
-        rr = rm.exhaustive_search(rail)
+        rr = ss.exhaustive_search(rail)
         _row("laparoscopy rail 25 x 5 APs, 200 tasks (stored maps)", rr.seconds, 4.92, "s")
         _row("  same + building its 125 maps [b]", t_build_rail, 125 * 8.7 + 4.92, "s")
         print("    [b] paper: its maps come from the RASSCMAP database; building them would take")
         print("        8.7 s each (Table 1), so the reference is n_maps x 8.7 s + its search time")
-        rg = rm.genetic_search(
+        rg = ss.genetic_search(
             _problem(
                 m100,
                 "laparoscopy_patient.yaml",
