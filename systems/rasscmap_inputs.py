@@ -8,59 +8,140 @@ degrees (``*_deg``). Relative paths in a robot file are relative to that file.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
+from implantplan.systems import validate as v
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import read_yaml
 from implantplan.systems.frames import rot_z, rpy_to_rotation, transform
 from implantplan.systems.rasscmap import Instrument, Trocar, arc_radius
 
-
-def _num(d: dict, key: str, where: str, *, positive=True, default=None) -> float:
-    if key not in d:
-        if default is not None:
-            return float(default)
-        raise InputError(f"{where}.{key}", "missing (expected a number)")
-    v = d[key]
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
-        raise InputError(f"{where}.{key}", f"expected a number, got {v!r}")
-    if positive and v <= 0:
-        raise InputError(f"{where}.{key}", f"expected a positive number, got {v!r}")
-    if not positive and v < 0:
-        raise InputError(f"{where}.{key}", f"expected a number >= 0, got {v!r}")
-    return float(v)
+# -- file schemas (systems.validate typed sections) ----------------------------------------------
 
 
-def _vec(v, where: str, n: int = 3) -> np.ndarray:
-    if not isinstance(v, (list, tuple)) or len(v) != n:
-        raise InputError(where, f"expected a list of {n} numbers, got {v!r}")
-    out = []
-    for x in v:
-        if isinstance(x, bool) or not isinstance(x, (int, float)) or not np.isfinite(x):
-            raise InputError(where, f"expected a list of {n} numbers, got {v!r}")
-        out.append(float(x))
-    return np.array(out)
+@dataclass(frozen=True)
+class PoseSpec:
+    """``{xyz: [m, m, m], rpy_deg: [deg, deg, deg], id: name}`` (rpy_deg optional, default 0)."""
+
+    xyz: np.ndarray = v.spec(v.vec3)
+    rpy_deg: np.ndarray = v.spec(v.vec3, [0.0, 0.0, 0.0])
+    id: str | None = v.spec(v.label, None)
+
+    @property
+    def X(self) -> np.ndarray:
+        return transform(rpy_to_rotation(np.deg2rad(self.rpy_deg)), self.xyz)
 
 
 def parse_pose(d, where: str) -> np.ndarray:
-    """``{xyz: [m, m, m], rpy_deg: [deg, deg, deg]}`` -> 4x4 (rpy_deg optional, default 0)."""
-    if not isinstance(d, dict) or "xyz" not in d:
+    """A :class:`PoseSpec` mapping -> 4x4."""
+    if not isinstance(d, dict):
         raise InputError(where, "expected a mapping with 'xyz' (m) and optional 'rpy_deg'")
-    unknown = set(d) - {"xyz", "rpy_deg", "id"}
-    if unknown:
-        raise InputError(where, f"unknown keys {sorted(unknown)} (expected xyz, rpy_deg)")
-    p = _vec(d["xyz"], f"{where}.xyz")
-    rpy = np.deg2rad(_vec(d.get("rpy_deg", [0, 0, 0]), f"{where}.rpy_deg"))
-    return transform(rpy_to_rotation(rpy), p)
+    return v.parse(PoseSpec, d, where).X
 
 
-def _mapping(data: dict, key: str, where: str) -> dict:
-    v = data.get(key)
-    if not isinstance(v, dict):
-        raise InputError(f"{where}.{key}" if where else key, "missing or not a mapping")
-    return v
+@dataclass(frozen=True)
+class BodySpec:
+    arc_length: float = v.spec(v.positive)
+    chord: float = v.spec(v.positive)
+    length: float = v.spec(v.positive)
+
+
+@dataclass(frozen=True)
+class TrocarSpec:
+    cannula_length: float = v.spec(v.nonneg, 0.05)
+    alpha_max_deg: float = v.spec(partial(v.number, positive=True, high=90.0), 90.0)
+    beta_max_deg: float = v.spec(partial(v.number, positive=True, high=90.0), 90.0)
+
+
+@dataclass(frozen=True)
+class InstrumentSpec:
+    shaft_length: float = v.spec(v.positive, 0.40)
+    instrument_length: float = v.spec(v.positive, 0.02)
+    joint_limit_deg: float = v.spec(partial(v.number, positive=True, high=90.0), 90.0)
+
+
+@dataclass(frozen=True)
+class PatientSpec:
+    id: str = v.spec(v.label)
+    access: str = v.spec(v.one_of("unconstrained", "constrained"))
+    pose: PoseSpec = v.spec(v.section(PoseSpec))
+    voxel_size: float = v.spec(v.positive)
+    map_depth: float = v.spec(v.nonneg)
+    rotation_step_deg: float = v.spec(v.positive, 5.0)
+    translation_step: float = v.spec(v.positive, 0.05)
+    body: BodySpec | None = v.spec(v.section(BodySpec), None)
+    access_points: tuple | None = v.spec(v.sections(PoseSpec, min_items=1), None)
+    trocar: TrocarSpec = v.spec(v.section(TrocarSpec), {})
+    instrument: InstrumentSpec = v.spec(v.section(InstrumentSpec), {})
+
+
+@dataclass(frozen=True)
+class BoxSpec:
+    """A grid of task positions: ``counts`` points per axis from ``min`` to ``max`` (m)."""
+
+    min: np.ndarray = v.spec(v.vec3)
+    max: np.ndarray = v.spec(v.vec3)
+    counts: tuple = v.spec(lambda c, w: tuple(v.integer(x, f"{w}[{i}]", low=1)
+                                              for i, x in enumerate(_three(c, w))))
+    rpy_deg: np.ndarray = v.spec(v.vec3, [0.0, 0.0, 0.0])
+
+
+def _three(value, where: str) -> list:
+    if not isinstance(value, list) or len(value) != 3:
+        raise InputError(where, f"expected 3 positive integers, got {value!r}")
+    return value
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    id: str = v.spec(v.label)
+    poses: tuple = v.spec(v.sections(PoseSpec), [])
+    boxes: tuple = v.spec(v.sections(BoxSpec), [])
+
+
+def _range(value, where: str) -> np.ndarray:
+    """A base range axis: [min, max] or one number (min = max)."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        value = [value, value]
+    pair = v.vector(value, where, 2)
+    if pair[1] < pair[0]:
+        raise InputError(where, f"expected [min, max] with min <= max, got {value!r}")
+    return pair
+
+
+@dataclass(frozen=True)
+class BaseRangeSpec:
+    x: np.ndarray = v.spec(_range, 0.0)
+    y: np.ndarray = v.spec(_range, 0.0)
+    z: np.ndarray = v.spec(_range, 0.0)
+    yaw_deg: np.ndarray = v.spec(_range, 0.0)
+
+
+@dataclass(frozen=True)
+class RobotSpec:
+    name: str = v.spec(v.label)
+    map: str = v.spec(v.text)
+    base_ranges: tuple = v.spec(v.sections(BaseRangeSpec, min_items=1))
+    translation_step: float = v.spec(v.positive, 0.05)
+    rotation_step_deg: float = v.spec(v.positive, 5.0)
+    store: str | None = v.spec(v.text, None)
+    build: dict | None = v.spec(v.mapping, None)
+    limits: str | None = v.spec(lambda x, w: v.choice(str(x), w, ("175", "360")), None)
+
+
+def _file(path, key: str, cls):
+    """The ``key:`` section of a YAML file, parsed as ``cls``."""
+    data = read_yaml(path, field=key)
+    if not isinstance(data, dict) or not isinstance(data.get(key), dict):
+        raise InputError(key, "missing or not a mapping")
+    v.unknown_keys(data, (key,), "")
+    return v.parse(cls, data[key], key)
+
+
+# -- what the planner uses (SI) ------------------------------------------------------------------
 
 
 @dataclass
@@ -82,61 +163,25 @@ class Patient:
 
 def load_patient(path) -> Patient:
     """Read and validate a patient YAML (Listing 1)."""
-    data = _mapping(read_yaml(path, field="patient"), "patient", "")
-    w = "patient"
-    pid = str(data.get("id", ""))
-    if not pid:
-        raise InputError("patient.id", "missing (expected a non-empty id)")
-    X_WP = parse_pose(data.get("pose"), "patient.pose")
-    voxel = _num(data, "voxel_size", w)
-    depth = _num(data, "map_depth", w, positive=False)
-    d_rot = np.deg2rad(_num(data, "rotation_step_deg", w, default=5.0))
-    d_trans = _num(data, "translation_step", w, default=0.05)
-    access = data.get("access")
-    if access not in ("unconstrained", "constrained"):
-        raise InputError(
-            "patient.access", f"expected 'unconstrained' or 'constrained', got {access!r}"
-        )
-    pat = Patient(pid, X_WP, voxel, depth, access, d_rot, d_trans)
-    if access == "unconstrained":
-        body = _mapping(data, "body", w)
-        a = _num(body, "arc_length", "patient.body")
-        c = _num(body, "chord", "patient.body")
-        ln = _num(body, "length", "patient.body")
-        arc_radius(a, c, field="patient.body")
-        pat.body = {"arc_length": a, "chord": c, "length": ln}
+    f = _file(path, "patient", PatientSpec)
+    pat = Patient(f.id, f.pose.X, f.voxel_size, f.map_depth, f.access,
+                  np.deg2rad(f.rotation_step_deg), f.translation_step)
+    if f.access == "unconstrained":
+        if f.body is None:
+            raise InputError("patient.body", "missing or not a mapping")
+        b = f.body
+        arc_radius(b.arc_length, b.chord, field="patient.body")
+        pat.body = {"arc_length": b.arc_length, "chord": b.chord, "length": b.length}
     else:
-        aps = data.get("access_points")
-        if not isinstance(aps, list) or not aps:
+        if f.access_points is None:
             raise InputError("patient.access_points", "expected a non-empty list of poses")
-        for i, ap in enumerate(aps):
-            X = parse_pose(ap, f"patient.access_points[{i}]")
-            pat.access_points.append((str(ap.get("id", f"AP{i + 1}")), X))
-        tr = data.get("trocar", {})
-        if not isinstance(tr, dict):
-            raise InputError("patient.trocar", "expected a mapping")
-        pat.trocar = Trocar(
-            cannula_length=_num(
-                tr, "cannula_length", "patient.trocar", positive=False, default=0.05
-            ),
-            depth=depth,
-            alpha_max=np.deg2rad(_num(tr, "alpha_max_deg", "patient.trocar", default=90.0)),
-            beta_max=np.deg2rad(_num(tr, "beta_max_deg", "patient.trocar", default=90.0)),
-        )
-        if pat.trocar.alpha_max > np.pi / 2 + 1e-12 or pat.trocar.beta_max > np.pi / 2 + 1e-12:
-            raise InputError("patient.trocar", "alpha_max_deg and beta_max_deg must be <= 90")
-        ins = data.get("instrument", {})
-        if not isinstance(ins, dict):
-            raise InputError("patient.instrument", "expected a mapping")
-        pat.instrument = Instrument(
-            shaft_length=_num(ins, "shaft_length", "patient.instrument", default=0.40),
-            instrument_length=_num(ins, "instrument_length", "patient.instrument", default=0.02),
-            joint_limit=np.deg2rad(
-                _num(ins, "joint_limit_deg", "patient.instrument", default=90.0)
-            ),
-        )
-        if pat.instrument.joint_limit > np.pi / 2 + 1e-12:
-            raise InputError("patient.instrument.joint_limit_deg", "must be <= 90")
+        pat.access_points = [(ap.id or f"AP{i + 1}", ap.X) for i, ap in enumerate(f.access_points)]
+        pat.trocar = Trocar(cannula_length=f.trocar.cannula_length, depth=f.map_depth,
+                            alpha_max=np.deg2rad(f.trocar.alpha_max_deg),
+                            beta_max=np.deg2rad(f.trocar.beta_max_deg))
+        pat.instrument = Instrument(shaft_length=f.instrument.shaft_length,
+                                    instrument_length=f.instrument.instrument_length,
+                                    joint_limit=np.deg2rad(f.instrument.joint_limit_deg))
     return pat
 
 
@@ -150,34 +195,18 @@ class Task:
 
 def load_task(path) -> Task:
     """Read a task YAML (Listing 2): ``poses`` (list of xyz/rpy_deg) and/or ``boxes`` (grids)."""
-    data = _mapping(read_yaml(path, field="task"), "task", "")
-    tid = str(data.get("id", ""))
-    if not tid:
-        raise InputError("task.id", "missing (expected a non-empty id)")
-    poses = []
-    for i, p in enumerate(data.get("poses", []) or []):
-        poses.append(parse_pose(p, f"task.poses[{i}]"))
-    for i, b in enumerate(data.get("boxes", []) or []):
-        w = f"task.boxes[{i}]"
-        if not isinstance(b, dict):
-            raise InputError(w, "expected a mapping with min, max, counts, rpy_deg")
-        lo, hi = _vec(b.get("min"), f"{w}.min"), _vec(b.get("max"), f"{w}.max")
-        counts = b.get("counts")
-        if not (
-            isinstance(counts, list)
-            and len(counts) == 3
-            and all(isinstance(c, int) and c >= 1 for c in counts)
-        ):
-            raise InputError(f"{w}.counts", f"expected 3 positive integers, got {counts!r}")
-        if np.any(hi < lo):
-            raise InputError(w, "max must be >= min on every axis")
-        R = rpy_to_rotation(np.deg2rad(_vec(b.get("rpy_deg", [0, 0, 0]), f"{w}.rpy_deg")))
-        axes = [np.linspace(lo[k], hi[k], counts[k]) for k in range(3)]
+    f = _file(path, "task", TaskSpec)
+    poses = [p.X for p in f.poses]
+    for i, b in enumerate(f.boxes):
+        if np.any(b.max < b.min):
+            raise InputError(f"task.boxes[{i}]", "max must be >= min on every axis")
+        R = rpy_to_rotation(np.deg2rad(b.rpy_deg))
+        axes = [np.linspace(b.min[k], b.max[k], b.counts[k]) for k in range(3)]
         g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
         poses.extend(transform(np.broadcast_to(R, (len(g), 3, 3)), g))
     if not poses:
         raise InputError("task.poses", "expected at least one task pose (poses or boxes)")
-    return Task(tid, np.stack(poses))
+    return Task(f.id, np.stack(poses))
 
 
 @dataclass
@@ -216,44 +245,16 @@ class Robot:
 def load_robot(path) -> Robot:
     """Read and validate a robot YAML (Listing 3); relative paths are relative to the file."""
     path = Path(path)
-    data = _mapping(read_yaml(path, field="robot"), "robot", "")
-    name = str(data.get("name", ""))
-    if not name:
-        raise InputError("robot.name", "missing (expected the robot's name)")
-    if not isinstance(data.get("map"), str):
-        raise InputError("robot.map", "missing (expected the path of the capability map .h5)")
-    map_path = (path.parent / data["map"]).resolve()
-    t_step = _num(data, "translation_step", "robot", default=0.05)
-    r_step = np.deg2rad(_num(data, "rotation_step_deg", "robot", default=5.0))
+    f = _file(path, "robot", RobotSpec)
+    step = np.array([f.translation_step] * 3 + [np.deg2rad(f.rotation_step_deg)])
+    scale = np.array([1.0, 1.0, 1.0, np.pi / 180])
     ranges = []
-    raw = data.get("base_ranges")
-    if not isinstance(raw, list) or not raw:
-        raise InputError("robot.base_ranges", "expected a non-empty list of ranges")
-    for i, r in enumerate(raw):
-        w = f"robot.base_ranges[{i}]"
-        if not isinstance(r, dict):
-            raise InputError(w, "expected a mapping with x, y, z ([min, max] m) and yaw_deg")
-        lo, hi = [], []
-        for key, scale in (("x", 1.0), ("y", 1.0), ("z", 1.0), ("yaw_deg", np.pi / 180)):
-            v = r.get(key, [0.0, 0.0])
-            if isinstance(v, (int, float)) and not isinstance(v, bool):
-                v = [v, v]
-            pair = _vec(v, f"{w}.{key}", 2) * scale
-            if pair[1] < pair[0]:
-                raise InputError(f"{w}.{key}", f"expected [min, max] with min <= max, got {v!r}")
-            lo.append(pair[0])
-            hi.append(pair[1])
-        ranges.append(BaseRange(np.array(lo), np.array(hi), np.array([t_step] * 3 + [r_step])))
-    store = data.get("store")
-    build = data.get("build")
-    if build is not None and not isinstance(build, dict):
-        raise InputError("robot.build", "expected a mapping (voxel_mm, directions, limits)")
-    limits = data.get("limits")
-    if limits is not None and str(limits) not in ("175", "360"):
-        raise InputError("robot.limits", f"expected '175' or '360', got {limits!r}")
+    for r in f.base_ranges:
+        pairs = np.stack([r.x, r.y, r.z, r.yaw_deg]) * scale[:, None]
+        ranges.append(BaseRange(pairs[:, 0].copy(), pairs[:, 1].copy(), step.copy()))
     return Robot(
-        name, map_path, ranges, (path.parent / store).resolve() if store else None, build,
-        None if limits is None else str(limits),
+        f.name, (path.parent / f.map).resolve(), ranges,
+        (path.parent / f.store).resolve() if f.store else None, f.build, f.limits,
     )  # fmt: skip
 
 
