@@ -142,57 +142,32 @@ def main(argv=None) -> int:
 
     with tempfile.TemporaryDirectory() as tmp:
         store = ms.RasscmapStore(tmp)
-        lap = _problem(
-            m100,
-            "laparoscopy_patient.yaml",
-            "laparoscopy_task.yaml",
-            "laparoscopy_robot_rail.yaml",
-            store,
-        )
+
+        def lap_problem(robot_file):
+            return _problem(m100, "laparoscopy_patient.yaml", "laparoscopy_task.yaml", robot_file,
+                            store)
+
+        lap = lap_problem("laparoscopy_robot_rail.yaml")
         t_one = timeit.timeit(lambda: lap.rasscmap(0, 0), number=1)
         r = lap.rasscmap(1, 0)
         _row("constrained RASSCMAP, 5 cm / 5 deg (build)", t_one, 8.7, "s")
         print(f"    ({r.timings['n_voxels']} voxels, {r.timings['n_pivots']} pivots; "
               f"Alg. 1 {r.timings['t_t']:.3f} s, Alg. 2 {r.timings['t_R']:.3f} s)")  # fmt: skip
-        fixed = _problem(
-            m100,
-            "laparoscopy_patient.yaml",
-            "laparoscopy_task.yaml",
-            "laparoscopy_robot_fixed.yaml",
-            store,
-        )
+        fixed = lap_problem("laparoscopy_robot_fixed.yaml")
         t_build_fixed = timeit.timeit(lambda: fixed.evaluate(np.arange(fixed.n)), number=1)
-        fixed = _problem(
-            m100,
-            "laparoscopy_patient.yaml",
-            "laparoscopy_task.yaml",
-            "laparoscopy_robot_fixed.yaml",
-            store,
-        )
+        fixed = lap_problem("laparoscopy_robot_fixed.yaml")
         rf = ss.exhaustive_search(fixed)
         _row("laparoscopy fixed base, 5 APs, 200 tasks (stored maps)", rf.seconds, 0.33, "s")
         _row("  same + building its 5 maps [b]", t_build_fixed + rf.seconds, 5 * 8.7 + 0.33, "s")
         t_build_rail = timeit.timeit(lambda: lap.evaluate(np.arange(lap.n)), number=1)
-        rail = _problem(
-            m100,
-            "laparoscopy_patient.yaml",
-            "laparoscopy_task.yaml",
-            "laparoscopy_robot_rail.yaml",
-            store,
-        )
+        rail = lap_problem("laparoscopy_robot_rail.yaml")
         rr = ss.exhaustive_search(rail)
         _row("laparoscopy rail 25 x 5 APs, 200 tasks (stored maps)", rr.seconds, 4.92, "s")
         _row("  same + building its 125 maps [b]", t_build_rail, 125 * 8.7 + 4.92, "s")
         print("    [b] paper: its maps come from the RASSCMAP database; building them would take")
         print("        8.7 s each (Table 1), so the reference is n_maps x 8.7 s + its search time")
         rg = ss.genetic_search(
-            _problem(
-                m100,
-                "laparoscopy_patient.yaml",
-                "laparoscopy_task.yaml",
-                "laparoscopy_robot_rail.yaml",
-                store,
-            ),
+            lap_problem("laparoscopy_robot_rail.yaml"),
             seed=0,
         )
         _row("laparoscopy rail, GA (stored maps)", rg.seconds, 4.92, "s")

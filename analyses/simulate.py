@@ -277,12 +277,18 @@ def _scene_name(sc) -> str:
     return sc.posture if sc.posture in ("lying", "sitting") else "arm"
 
 
-def cmd_feeding(args) -> int:
-    _check_count(args.runs, "--runs")
-    progress = Progress("simulate feeding", quiet=args.quiet)
+def _layout(args, progress):
+    """The case of ``args`` and its layout: (inst, sc, sc_plant, xyz, branch, source)."""
     inst, sc, sc_plant = _setup(args)
     xyz, branch, source = select_layout(sc, seed=args.seed, robot_placement=args.robot_placement)
     progress.say(f"layout {np.round(1000 * xyz).tolist()} mm branch {branch} ({source})")
+    return inst, sc, sc_plant, xyz, branch, source
+
+
+def cmd_feeding(args) -> int:
+    _check_count(args.runs, "--runs")
+    progress = Progress("simulate feeding", quiet=args.quiet)
+    inst, sc, sc_plant, xyz, branch, source = _layout(args, progress)
     case = make_case(_scene_name(sc), sc_plant, xyz, branch, inst, label="selected")
     meshcat = None
     if args.meshcat_html is not None:
@@ -340,9 +346,7 @@ def cmd_feeding(args) -> int:
 def cmd_circle(args) -> int:
     _check_count(args.realizations, "--realizations")
     progress = Progress("simulate circle", quiet=args.quiet)
-    _, sc, sc_plant = _setup(args)
-    xyz, branch, source = select_layout(sc, seed=args.seed, robot_placement=args.robot_placement)
-    progress.say(f"layout {np.round(1000 * xyz).tolist()} mm branch {branch} ({source})")
+    _, sc, sc_plant, xyz, branch, source = _layout(args, progress)
     result = run_circle(sc_plant, xyz, branch, realizations=args.realizations, seed=args.seed)
     if result is None:
         raise PlanningFailure(f"branch {branch} cannot follow the circle continuously")
