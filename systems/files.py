@@ -81,40 +81,36 @@ def write_json(path: str | os.PathLike, data: dict, *, kind: str | None = None) 
 def read_json(path: str | os.PathLike, *, kind: str | None = None, field: str = "file") -> dict:
     """Load a project JSON file, checking it exists, parses, and has a known schema_version."""
     path = Path(path)
-    text = _read_text(path, field)
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputError(field, f"{path} is not valid JSON ({exc})") from None
+    data = _parsed(path, field, json.loads, json.JSONDecodeError, "JSON")
     return _check_header(data, path, kind, field)
-
-
-def _read_text(path: Path, field: str) -> str:
-    """A text file's content; a missing, folder, unreadable or non-UTF-8 file is an InputError."""
-    path = Path(path)
-    if path.is_dir():
-        raise InputError(field, f"{str(path)!r} is a folder; expected a file")
-    if not path.is_file():
-        raise InputError(field, f"file {str(path)!r} does not exist")
-    try:
-        return path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise InputError(field, f"cannot read {str(path)!r}: {exc.strerror or exc}") from None
-    except UnicodeDecodeError:
-        raise InputError(field, f"{str(path)!r} is not a UTF-8 text file") from None
 
 
 def read_yaml(path: str | os.PathLike, *, field: str = "file") -> dict:
     """Load a YAML mapping with a clear error for a missing file or malformed YAML."""
     path = Path(path)
-    yaml_text = _read_text(path, field)
-    try:
-        data = yaml.safe_load(yaml_text)
-    except yaml.YAMLError as exc:
-        raise InputError(field, f"{path} is not valid YAML ({exc})") from None
+    data = _parsed(path, field, yaml.safe_load, yaml.YAMLError, "YAML")
     if not isinstance(data, dict):
         raise InputError(field, f"{path} must hold a YAML mapping at the top level")
     return data
+
+
+def _parsed(path: Path, field: str, loads, error, what: str) -> Any:
+    """``loads`` of the file's text; a missing, folder, unreadable or non-UTF-8 file or a parse
+    ``error`` is an InputError."""
+    if path.is_dir():
+        raise InputError(field, f"{str(path)!r} is a folder; expected a file")
+    if not path.is_file():
+        raise InputError(field, f"file {str(path)!r} does not exist")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise InputError(field, f"cannot read {str(path)!r}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError:
+        raise InputError(field, f"{str(path)!r} is not a UTF-8 text file") from None
+    try:
+        return loads(text)
+    except error as exc:
+        raise InputError(field, f"{path} is not valid {what} ({exc})") from None
 
 
 def _check_header(data: Any, path: Path, kind: str | None, field: str) -> dict:
