@@ -46,7 +46,8 @@ def register(subparsers) -> None:
         help="first and last slice height along Center Z (mm); default: the "
         "stretch of the axis inside the cavity",
     )
-    fit.add_argument("--method", choices=("exact", "paper"), default="exact")
+    fit.add_argument("--method", choices=("exact", "paper"), default="exact",
+                     help="exact: max area by LPs (default); paper: Eq. 7-9 gradient descent")
     fit.add_argument("--margin-mm", type=float, default=0.0, help="clearance from the walls (mm)")
     fit.add_argument(
         "--cap-radius-mm",
@@ -71,11 +72,13 @@ def register(subparsers) -> None:
     fit.set_defaults(func=_fit)
 
     cyl = sub.add_parser("cylinder", help="an analytic cylinder FPSM (for checks)")
-    cyl.add_argument("--radius-mm", type=float, required=True)
-    cyl.add_argument("--z-min-mm", type=float, required=True)
-    cyl.add_argument("--z-max-mm", type=float, required=True)
-    cyl.add_argument("--slices", type=int, required=True)
-    cyl.add_argument("--control-points", type=int, default=16)
+    cyl.add_argument("--radius-mm", type=float, required=True, help="cylinder radius (mm)")
+    cyl.add_argument("--z-min-mm", type=float, required=True, help="bottom (throat) z (mm)")
+    cyl.add_argument("--z-max-mm", type=float, required=True,
+                     help="top z, the mouth opening (mm)")
+    cyl.add_argument("--slices", type=int, required=True, help="number of slices M (>= 2)")
+    cyl.add_argument("--control-points", type=int, default=16,
+                     help="control radii per slice N (default 16)")
     cyl.add_argument("--out", type=Path, required=True, help="output fpsm.json")
     cyl.set_defaults(func=_cylinder)
 

@@ -47,7 +47,8 @@ def register(subparsers) -> None:
                    help="hole axis in Center, from the bone into the cavity")
     p.add_argument("--rod-radius-mm", type=float, required=True, help="handle rod radius r (mm)")
     p.add_argument("--implant-length-mm", type=float, required=True, help="implant length d12")
-    p.add_argument("--objective", choices=("eq14", "eq21", "eq22"), default="eq14")
+    p.add_argument("--objective", choices=("eq14", "eq21", "eq22"), default="eq14",
+                   help="Eq. 14 signed square roots (default), Eq. 21 linear, Eq. 22 squares")
     p.add_argument("--seed", type=int, default=0, help="PSO seed")
     p.add_argument(
         "--d-t-range-mm",

@@ -68,7 +68,8 @@ def register(subparsers) -> None:
     p.add_argument("--pop", type=int, default=None, help="population size (scenario: 500)")
     p.add_argument("--gen", type=int, default=None, help="max generations (scenario: 500)")
     p.add_argument("--seed", type=int, default=None, help="seed (scenario's seed by default)")
-    p.add_argument("--ik", choices=("closed-form", "drake"), default="closed-form")
+    p.add_argument("--ik", choices=("closed-form", "drake"), default="closed-form",
+                   help="IK: closed form (default) or Drake multi-start InverseKinematics")
     p.add_argument("--drake-starts", type=int, default=64,
                    help="multi-start budget per pose for --ik drake")
     p.add_argument("--weights", nargs=3, type=float, default=None, metavar=("WD", "WE", "WJ"),

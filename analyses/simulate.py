@@ -238,7 +238,8 @@ def register(subparsers) -> None:
     p = sub.add_parser("feeding", help="K scripted feeds through the virtual fixture")
     _case_options(p)
     p.add_argument("--runs", type=int, default=10, help="feeds (default 10, the paper's)")
-    p.add_argument("--mode", default="kinematic", choices=("kinematic", "dynamic"))
+    p.add_argument("--mode", default="kinematic", choices=("kinematic", "dynamic"),
+                   help="kinematic: the arm follows diff IK exactly (default); dynamic: 1 ms plant")
     p.add_argument("--meshcat-html", type=Path, help="write a static HTML replay of run 0")
     _operator_options(p)
     p.set_defaults(func=cmd_feeding)
