@@ -55,6 +55,8 @@ def test_an_unwritable_output_is_exit_2_with_the_path(capsys):
     assert code == 2
     err = capsys.readouterr().err
     assert "error" in err and "/proc/no-such-dir" in err and "Traceback" not in err
+
+
 def test_every_option_has_help_text():
     missing = [
         f"{path}: {action.option_strings or action.dest}"
@@ -62,5 +64,3 @@ def test_every_option_has_help_text():
         if action.help in (None, "") and not isinstance(action, argparse._HelpAction)
     ]
     assert missing == []
-
-
