@@ -25,6 +25,14 @@ th { background: #f3f3f3; } td.l, th.l { text-align: left; }
 .figs img { max-width: 100%; border: 1px solid #ddd; margin: 4px 0; }
 iframe { width: 100%; height: 560px; border: 1px solid #ccc; }
 .muted { color: #666; font-size: 0.9em; }
+.print-only { display: none; }
+@media print {
+  body { margin: 0; max-width: none; font-size: 10pt; }
+  iframe, select, .screen-only { display: none; }
+  .print-only { display: block; }
+  h2, h3 { break-after: avoid; } tr, .figs img { break-inside: avoid; }
+  .figs img { max-height: 24cm; }
+}
 """
 
 
@@ -173,12 +181,32 @@ def render(plan: dict, figs: dict) -> str:
     for site, paths in figs.get("simulation", {}).items():
         parts.append(f"<h3>Site {html.escape(site)}</h3>" + _figs(paths))
 
+    scenes = figs.get("site_scenes") or {}
+    if scenes:
+        first = next(iter(scenes.values()))
+        options = "".join(f"<option value='{html.escape(src)}'>site {html.escape(name)}</option>"
+                          for name, src in scenes.items())
+        parts += ["<h2>3D scene of each site</h2>",
+                  "<p class='muted'>The opened scan (pink, see-through), the FPSM slices (blue),"
+                  " the site and the implant path (red), the feeding target's axes, the virtual "
+                  "fixture (green), the rod (grey) and the arm with its actuator, fed from the "
+                  "pre-feed pose (t = 0) to the target (t = 1 s; play it from the Controls' "
+                  "Animation folder). <label>Site: <select id='site-scene' onchange="
+                  "\"document.getElementById('site-frame').src = this.value\">"
+                  f"{options}</select></label> <a href='{html.escape(first)}'>Open full page</a>"
+                  ".</p>",
+                  f"<iframe id='site-frame' src='{html.escape(first)}' title='site scene'>"
+                  "</iframe>",
+                  "<p class='print-only'>The 3D scenes are interactive: open "
+                  + ", ".join(html.escape(src) for src in scenes.values())
+                  + " beside this report.</p>"]
     if figs.get("scene"):
-        parts += ["<h2>3D scene</h2>",
+        parts += ["<h2>3D scene of the layout</h2>",
                   "<p class='muted'>Meshcat recording of the selected layout: the feed of the "
                   "first site from the pre-feed pose (t = 0) to the target (t = 1 s). "
                   f"<a href='{html.escape(figs['scene'])}'>Open full page</a>.</p>",
-                  f"<iframe src='{html.escape(figs['scene'])}' title='3D scene'></iframe>"]
+                  f"<iframe id='layout-frame' src='{html.escape(figs['scene'])}' "
+                  "title='3D scene'></iframe>"]
     parts += _provenance(plan.get("provenance"))
     parts.append("</body></html>")
     return "\n".join(parts)

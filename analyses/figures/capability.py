@@ -4,6 +4,8 @@ red 0 to blue 1), best vs worst setup, and a static Meshcat HTML of coloured vox
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from implantplan.systems import capability_map as cm
@@ -19,6 +21,63 @@ def hsv_index_cmap():
     import matplotlib.pyplot as plt
 
     return mcolors.ListedColormap(plt.get_cmap("hsv")(np.linspace(0.0, 2.0 / 3.0, 256)))
+
+
+def plot_target_neighbourhoods(cmap: cm.CapabilityMap, X_BA: np.ndarray, names, path) -> Path:
+    """PNG: for each feeding target (a row), the 3 x 3 x 3 voxels around it at their real size and
+    position in base_link, one column per layer (below, at and above the target's voxel), each
+    voxel coloured by its reachability index (HSV, red 0 to blue 1; grey = not in the map), the
+    target marked. Axes in mm, zoomed to the neighbourhood."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
+
+    from implantplan.analyses.figures import save
+
+    g = cmap.grid
+    v = g.voxel
+    index_of = dict(zip(np.asarray(cmap.voxel_ids).tolist(), np.asarray(cmap.index).tolist(),
+                        strict=True))
+    colours = hsv_index_cmap()
+    p_all = np.asarray(X_BA)[:, :3, 3]
+    fig, axes = plt.subplots(len(p_all), 3, figsize=(13, 3.8 * len(p_all)), squeeze=False,
+                             layout="constrained")
+    for row, (name, p) in enumerate(zip(names, p_all, strict=True)):
+        c = g.cells(p)
+        for col, dk in enumerate((-1, 0, 1)):
+            ax = axes[row, col]
+            for di in (-1, 0, 1):
+                for dj in (-1, 0, 1):
+                    ijk = c + (di, dj, dk)
+                    inside = np.all((ijk >= 0) & (ijk < np.asarray(g.shape)))
+                    vid = int(np.ravel_multi_index(tuple(ijk), g.shape)) if inside else -1
+                    idx = index_of.get(vid)
+                    lo = (g.origin + ijk * v) * 1e3
+                    ax.add_patch(Rectangle((lo[0], lo[1]), v * 1e3, v * 1e3,
+                                           facecolor="0.85" if idx is None else colours(idx),
+                                           edgecolor="k", linewidth=0.6))
+                    if idx is not None:
+                        ax.text(lo[0] + v * 500, lo[1] + v * 500, f"{idx:.2f}", ha="center",
+                                va="center", fontsize=7, color="w" if idx > 0.6 else "k")
+            if dk == 0:
+                ax.plot(p[0] * 1e3, p[1] * 1e3, marker="*", color="k", markersize=12,
+                        linestyle="none", label="feeding target")
+                ax.legend(loc="upper right", fontsize=7)
+            zc = (g.origin[2] + (c[2] + dk + 0.5) * v) * 1e3
+            ax.set_title(f"site {name}: layer z = {zc:.0f} mm"
+                         + (" (target's)" if dk == 0 else ""), fontsize=9)
+            lo_xy = (g.origin[:2] + (c[:2] - 1) * v) * 1e3
+            ax.set_xlim(lo_xy[0] - 0.1 * v * 1e3, lo_xy[0] + 3.1 * v * 1e3)
+            ax.set_ylim(lo_xy[1] - 0.1 * v * 1e3, lo_xy[1] + 3.1 * v * 1e3)
+            ax.set_aspect("equal")
+            ax.set_xlabel("x in base (mm)")
+            ax.set_ylabel("y in base (mm)")
+    sm = plt.cm.ScalarMappable(cmap=colours, norm=plt.Normalize(0, 1))
+    fig.colorbar(sm, ax=axes.ravel().tolist(), label="reachability index (grey: not mapped)")
+    fig.suptitle(f"capability around each feeding target ({v * 1e3:.0f} mm voxels)")
+    return save(fig, path, dpi=90, tight=False)
 
 
 def plot_map_slices(cmap: cm.CapabilityMap, path, *, n_slices: int = 6) -> None:

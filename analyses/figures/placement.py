@@ -138,10 +138,12 @@ def plot_placement(fpsm: Fpsm, p: Placement, out_dir) -> list[Path]:
             v = mesh[0] * mm
             step = max(1, v.shape[0] // 20000)
             ax.plot(v[::step, a], v[::step, b], ",", color="0.75", label="mesh")
-        for c in curves:
-            ax.plot(c[:, a], c[:, b], color="tab:blue", lw=0.6, alpha=0.7)
-        for ln in vf_lines:
-            ax.plot(ln[:, a], ln[:, b], color="tab:green", lw=1.0)
+        for n_c, c in enumerate(curves):
+            ax.plot(c[:, a], c[:, b], color="tab:blue", lw=0.6, alpha=0.7,
+                    label="FPSM slices" if n_c == 0 else None)
+        for n_l, ln in enumerate(vf_lines):
+            ax.plot(ln[:, a], ln[:, b], color="tab:green", lw=1.0,
+                    label="virtual fixture" if n_l == 0 else None)
         ax.plot(rod[:, a], rod[:, b], color="tab:red", lw=2.5, label="rod (line1)")
         ax.plot(tip[:, a], tip[:, b], "--", color="tab:orange", lw=1.2, label="tip path (line2)")
         ax.plot(implant[:, a], implant[:, b], color="k", lw=3, label="implant")

@@ -5,11 +5,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from implantplan.analyses.figures.capability import plot_map_slices
+from implantplan.analyses.figures.capability import plot_target_neighbourhoods
 from implantplan.analyses.figures.fpsm import plot_fit, plot_mouth_opening
 from implantplan.analyses.figures.placement import plot_placement
 from implantplan.analyses.figures.robot import plot_placement as plot_robot
 from implantplan.analyses.figures.robot import write_layout_html
+from implantplan.analyses.figures.scene import write_site_scene
 from implantplan.analyses.figures.simulation import plot_feeding
 from implantplan.systems import moprp
 
@@ -45,9 +46,14 @@ def make_figures(case, fit, placements, robot, cap, sims, fig_dir: Path, *, html
         scene = write_layout_html(robot.scenario, robot.base_xyz, int(robot.branch[0]),
                                   out / "layout.html")
         figs["scene"] = str(Path(scene).relative_to(out))
-    cap_png = fig_dir / "capability" / "map_slices.png"
+        figs["site_scenes"] = {
+            site.name: str(write_site_scene(out / f"scene_{site.name}.html", fit=fit,
+                                            placement=p, robot=robot, site_index=k
+                                            ).relative_to(out))
+            for k, (site, p) in enumerate(zip(case.sites, placements, strict=True))}
+    cap_png = fig_dir / "capability" / "target_neighbourhoods.png"
     cap_png.parent.mkdir(parents=True, exist_ok=True)
-    plot_map_slices(cap.cmap, cap_png, n_slices=3)
+    plot_target_neighbourhoods(cap.cmap, cap.X_BA, [s.name for s in case.sites], cap_png)
     figs["capability"] = rel([cap_png])
     figs["simulation"] = {}
     for s in sims:

@@ -59,7 +59,7 @@ def plot_placement(sc: moprp.Scenario, out: dict, out_dir: Path, *, html: bool =
     fig.savefig(paths[-1], dpi=110)
     plt.close(fig)
 
-    for label, key in (("after", "q"), ("before", "q_pre")):
+    for label, key in (("before", "q_pre"), ("after", "q")):
         paths.append(_plot_layout(sc, ps, np.asarray(s[key]), out_dir / f"layout_{label}.png",
                                   f"{sc.name}: selected layout {label} feeding"))
     if html:
@@ -121,18 +121,40 @@ def _plot_layout(sc, xyz, q, path, title) -> Path:
             pts[:, 2] = np.maximum(pts[:, 2], 0.0)  # drawn down to the floor only
             for a, b in edges:
                 ax.plot(pts[[a, b], i], pts[[a, b], j], color=color, lw=1)
+        # capsules at their real size: the projection of a capsule is the segment's projection
+        # grown by its radius (a stadium; a disc when seen end-on)
         for c, r in caps:
-            ax.plot(c[:, i], c[:, j], color="peachpuff", lw=max(2.0, 300 * r), alpha=0.7,
-                    solid_capstyle="round")
+            _fill_capsule(ax, c[:, [i, j]], r, "peachpuff", 0.8)
         for k in range(seg.shape[0]):
-            ax.plot(seg[k, :, i], seg[k, :, j], color="tab:blue", lw=max(1.5, 300 * rad[k]),
-                    alpha=0.6, solid_capstyle="round")
+            _fill_capsule(ax, seg[k][:, [i, j]], rad[k], "tab:blue", 0.45)
         o = sc.X_WO[:3, 3]
         ax.plot(o[i], o[j], "r+", ms=12, mew=2)
         ax.set_aspect("equal")
+        ax.autoscale_view()
         ax.set_title(name)
         ax.set_xlabel("xyz"[i] + " (m)")
         ax.set_ylabel("xyz"[j] + " (m)")
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    handles = [Patch(color="tab:blue", alpha=0.45, label="arm (collision capsules)"),
+               Patch(color="peachpuff", label="patient"),
+               Line2D([], [], color="tan", label="chair"),
+               Line2D([], [], color="tab:gray", label="cart"),
+               Line2D([], [], color="r", marker="+", linestyle="none", ms=10, mew=2,
+                      label="feeding target (Oral)")]
+    fig.legend(handles=handles, loc="lower center", ncol=5, fontsize=8)
     fig.suptitle(title)
-    path = save(fig, path, dpi=100)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    path = save(fig, path, dpi=100, tight=False)
     return Path(path)
+
+
+def _fill_capsule(ax, ends_2d: np.ndarray, radius: float, color, alpha: float) -> None:
+    """Fill the projection of a capsule (its 2D segment grown by the radius)."""
+    from shapely.geometry import LineString, Point
+
+    a, b = np.asarray(ends_2d, dtype=float)
+    shape = Point(a) if np.allclose(a, b) else LineString([a, b])
+    outline = np.asarray(shape.buffer(float(radius), quad_segs=16).exterior.coords)
+    ax.fill(outline[:, 0], outline[:, 1], color=color, alpha=alpha, lw=0)

@@ -48,7 +48,28 @@ def test_report_loads_without_errors(served, tmp_path):
             "(() => { const f = document.querySelector('iframe'); "
             "return f.contentDocument.querySelectorAll('canvas').length; })()")
         assert canvases >= 1
+        # the site scene holds the scan, the FPSM, the fixture, the rod and the arm + actuator
+        tree = browser.evaluate(
+            "(() => { const v = document.getElementById('site-frame').contentWindow.viewer; "
+            "const kids = p => Object.keys(v.scene_tree.find(p).children); "
+            "return JSON.stringify({case: kids(['case']), "
+            "drake: kids(['drake', 'visualizer'])}); })()")
+        tree = __import__("json").loads(tree)
+        assert {"scan", "fpsm", "site", "implant_path", "feeding_target", "fixture",
+                "rod"} <= set(tree["case"])
+        assert {"aubo", "actuator"} <= set(tree["drake"])
+        # the selector switches the frame to the other site's scene
+        src = browser.evaluate(
+            "(() => { const s = document.getElementById('site-scene'); s.selectedIndex = 1; "
+            "s.dispatchEvent(new Event('change')); "
+            "return document.getElementById('site-frame').getAttribute('src'); })()")
+        assert src == "scene_46.html"
         browser.screenshot(tmp_path / "report.png")
+        # it prints: a multi-page PDF without the interactive frames
+        import base64
+
+        pdf = base64.b64decode(browser.call("Page.printToPDF", printBackground=False)["data"])
+        assert pdf[:5] == b"%PDF-" and pdf.count(b"/Type /Page") - pdf.count(b"/Type /Pages") > 3
         assert browser.errors == []
     finally:
         browser.close()
