@@ -1,0 +1,62 @@
+"""The default case from the scan saved in other scanner formats (issue: STL is what dental
+scanners export). Text formats carry the OBJ's numbers exactly and plan identically; binary STL and
+PLY store single precision (the vertices move by up to 7.6e-6 mm), which the FPSM fit and the
+placements follow to within 1e-8 m, while the NSGA-II base search may pick another member of its
+flat Pareto front (any bit of difference changes a GA's trajectory)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+import yaml
+
+from implantplan import models
+from implantplan.analyses.case import default_case_path
+from implantplan.analyses.cli import main
+from implantplan.analyses.provenance import without_volatile
+
+FAST = ["--runs", "0", "--no-html-scene", "--quiet"]
+
+
+def _plan(tmp_path, name, file_type=None, scale=1.0):
+    case = yaml.safe_load(default_case_path().read_text())
+    source = models.model_path("oral/oralCavityMesh.obj")
+    if file_type is None:
+        case["mesh"]["path"] = str(source)
+    else:
+        mesh = trimesh.load(source, process=False, force="mesh")
+        mesh.apply_scale(scale)
+        path = tmp_path / f"{name}.{'stl' if file_type.startswith('stl') else file_type}"
+        mesh.export(path, file_type=file_type)
+        case["mesh"]["path"] = str(path)
+        case["mesh"]["units"] = "mm" if scale == 1.0 else "m"
+    case_path = tmp_path / f"{name}.yaml"
+    case_path.write_text(yaml.safe_dump(case))
+    out = tmp_path / f"out_{name}"
+    assert main(["plan", str(case_path), "--out", str(out), *FAST]) == 0
+    plan = without_volatile(json.loads((out / "plan.json").read_text()))
+    plan.pop("case")  # names the case file
+    return plan
+
+
+def test_the_scan_as_ascii_stl_plans_exactly_like_the_obj(tmp_path):
+    assert _plan(tmp_path, "ascii", "stl_ascii") == _plan(tmp_path, "obj")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("file_type, scale", [("stl", 1.0), ("ply", 1.0), ("stl", 1e-3),
+                                              ("ply", 1e-3)])
+def test_single_precision_formats_give_the_same_fpsm_and_placements(tmp_path, file_type, scale):
+    ref = _plan(tmp_path, "obj")
+    got = _plan(tmp_path, f"{file_type}_{scale:g}", file_type, scale)
+    for a, b in zip(ref["sites"], got["sites"], strict=True):
+        for key in ("d_T", "d_safe_min_line1", "d_safe_min_line2"):
+            assert abs(a["placement"][key] - b["placement"][key]) < 1e-8, key
+        assert abs(a["placement"]["theta_T"] - b["placement"]["theta_T"]) < 1e-6
+        Xa, Xb = np.array(a["feeding_target"]["X_CT"]), np.array(b["feeding_target"]["X_CT"])
+        np.testing.assert_allclose(Xa[:3, 3], Xb[:3, 3], rtol=0, atol=1e-8)  # m
+        np.testing.assert_allclose(Xa[:3, :3], Xb[:3, :3], rtol=0, atol=1e-6)  # theta_T's 1e-6
+    assert got["passed"] and [c["id"] for c in got["checks"]] == [c["id"] for c in ref["checks"]]
