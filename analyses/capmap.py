@@ -38,6 +38,7 @@ from implantplan.systems import capability_map as cm
 from implantplan.systems import map_store as ms
 from implantplan.systems import rasscmap_inputs as rin
 from implantplan.systems import setup_search as ss
+from implantplan.systems import validate
 from implantplan.systems.actuator import actuator_map_frame
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import write_json
@@ -108,11 +109,9 @@ def _load_poses(path) -> np.ndarray:
         X = np.load(path, allow_pickle=False)
     except (ValueError, OSError) as exc:
         raise InputError("--poses", f"{path} is not a .npy array ({exc})") from None
-    if X.ndim != 3 or X.shape[1:] != (4, 4):
+    if X.ndim != 3:
         raise InputError("--poses", f"expected an N x 4 x 4 array, got shape {X.shape}")
-    if not np.all(np.isfinite(X)):
-        raise InputError("--poses", "poses must be finite")
-    return X.astype(float)
+    return validate.pose(X, "--poses", batch=True)
 
 
 def _cmd_query(args) -> int:

@@ -5,7 +5,9 @@
          -> capability check of every feeding target -> teleop feeding per site
 
 Each stage takes what the previous one made and returns plain results; the ``plan`` command
-(analyses.plan) writes them out and builds the report.
+(analyses.plan) writes them out and builds the report. Stages call cores only (systems, diagrams,
+analyses.case), never a command module (tests/test_layers.py; the one listed exception,
+robot_place.initial_population, leaves with issue 11's single MOPRP search).
 """
 
 from __future__ import annotations

@@ -8,6 +8,10 @@ q (plant) --> ToolPose --X_WE--> VirtualFixtureForceLaw, FpsmEstimator, MasterDe
 loggers: q, tool position, VF violation, FPSM safety, alarm;  scene graph --> Meshcat (optional)
 ```
 
+One diagram per case: the master motion is a parameter of the context
+(systems.master_device.MasterDevice.set_motion), so ``simulate(teleop, T, motion=m)`` replays any
+run on the same diagram (diagrams.feeding runs K feeds this way).
+
 Two modes:
 
 - ``kinematic`` (default for the experiments): Drake's DifferentialInverseKinematicsIntegrator

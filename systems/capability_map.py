@@ -55,6 +55,7 @@ import h5py
 import numba
 import numpy as np
 
+from implantplan.systems import validate
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import write_atomic
 from implantplan.systems.frames import invert
@@ -198,9 +199,7 @@ def make_params(
         raise InputError("directions", f"expected an integer in [1, 32000], got {directions!r}")
     if limits not in ("175", "360"):
         raise InputError("limits", f"expected '175' or '360', got {limits!r}")
-    X = np.eye(4) if X_FT is None else np.asarray(X_FT, dtype=float)
-    if X.shape != (4, 4) or not np.all(np.isfinite(X)):
-        raise InputError("X_FT", "expected a finite 4x4 pose")
+    X = np.eye(4) if X_FT is None else validate.pose(X_FT, "X_FT")
     free = roll_is_free(X)
     if rolls is None:
         rolls = 1 if free else 12
