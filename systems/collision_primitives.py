@@ -63,46 +63,6 @@ ARM_CAPSULES: tuple[Capsule, ...] = (
 )
 
 
-def actuator_capsules(
-    *,
-    rod_length: float,
-    rod_radius: float,
-    head_radius: float,
-    implant_length: float = 0.031,
-    implant_radius: float = 0.002,
-    body_length: float = 0.0,
-    body_radius: float = 0.0,
-) -> tuple[Capsule, ...]:
-    """Capsules of the contra-angle implanting actuator in the flange frame (link 6).
-
-    The handle rod runs along the flange +z from the flange face to the TCP at ``rod_length``
-    (diagrams/tools.py); the head (where the perpendicular implant sits) is a sphere at the rod's
-    end; the implant (d12, seed 000) sticks out of the head along the flange -y (the contra-angle's
-    implant axis, diagrams/tools.py). An optional motor body (``body_length`` > 0) is a wider
-    capsule from the flange face.
-    """
-    for name, v in (("rod_length", rod_length), ("rod_radius", rod_radius),
-                    ("head_radius", head_radius)):
-        if not np.isfinite(v) or v <= 0:
-            raise InputError(f"actuator.{name}", f"expected a positive length in m, got {v!r}")
-    for name, v in (("body_length", body_length), ("body_radius", body_radius),
-                    ("implant_length", implant_length), ("implant_radius", implant_radius)):
-        if not np.isfinite(v) or v < 0:
-            raise InputError(f"actuator.{name}", f"expected a length >= 0 in m, got {v!r}")
-    caps = [
-        Capsule("actuator_rod", 6, (0.0, 0.0, 0.0), (0.0, 0.0, rod_length), rod_radius),
-        Capsule("actuator_head", 6, (0.0, 0.0, rod_length), (0.0, 0.0, rod_length), head_radius),
-    ]
-    if implant_length > 0 and implant_radius > 0:
-        caps.append(Capsule("actuator_implant", 6, (0.0, 0.0, rod_length),
-                            (0.0, -implant_length, rod_length), implant_radius))
-    if body_length > 0 and body_radius > 0:
-        b1 = max(body_length - body_radius, body_radius)
-        caps.append(Capsule("actuator_body", 6, (0.0, 0.0, body_radius), (0.0, 0.0, b1),
-                            body_radius))
-    return tuple(caps)
-
-
 def capsule_arrays(capsules) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(links (K,), local segments (K, 2, 3), radii (K,)) of a capsule list."""
     links = np.array([c.link for c in capsules], dtype=np.int64)

@@ -155,14 +155,16 @@ def test_condition_1_rejects_every_branch_at_a_reachable_base(lying):
 
 def test_actuator_into_the_forearm_is_condition_2():
     """With the arm upright (q1..q3 = 0) and the wrist turned over (q4 = q5 = 180 deg) the rod
-    points straight down the forearm: the rod's axis meets the forearm capsule's axis, so the
-    clearance is -(r_rod + r_forearm) = -(0.006 + 0.044); at home the actuator is clear."""
+    points straight down the forearm: the rod's axis meets the forearm capsule's axis. The rod
+    (a cylinder) is enclosed by its capsule (clearance -(r_rod + r_forearm) = -0.05) and by
+    boxes that the forearm's axis passes through (-r_forearm = -0.044); the model reports the
+    largest of these lower bounds; at home the actuator is clear."""
     sc = moprp.load_scenario("lying")
     model = moprp.CollisionModel.for_scenario(sc)
     q = np.deg2rad([[0, 0, 0, 180, 180, 0], [0, 0, 0, 0, 0, 0]])
     d = moprp.collision_clearance(q, np.zeros((2, 3)), sc, model)["self"]
-    assert d[0] == pytest.approx(-0.05, abs=1e-9)
-    assert d[1] > 0.1
+    assert d[0] == pytest.approx(-0.044, abs=1e-9)
+    assert d[1] > sc.clearance
 
 
 # ---------------------------------------------------------------- selection
