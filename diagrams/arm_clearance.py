@@ -105,17 +105,20 @@ def confirm_feed(checker: SceneGraphClearance, sc: moprp.Scenario, branch: int, 
 
     Returns:
         dict(distance (m, the smallest along the feed), pair [name, name], samples, ok (every
-        sample reached and distance >= the scenario's clearance), limit (= clearance)).
+        sample reached and distance >= the scenario's clearance), limit (= clearance),
+        distance_pre / distance_target (m, at the pre-feed and target configurations)).
     """
     q = feed_path(sc, checker.xyz, branch, X_OT=X_OT)
     reached = bool(np.all(np.isfinite(q)))
     c = checker(q[np.all(np.isfinite(q), axis=1)], max_distance=max(0.05, 2 * sc.clearance))
-    if c.distance.size == 0:
+    if not reached:
         return {"distance": float("-inf"), "pair": ["", ""], "samples": int(q.shape[0]),
-                "ok": False, "limit": sc.clearance}
+                "ok": False, "limit": sc.clearance, "distance_pre": float("nan"),
+                "distance_target": float("nan")}
     _, dist, pair = c.worst()
     return {"distance": dist, "pair": list(pair), "samples": int(q.shape[0]),
-            "ok": bool(reached and dist >= sc.clearance), "limit": sc.clearance}
+            "ok": bool(dist >= sc.clearance), "limit": sc.clearance,
+            "distance_pre": float(c.distance[0]), "distance_target": float(c.distance[-1])}
 
 
 # --------------------------------------------------------------------------------------------
