@@ -256,6 +256,9 @@ def register(subparsers) -> None:
     p.add_argument("--realizations", type=int, default=10, help="joint error draws (default 10)")
     _operator_options(p)
     p.set_defaults(func=cmd_layouts)
+    from implantplan.analyses.moprp_fidelity import register_analysis
+
+    register_analysis(sub)
 
 
 def _check_count(value: int, name: str, lo: int = 1) -> None:
