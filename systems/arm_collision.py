@@ -352,46 +352,68 @@ def world_in_base(xyz, X_WO, R_OB) -> np.ndarray:
 
 
 @numba.njit(cache=True)
+def _crossing(a, d, h):  # pragma: no cover - compiled
+    """(t at a + t d = -h, t at a + t d = +h), -1 where not inside (0, 1)."""
+    if d == 0.0:
+        return -1.0, -1.0
+    t0 = (-h - a) / d
+    t1 = (h - a) / d
+    return (t0 if 0.0 < t0 < 1.0 else -1.0), (t1 if 0.0 < t1 < 1.0 else -1.0)
+
+
+@numba.njit(cache=True)
+def _piece_min(ax, ay, az, dx, dy, dz, hx, hy, hz, lo, hi):  # pragma: no cover - compiled
+    """Minimum of the point-box distance on [lo, hi], a piece where no coordinate crosses +-h:
+    the quadratic of the piece's active coordinates minimized in closed form."""
+    tm = 0.5 * (lo + hi)
+    A = 0.0
+    B = 0.0
+    for a, d, h in ((ax, dx, hx), (ay, dy, hy), (az, dz, hz)):
+        v = a + tm * d
+        if v > h:
+            A += d * d
+            B += d * (a - h)
+        elif v < -h:
+            A += d * d
+            B += d * (a + h)
+    t = lo if A <= 0.0 else min(max(-B / A, lo), hi)
+    return _point_box(ax + t * dx, ay + t * dy, az + t * dz, hx, hy, hz)
+
+
+@numba.njit(cache=True)
 def _seg_box(ax, ay, az, dx, dy, dz, hx, hy, hz):  # pragma: no cover - compiled
     """Exact distance from the segment a + t d (t in [0, 1], box frame) to the solid box of half
     sizes h. The squared point-box distance sum_c max(|a_c + t d_c| - h_c, 0)^2 is a convex
-    piecewise quadratic in t whose pieces change where a coordinate crosses +-h_c: minimize the
-    quadratic of each piece (at most 7) in closed form."""
-    a = (ax, ay, az)
-    d = (dx, dy, dz)
-    h = (hx, hy, hz)
-    ts = np.empty(8)
-    ts[0] = 0.0
-    ts[1] = 1.0
-    m = 2
-    for c in range(3):
-        if d[c] != 0.0:
-            for s in (-1.0, 1.0):
-                t = (s * h[c] - a[c]) / d[c]
-                if 0.0 < t < 1.0:
-                    ts[m] = t
-                    m += 1
-    ts = np.sort(ts[:m])
+    piecewise quadratic in t whose pieces change where a coordinate crosses +-h_c (at most 6
+    breakpoints): the smallest value at the ends and breakpoints brackets the minimum between
+    its two neighbours, and the quadratic of each of those two pieces is minimized in closed
+    form (no allocation, no sort)."""
+    x0, x1 = _crossing(ax, dx, hx)
+    y0, y1 = _crossing(ay, dy, hy)
+    z0, z1 = _crossing(az, dz, hz)
+    cands = (0.0, 1.0, x0, x1, y0, y1, z0, z1)
     best = np.inf
-    for k in range(m - 1):
-        t0, t1 = ts[k], ts[k + 1]
-        tm = 0.5 * (t0 + t1)
-        A = 0.0
-        B = 0.0
-        for c in range(3):
-            v = a[c] + tm * d[c]
-            if v > h[c]:
-                off = a[c] - h[c]
-            elif v < -h[c]:
-                off = a[c] + h[c]
-            else:
-                continue
-            A += d[c] * d[c]
-            B += d[c] * off
-        t = t0 if A <= 0.0 else min(max(-B / A, t0), t1)
-        f = _point_box(a[0] + t * d[0], a[1] + t * d[1], a[2] + t * d[2], hx, hy, hz)
-        if f < best:
-            best = f
+    tb = 0.0
+    for t in cands:
+        if t >= 0.0:
+            f = _point_box(ax + t * dx, ay + t * dy, az + t * dz, hx, hy, hz)
+            if f < best:
+                best = f
+                tb = t
+    if best <= 0.0:
+        return 0.0
+    left = -1.0
+    right = 2.0
+    for t in cands:
+        if t >= 0.0:
+            if left < t < tb:
+                left = t
+            if tb < t < right:
+                right = t
+    if left >= 0.0:
+        best = min(best, _piece_min(ax, ay, az, dx, dy, dz, hx, hy, hz, left, tb))
+    if right <= 1.0:
+        best = min(best, _piece_min(ax, ay, az, dx, dy, dz, hx, hy, hz, tb, right))
     return best
 
 
@@ -436,7 +458,28 @@ def _edges_to_box(WA, hA, WB, hB):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
-def _box_box(WA, hA, WB, hB):  # pragma: no cover - compiled
+def _face_gap(WA, hA, WB, hB):  # pragma: no cover - compiled
+    """Largest separation of the boxes along A's face normals (a lower bound of their
+    distance: a projection onto a unit axis never lengthens a segment)."""
+    gap = -np.inf
+    for k in range(3):
+        ux, uy, uz = WA[0, k], WA[1, k], WA[2, k]
+        c = abs((WB[0, 3] - WA[0, 3]) * ux + (WB[1, 3] - WA[1, 3]) * uy
+                + (WB[2, 3] - WA[2, 3]) * uz)
+        rB = 0.0
+        for j in range(3):
+            rB += hB[j] * abs(WB[0, j] * ux + WB[1, j] * uy + WB[2, j] * uz)
+        g = c - hA[k] - rB
+        if g > gap:
+            gap = g
+    return gap
+
+
+@numba.njit(cache=True)
+def _box_box(WA, hA, WB, hB, cutoff=np.inf):  # pragma: no cover - compiled
+    gap = max(_face_gap(WA, hA, WB, hB), _face_gap(WB, hB, WA, hA))
+    if gap >= cutoff:
+        return gap  # a lower bound, already beyond what the verdict needs
     c = _to_local(WB, WA[0, 3], WA[1, 3], WA[2, 3])
     if abs(c[0]) <= hB[0] and abs(c[1]) <= hB[1] and abs(c[2]) <= hB[2]:
         return 0.0
@@ -447,7 +490,7 @@ def _box_box(WA, hA, WB, hB):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
-def _enclosure_distance(kA, WA, dA, kB, WB, dB):  # pragma: no cover - compiled
+def _enclosure_distance(kA, WA, dA, kB, WB, dB, cutoff):  # pragma: no cover - compiled
     if kA == 0 and kB == 0:
         ax, ay, az = WA[0, 2] * dA[0], WA[1, 2] * dA[0], WA[2, 2] * dA[0]
         bx, by, bz = WB[0, 2] * dB[0], WB[1, 2] * dB[0], WB[2, 2] * dB[0]
@@ -460,7 +503,7 @@ def _enclosure_distance(kA, WA, dA, kB, WB, dB):  # pragma: no cover - compiled
         return _capsule_box(WA, dA[0], dA[1], WB, dB)
     if kB == 0:
         return _capsule_box(WB, dB[0], dB[1], WA, dA)
-    return _box_box(WA, dA, WB, dB)
+    return _box_box(WA, dA, WB, dB, cutoff)
 
 
 @numba.njit(cache=True)
@@ -469,11 +512,18 @@ def _clearance_kernel(F, enc_frame, enc_kind, enc_X, enc_dims, shape_enc, shape_
                       out_pair):  # pragma: no cover - compiled
     E = enc_frame.shape[0]
     S = shape_frame.shape[0]
-    W = np.empty((E, 4, 4))
+    W = np.zeros((E, 4, 4))
+    W[:, 3, 3] = 1.0
     C = np.empty((S, 3))
     for n in range(F.shape[0]):
         for e in range(E):
-            W[e] = F[n, enc_frame[e]] @ enc_X[e]
+            Fe = F[n, enc_frame[e]]
+            Xe = enc_X[e]
+            for r in range(3):
+                for c in range(4):
+                    W[e, r, c] = (Fe[r, 0] * Xe[0, c] + Fe[r, 1] * Xe[1, c]
+                                  + Fe[r, 2] * Xe[2, c])
+                W[e, r, 3] += Fe[r, 3]
         for s in range(S):
             Fs = F[n, shape_frame[s]]
             for c in range(3):
@@ -491,9 +541,11 @@ def _clearance_kernel(F, enc_frame, enc_kind, enc_X, enc_dims, shape_enc, shape_
                 for a in range(shape_enc[i], shape_enc[i + 1]):
                     for b in range(shape_enc[j], shape_enc[j + 1]):
                         dab = _enclosure_distance(enc_kind[a], W[a], enc_dims[a],
-                                                  enc_kind[b], W[b], enc_dims[b])
+                                                  enc_kind[b], W[b], enc_dims[b], cutoff)
                         if dab > d:
                             d = dab
+                            if d >= cutoff:
+                                break
                     if d >= cutoff:
                         break
                 if d < lb:
