@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 
 from implantplan.systems import arm_collision as ac
+from implantplan.systems import collision_primitives as cp
 from implantplan.systems import kinematics as kin
 from implantplan.systems import moprp
 from implantplan.systems.arm_collision import _box_box, _seg_box
@@ -181,3 +185,78 @@ def test_bare_arm_model_and_frames():
     d, pair = model.clearance(np.zeros((1, 6)))
     assert np.isfinite(d[0, 0]) and d[0, 0] > 0 and pair[0, 0] >= 0
     assert np.isinf(d[0, 1]) and pair[0, 1] == -1
+
+
+# ---------------------------------------------------------------- capsule primitives
+
+
+def test_segment_distances_by_hand():
+    a = np.array([[0.0, 0, 0], [1.0, 0, 0]])
+    # parallel, offset by 2 in y
+    assert cp.segment_distance(a, a + [0, 2, 0]) == pytest.approx(2.0)
+    # skew: a along x at z=0, b along y through (0.5, *, 3)
+    b = np.array([[0.5, -1, 3.0], [0.5, 1, 3.0]])
+    assert cp.segment_distance(a, b) == pytest.approx(3.0)
+    # beyond the end: closest points are the endpoints (1,0,0) and (2,0,1)
+    c = np.array([[2.0, 0, 1], [3.0, 0, 1]])
+    assert cp.segment_distance(a, c) == pytest.approx(np.sqrt(2))
+    # point (degenerate segment) above the middle
+    p = np.array([[0.5, 0.0, 0.7], [0.5, 0.0, 0.7]])
+    assert cp.segment_distance(a, p) == pytest.approx(0.7)
+    assert cp.capsule_clearance(a, 0.1, b, 0.2) == pytest.approx(2.7)
+
+
+def test_segment_box_distance_by_hand():
+    box = np.eye(4)
+    half = np.array([0.5, 0.5, 0.5])
+    seg = np.array([[2.0, 0, 0], [2.0, 0, 3.0]])
+    assert cp.segment_box_distance(seg, box, half) == pytest.approx(1.5)
+    seg2 = np.array([[1.5, 1.5, -3.0], [1.5, 1.5, 3.0]])  # passes the vertical edge
+    assert cp.segment_box_distance(seg2, box, half) == pytest.approx(np.sqrt(2))
+    assert cp.segment_box_distance(np.array([[-2.0, 0, 0], [2.0, 0, 0]]), box, half) == 0.0
+    # batched version agrees with the single one, rotated box
+    from implantplan.systems.frames import rot_z, transform
+
+    Xb = transform(rot_z(np.pi / 4), [1.0, 0.0, 0.0])
+    d1 = cp.segment_box_distance(seg, Xb, half)
+    d2 = cp.min_box_clearance(seg[None, None], np.zeros(1), Xb[None, :3, :3],
+                              Xb[None, None, :3, 3], half[None])
+    assert d2[0] == pytest.approx(float(d1), abs=1e-9)
+
+
+@settings(max_examples=50, deadline=None)
+@given(arrays(np.float64, (2, 2, 3), elements=st.floats(-1, 1)))
+def test_segment_distance_is_the_min_over_samples(S):
+    t = np.linspace(0, 1, 401)
+    pa = S[0, 0] + t[:, None] * (S[0, 1] - S[0, 0])
+    pb = S[1, 0] + t[:, None] * (S[1, 1] - S[1, 0])
+    brute = np.linalg.norm(pa[:, None] - pb[None], axis=-1).min()
+    d = cp.segment_distance(S[0], S[1])
+    assert d <= brute + 1e-12
+    assert d >= brute - 2 * np.linalg.norm(S[:, 1] - S[:, 0], axis=-1).max() / 400 - 1e-12
+
+
+def test_arm_capsules_at_home_by_hand():
+    seg, rad = cp.arm_capsules(np.zeros(6))
+    names = [c.name for c in cp.ARM_CAPSULES]
+    ua = seg[names.index("upper_arm")]
+    np.testing.assert_allclose(ua, [[0, -0.2013, 0.1632], [0, -0.2013, 0.8102]], atol=1e-12)
+    fa = seg[names.index("forearm")]
+    # forearm capsule at z 0.128 of its frame = base y offset (the frame's z is base +y here)
+    np.testing.assert_allclose(fa[:, 2], [0.8102, 1.4107], atol=1e-12)
+    assert rad[names.index("upper_arm")] == 0.058
+    # batched shapes
+    seg2, _ = cp.arm_capsules(np.zeros((4, 2, 6)))
+    assert seg2.shape == (4, 2, len(cp.ARM_CAPSULES), 2, 3)
+
+
+def test_min_capsule_clearance_matches_pairwise():
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(20, 3, 2, 3))
+    B = rng.normal(size=(20, 4, 2, 3))
+    ra, rb = rng.random(3) * 0.1, rng.random(4) * 0.1
+    full = cp.capsule_clearance(A[:, :, None], ra[None, :, None], B[:, None], rb[None, None])
+    np.testing.assert_allclose(cp.min_capsule_clearance(A, ra, B, rb), full.min(axis=(1, 2)))
+    pairs = np.array([[0, 1], [2, 3]])
+    np.testing.assert_allclose(cp.min_capsule_clearance(A, ra, B, rb, pairs),
+                               np.minimum(full[:, 0, 1], full[:, 2, 3]))
