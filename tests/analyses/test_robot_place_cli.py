@@ -163,6 +163,27 @@ def test_drake_ik_path_matches_the_closed_form():
     assert solver.stats["poses"] == 2
 
 
+@pytest.mark.slow
+def test_drake_ik_on_the_scene_keeps_the_clearance():
+    """--ik drake on the scenario's plant (MinimumDistanceLowerBoundConstraint at the scenario's
+    clearance): every solution is clear in SceneGraph, and the branches that survive are the
+    closed form's."""
+    import dataclasses
+
+    from implantplan.analyses.robot_place import drake_ik_solver
+    from implantplan.diagrams.arm_clearance import SceneGraphClearance
+
+    sc = dataclasses.replace(moprp.load_scenario("lying"), feed_samples=2)
+    xyz = np.array([[0.6, -0.3, 0.0]])
+    solver = drake_ik_solver(starts=64, seed=0, limits=sc.limits, X_FT=sc.X_FT, scenario=sc)
+    ev_d = moprp.evaluate_bases(xyz, sc, np.random.default_rng(0), ik_solver=solver)
+    ev_c = moprp.evaluate_bases(xyz, sc, np.random.default_rng(0))
+    np.testing.assert_array_equal(ev_d.valid, ev_c.valid)
+    assert solver.stats["min_distance_m"] == sc.clearance
+    d = SceneGraphClearance(sc, xyz[0])(np.stack([ev_d.q[0], ev_d.q_pre[0]])).distance
+    assert np.all(d >= sc.clearance - 1e-6)
+
+
 def test_bench_agreement_new_model_safe_old_capsules_not():
     """The benchmark's SceneGraph comparison: the fast model has no false free; the old capsule
     model (reconstructed in the bench) calls SceneGraph collisions free (issue 11's finding)."""
