@@ -41,8 +41,31 @@ from implantplan.systems import moprp
 from implantplan.systems.nsga2 import hypervolume, nsga2
 
 # The old hand-written capsule model (before issue 11), reconstructed for the comparison only:
-# DESIGN.md section 8's primitives as capsules (systems.collision_primitives.ARM_CAPSULES), the
-# actuator as capsules, a hand list of self pairs and of parts tested against the environment.
+# DESIGN.md section 8's primitives as capsules, the actuator as capsules, a hand list of self
+# pairs and of parts tested against the environment.
+# Its arm capsules: the cylinder housings' segments over the middle ~70% of the cylinder (the rims
+# stick out: not enclosing), the 0.08 x 0.12 x 0.10 wrist boxes as 58 mm capsules along their
+# long axis (the corners stick out about 12.7 mm).
+OLD_ARM_CAPSULES = (
+    # base cylinder r 0.109, z 0..0.062: a sphere at mid height that encloses the disc's rim.
+    cp.Capsule("base", 0, (0.0, 0.0, 0.031), (0.0, 0.0, 0.031), 0.109),
+    # shoulder cylinder r 0.076, z +-0.101
+    cp.Capsule("shoulder", 1, (0.0, 0.0, -0.07), (0.0, 0.0, 0.07), 0.076),
+    # upper arm: housing cylinder r 0.076, z +-0.07 about the joint-2 axis; arm along x 0..0.647
+    cp.Capsule("upper_arm_housing", 2, (0.0, 0.0, -0.045), (0.0, 0.0, 0.045), 0.076),
+    cp.Capsule("upper_arm", 2, (0.0, 0.0, 0.0), (0.647, 0.0, 0.0), 0.058),
+    # forearm: housing r 0.058 at z 0.064..0.19, the arm along x 0..0.6005 at z 0.128, r 0.044
+    cp.Capsule("forearm_housing", 3, (0.0, 0.0, 0.09), (0.0, 0.0, 0.164), 0.058),
+    cp.Capsule("forearm", 3, (0.0, 0.0, 0.128), (0.6005, 0.0, 0.128), 0.044),
+    # wrists: boxes 0.08 x 0.12 x 0.10 centred at z -0.02 (wrist 1) and (0, -0.003, 0.005)
+    # (wrist 2), as capsules along the boxes' y axis
+    cp.Capsule("wrist1", 4, (0.0, -0.03, -0.02), (0.0, 0.03, -0.02), 0.058),
+    cp.Capsule("wrist2", 5, (0.0, -0.033, 0.005), (0.0, 0.027, 0.005), 0.058),
+    # wrist 3: disc r 0.0375, 0.031 thick behind the flange face
+    cp.Capsule("wrist3", 6, (0.0, 0.0, -0.0155), (0.0, 0.0, -0.0155), 0.0375),
+)
+
+
 OLD_ACTUATOR = (
     cp.Capsule("actuator_rod", 6, (0.0, 0.0, 0.0), (0.0, 0.0, 0.16), 0.006),
     cp.Capsule("actuator_head", 6, (0.0, 0.0, 0.16), (0.0, 0.0, 0.16), 0.008),
@@ -64,7 +87,7 @@ class OldCapsules:
 
     def __init__(self, sc):
         self.sc = sc
-        self.capsules = cp.ARM_CAPSULES + OLD_ACTUATOR
+        self.capsules = OLD_ARM_CAPSULES + OLD_ACTUATOR
         names = [c.name for c in self.capsules]
         self.self_pairs = np.array([(names.index(a), names.index(b)) for a, b in OLD_SELF_PAIRS])
         self.env = np.array([names.index(n) for n in OLD_ENV_PARTS])

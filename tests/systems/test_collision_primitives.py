@@ -237,8 +237,10 @@ def test_segment_distance_is_the_min_over_samples(S):
 
 
 def test_arm_capsules_at_home_by_hand():
-    seg, rad = cp.arm_capsules(np.zeros(6))
-    names = [c.name for c in cp.ARM_CAPSULES]
+    from implantplan.analyses.bench_moprp import OLD_ARM_CAPSULES
+
+    seg, rad = cp.arm_capsules(np.zeros(6), OLD_ARM_CAPSULES)
+    names = [c.name for c in OLD_ARM_CAPSULES]
     ua = seg[names.index("upper_arm")]
     np.testing.assert_allclose(ua, [[0, -0.2013, 0.1632], [0, -0.2013, 0.8102]], atol=1e-12)
     fa = seg[names.index("forearm")]
@@ -246,8 +248,8 @@ def test_arm_capsules_at_home_by_hand():
     np.testing.assert_allclose(fa[:, 2], [0.8102, 1.4107], atol=1e-12)
     assert rad[names.index("upper_arm")] == 0.058
     # batched shapes
-    seg2, _ = cp.arm_capsules(np.zeros((4, 2, 6)))
-    assert seg2.shape == (4, 2, len(cp.ARM_CAPSULES), 2, 3)
+    seg2, _ = cp.arm_capsules(np.zeros((4, 2, 6)), OLD_ARM_CAPSULES)
+    assert seg2.shape == (4, 2, len(OLD_ARM_CAPSULES), 2, 3)
 
 
 def test_min_capsule_clearance_matches_pairwise():
