@@ -14,12 +14,13 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import trimesh
 
 from implantplan.analyses.case import Case
+from implantplan.diagrams.arm_clearance import SceneGraphClearance, confirm_feed
 from implantplan.diagrams.feeding import run_feeding
 from implantplan.diagrams.teleop import TeleopCase
 from implantplan.systems import actuator, moprp
@@ -29,7 +30,6 @@ from implantplan.systems.errors import InputError, PlanningFailure
 from implantplan.systems.fpsm import Fpsm
 from implantplan.systems.fpsm_fit import fit_fpsm
 from implantplan.systems.frames import invert, transform
-from implantplan.systems.nsga2 import non_dominated_sort, nsga2
 from implantplan.systems.oral_mesh import center_frame, load_oral_mesh, open_mouth
 from implantplan.systems.placement import Placement, place_instrument
 from implantplan.systems.sites import SiteCheck, check_sites, site_problems
@@ -161,6 +161,10 @@ class RobotResult:
     evaluations: int
     generations: int
     seconds: float
+    # SceneGraph along each site's feed (diagrams.arm_clearance.confirm_feed): distance (m),
+    # pair, samples, ok, limit (= the scenario's clearance); front bases dropped before it
+    feed_clearance: list = field(default_factory=list)
+    selection_dropped: int = 0
 
 
 def _site_evaluations(X, sc, rng, targets, model):
@@ -180,22 +184,17 @@ def robot_stage(case: Case, placements: list[Placement], *, progress=None) -> Ro
 
     Departure from seed 001 for several sites: the objectives are the worst index over the sites
     and a base is feasible only if every site has a surviving branch."""
-    # TODO(issue 11): initial_population moves out of the robot command with the one MOPRP search
-    from implantplan.analyses.robot_place import initial_population
-
     t0 = time.perf_counter()
     sc = moprp.load_scenario(case.scenario, X_FT=actuator.X_FT())
     sc = dataclasses.replace(sc, pop=case.pop, gen=case.gen, seed=case.seed)
     X_OC = center_in_oral(case.posture, placements)
     targets = np.array([X_OC @ p.X_CT for p in placements])
-    model = moprp.CollisionModel.for_scenario(sc)
+    model = moprp.collision_model(sc)
 
     def evaluate(X, rng):
         return _combine(_site_evaluations(X, sc, rng, targets, model))
 
-    rng = np.random.default_rng(sc.seed)
-    X0, n0, (Xs, cvs) = initial_population(sc, evaluate, rng, sc.pop)
-    if not np.any(cvs <= 0):
+    def explain(Xs, rng) -> str:
         evs = _site_evaluations(Xs, sc, rng, targets, model)
         why = []
         for site, ev in zip(case.sites, evs, strict=True):
@@ -203,29 +202,38 @@ def robot_stage(case: Case, placements: list[Placement], *, progress=None) -> Ro
             common = int(np.bincount(codes).argmax()) if codes.size else moprp.DROP_IK
             why.append(f"site {site.name}: {int(ev.feasible.sum())} feasible, mostly "
                        f"'{moprp.DROP_REASONS[common]}'")
-        raise PlanningFailure(
-            f"no base position in the bounds serves every site ({Xs.shape[0]} sampled); "
-            + "; ".join(why)
-        )
-    if progress is not None:
-        progress.say(f"{int(np.sum(cvs <= 0))} of {n0} sampled bases serve all "
-                     f"{len(placements)} sites; NSGA-II pop {sc.pop}, gen <= {sc.gen}")
+        return (f"no base position in the bounds serves every site ({Xs.shape[0]} sampled); "
+                + "; ".join(why))
+
+    def on_start(n_ok, n0):
+        if progress is not None:
+            progress.say(f"{n_ok} of {n0} sampled bases serve all {len(placements)} sites; "
+                         f"NSGA-II pop {sc.pop}, gen <= {sc.gen}")
 
     def on_gen(g, n_front, hv):
         if progress is not None:
             progress.step(g - 1, sc.gen, f"generations, front {n_front}, hypervolume {hv:.4g}")
 
-    res = nsga2(evaluate, sc.lower, sc.upper, pop=sc.pop, gen=sc.gen, seed=sc.seed + 1,
-                initial=X0, patience=sc.patience, hv_tol=sc.hv_tol, on_generation=on_gen)
-    Xf = res.X[res.front]
-    F, cv = evaluate(Xf, np.random.default_rng(sc.seed))
-    keep = np.flatnonzero(cv <= 0)
-    keep = keep[non_dominated_sort(F[keep]) == 0]
-    if keep.size == 0:
-        raise PlanningFailure("the optimizer found no base that serves every site")
-    Xf, F = Xf[keep], F[keep]
-    k = moprp.knee_point(F)
-    evs = _site_evaluations(Xf[k : k + 1], sc, np.random.default_rng(sc.seed), targets, model)
+    res = moprp.search(sc, evaluate, explain=explain, on_start=on_start, on_generation=on_gen)
+    Xf, F = res.X, res.F
+    # SceneGraph confirms the selection along every site's whole feed; a base that fails is
+    # dropped and the next-ranked one taken (issue 11 item 2)
+    dropped = 0
+    for k in moprp.selection_order(F):
+        evs = _site_evaluations(Xf[k : k + 1], sc, np.random.default_rng(sc.seed), targets,
+                                model)
+        checker = SceneGraphClearance(sc, Xf[k])
+        feeds = [confirm_feed(checker, sc, int(e.branch[0]), X_OT=T)
+                 for e, T in zip(evs, targets, strict=True)]
+        if all(f["ok"] for f in feeds):
+            break
+        dropped += 1
+    else:
+        raise PlanningFailure(
+            f"none of the {Xf.shape[0]} front bases keeps every site's feed clear in SceneGraph "
+            f"by the clearance {1000 * sc.clearance:.1f} mm")
+    if progress is not None and dropped:
+        progress.say(f"SceneGraph: {dropped} front bases dropped before the selection")
 
     # percentile ranks of the selection against random bases that serve every site
     rng_pct = np.random.default_rng(sc.seed + 2)
@@ -254,9 +262,11 @@ def robot_stage(case: Case, placements: list[Placement], *, progress=None) -> Ro
         pareto_F=F,
         percentiles=pct,
         percentile_samples=int(len(F_rand)),
-        evaluations=int(res.evaluations + n0),
+        evaluations=int(res.evaluations),
         generations=int(res.generations),
         seconds=time.perf_counter() - t0,
+        feed_clearance=feeds,
+        selection_dropped=dropped,
     )
 
 

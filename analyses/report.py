@@ -92,9 +92,9 @@ def render(plan: dict, figs: dict) -> str:
         f"<span class='{'pass' if ok else 'fail'}'>{'PASS' if ok else 'FAIL'}</span></p>",
         "<h2>Checks</h2>",
         _table(["check", "id", "site", "value", "limit", "bound", "margin", "result"], [
-            [c["name"], c.get("id", ""), c["site"] or "", _fmt(c["value"], c["unit"]),
-             _fmt(c["limit"], c["unit"]),
-             {"max": "maximum (value <= limit)", "min": "minimum (value > limit)"}.get(
+            [c["name"] + (f" ({c['pair']})" if c.get("pair") else ""), c.get("id", ""),
+             c["site"] or "", _fmt(c["value"], c["unit"]), _fmt(c["limit"], c["unit"]),
+             {"max": "max (value <= limit)", "min": "min (value > limit)"}.get(
                  c.get("bound"), ""),
              _fmt(c["margin"], c["unit"]), _badge(c["pass"])]
             for c in plan["checks"]], left=3),

@@ -54,7 +54,6 @@ from implantplan.systems import moprp, validate
 from implantplan.systems.errors import InputError, PlanningFailure
 from implantplan.systems.files import read_json, write_json
 from implantplan.systems.frames import wrap_angle
-from implantplan.systems.nsga2 import non_dominated_sort, nsga2
 
 
 def register(subparsers) -> None:
@@ -139,8 +138,13 @@ def scenario_for(args) -> tuple[moprp.Scenario, dict]:
 # --------------------------------------------------------------------------------------------
 
 
-def drake_ik_solver(*, starts: int, seed: int, limits: str, X_FT):
+def drake_ik_solver(*, starts: int, seed: int, limits: str, X_FT, scenario=None):
     """An ``ik_solver`` for :func:`systems.moprp.evaluate_bases` backed by diagrams.ik_drake.
+
+    With a ``scenario``, each base position's IK runs on the scenario's plant with the base
+    there (diagrams.plant.build_plant) and Drake's MinimumDistanceLowerBoundConstraint at the
+    scenario's clearance, so every solution is clear in SceneGraph; the base position is
+    recovered from the feed's last pose (the target End = Oral R_OE: X_OB = X_OE X_BE^-1).
 
     Each pose is solved by multi-start Drake IK; along the feed (axis -3 of the input), each
     sample's solutions are assigned to the previous sample's slots by minimum total wrapped joint
@@ -154,7 +158,17 @@ def drake_ik_solver(*, starts: int, seed: int, limits: str, X_FT):
 
     solver = DrakeIk(X_FT=X_FT, limits=limits)
     rng = np.random.default_rng(seed)
-    stats = {"poses": 0, "seconds": 0.0}
+    stats = {"poses": 0, "seconds": 0.0,
+             "min_distance_m": None if scenario is None else scenario.clearance}
+
+    def scene_solver(X_BE):
+        from implantplan.diagrams.plant import build_plant
+
+        xyz = (moprp.X_OE @ np.linalg.inv(X_BE))[:3, 3]
+        diagram, plant, _, _ = build_plant(scenario=scenario, limits=limits,
+                                           X_WBase=scenario.X_WO @ moprp.base_pose(xyz))
+        return DrakeIk(X_FT=X_FT, plant=plant, diagram=diagram,
+                       min_distance=scenario.clearance)
 
     def solve(X_BT, *, limits, X_FT):
         X_BT = np.asarray(X_BT, dtype=float)
@@ -164,8 +178,9 @@ def drake_ik_solver(*, starts: int, seed: int, limits: str, X_FT):
         t0 = time.perf_counter()
         for p in range(P):
             prev = None
+            ik_p = solver if scenario is None else scene_solver(X_BT[p, -1])
             for k in range(K):
-                sols, _ = solver.solve(X_BT[p, k], starts=starts, seed=rng)
+                sols, _ = ik_p.solve(X_BT[p, k], starts=starts, seed=rng)
                 sols = sols[:8]
                 if prev is None:
                     q[p, k, : len(sols)] = sols
@@ -206,15 +221,6 @@ def drake_ik_solver(*, starts: int, seed: int, limits: str, X_FT):
 # --------------------------------------------------------------------------------------------
 
 
-def initial_population(sc: moprp.Scenario, evaluate, rng, pop: int):
-    """Seed the GA sensibly: 4 * pop uniform samples, the feasible ones first (then the least
-    violating), so the first generation already spans the feasible region."""
-    X = sc.lower + rng.random((4 * pop, 3)) * (sc.upper - sc.lower)
-    F, cv = evaluate(X, rng)
-    order = np.lexsort((F[:, 0], cv))
-    return X[order[:pop]], X.shape[0], (X, cv)
-
-
 def _entry(xyz, ev: moprp.BaseEvaluation, i: int) -> dict:
     return {
         "base_xyz": xyz[i],
@@ -225,6 +231,58 @@ def _entry(xyz, ev: moprp.BaseEvaluation, i: int) -> dict:
     }
 
 
+def _explain(sc: moprp.Scenario, ik_solver):
+    def explain(Xs, rng) -> str:
+        ev = moprp.evaluate_bases(Xs, sc, rng, ik_solver=ik_solver)
+        codes = ev.reason[ev.reason > 0]
+        common = (np.bincount(codes, minlength=len(moprp.DROP_REASONS)).argmax()
+                  if codes.size else moprp.DROP_IK)
+        return (
+            f"no feasible base among {Xs.shape[0]} samples of the bounds "
+            f"x {sc.lower[0]:.3f}..{sc.upper[0]:.3f}, y {sc.lower[1]:.3f}..{sc.upper[1]:.3f}, "
+            f"z {sc.lower[2]:.3f}..{sc.upper[2]:.3f} m (in Oral); most branches rejected "
+            f"because: {moprp.DROP_REASONS[int(common)]}"
+        )
+
+    return explain
+
+
+def confirm_front(sc: moprp.Scenario, Xf, ev: moprp.BaseEvaluation, order) -> dict:
+    """SceneGraph confirmation of what the placement reports (issue 11 item 2): each front
+    member's pre-feed and target configurations, and for the selection its whole feed (steps
+    of at most 1 mm / 0.5 deg); candidates are tried in ``order`` (the selection rule's ranking)
+    and the first whose feed is clear is selected.
+
+    Returns:
+        dict(clearance (n,) SceneGraph distance of each member over q_pre and q, pair (n,) its
+        closest pair, members_ok (n,) bool, selected (index or None), feed (the selected
+        member's feed check), selection_dropped (candidates whose feed failed, in order)).
+    """
+    from implantplan.diagrams.arm_clearance import SceneGraphClearance, confirm_feed
+
+    n = Xf.shape[0]
+    dist = np.full(n, np.nan)
+    pairs = [("", "")] * n
+    checkers = {}
+    for i in range(n):
+        checkers[i] = SceneGraphClearance(sc, Xf[i])
+        c = checkers[i](np.stack([ev.q_pre[i], ev.q[i]]), max_distance=1.0)
+        _, dist[i], pairs[i] = c.worst()
+    ok = dist >= sc.clearance
+    dropped, selected, feed = [], None, None
+    for i in order:
+        if not ok[i]:
+            dropped.append(int(i))
+            continue
+        check = confirm_feed(checkers[int(i)], sc, int(ev.branch[i]))
+        if check["ok"]:
+            selected, feed = int(i), check
+            break
+        dropped.append(int(i))
+    return {"clearance": dist, "pair": pairs, "members_ok": ok, "selected": selected,
+            "feed": feed, "selection_dropped": dropped}
+
+
 def run_placement(sc: moprp.Scenario, *, ik: str = "closed-form", weights=None,
                   drake_starts: int = 64, progress: Progress | None = None) -> dict:
     """Run MOPRP on a scenario; returns the placement dict (raises PlanningFailure)."""
@@ -233,48 +291,44 @@ def run_placement(sc: moprp.Scenario, *, ik: str = "closed-form", weights=None,
     ik_solver = moprp.ik_closed_form
     if ik == "drake":
         ik_solver = drake_ik_solver(starts=drake_starts, seed=sc.seed, limits=sc.limits,
-                                    X_FT=sc.X_FT)
+                                    X_FT=sc.X_FT, scenario=sc)
     elif ik != "closed-form":
         raise InputError("--ik", f"expected closed-form or drake, got {ik!r}")
     evaluate = moprp.problem(sc, ik_solver=ik_solver)
-    rng = np.random.default_rng(sc.seed)
-    t0 = time.perf_counter()
-    X0, n0, (Xs, cvs) = initial_population(sc, evaluate, rng, sc.pop)
-    t_init = time.perf_counter() - t0
-    if not np.any(cvs <= 0):
-        ev = moprp.evaluate_bases(Xs, sc, rng, ik_solver=ik_solver)
-        codes = ev.reason[ev.reason > 0]
-        common = (np.bincount(codes, minlength=len(moprp.DROP_REASONS)).argmax()
-                  if codes.size else moprp.DROP_IK)
-        raise PlanningFailure(
-            f"no feasible base among {Xs.shape[0]} samples of the bounds "
-            f"x {sc.lower[0]:.3f}..{sc.upper[0]:.3f}, y {sc.lower[1]:.3f}..{sc.upper[1]:.3f}, "
-            f"z {sc.lower[2]:.3f}..{sc.upper[2]:.3f} m (in Oral); most branches rejected because: "
-            f"{moprp.DROP_REASONS[int(common)]}"
-        )
-    progress.say(f"{sc.name}: seeded population from {n0} samples "
-                 f"({int(np.sum(cvs <= 0))} feasible); NSGA-II pop {sc.pop}, gen <= {sc.gen}")
+
+    def on_start(n_ok, n0):
+        progress.say(f"{sc.name}: seeded population from {n0} samples ({n_ok} feasible); "
+                     f"NSGA-II pop {sc.pop}, gen <= {sc.gen}")
 
     def on_gen(g, n_front, hv):
         progress.step(g - 1, sc.gen, f"generations, front {n_front}, hypervolume {hv:.4g}")
 
-    res = nsga2(evaluate, sc.lower, sc.upper, pop=sc.pop, gen=sc.gen, seed=sc.seed + 1,
-                initial=X0, patience=sc.patience, hv_tol=sc.hv_tol, on_generation=on_gen)
+    res = moprp.search(sc, evaluate, explain=_explain(sc, ik_solver), on_start=on_start,
+                       on_generation=on_gen)
     progress.say(f"stopped after {res.generations} generations ({res.stopped}), "
-                 f"{res.evaluations + n0} evaluations, {res.seconds_total:.1f} s")
+                 f"{res.evaluations} evaluations, {res.seconds_total:.1f} s")
 
-    # re-evaluate the front once (fixed generator) to get branches and q; keep non-dominated
-    Xf = res.X[res.front]
+    # branches and q of the front (fixed generator), then SceneGraph confirms what is reported
+    Xf = res.X
     ev = moprp.evaluate_bases(Xf, sc, np.random.default_rng(sc.seed), ik_solver=ik_solver)
-    keep = np.flatnonzero(ev.feasible)
-    rank = non_dominated_sort(ev.objectives[keep])
-    keep = keep[rank == 0]
-    if keep.size == 0:
-        raise PlanningFailure("the optimizer found no feasible base in the bounds")
-    Xf = Xf[keep]
-    ev = moprp.evaluate_bases(Xf, sc, np.random.default_rng(sc.seed), ik_solver=ik_solver)
+    t0 = time.perf_counter()
+    conf = confirm_front(sc, Xf, ev, moprp.selection_order(ev.objectives, weights))
+    t_confirm = time.perf_counter() - t0
+    n_front = Xf.shape[0]
+    if conf["selected"] is None:
+        raise PlanningFailure(
+            f"none of the {n_front} front bases is clear in SceneGraph along its feed by the "
+            f"clearance {1000 * sc.clearance:.1f} mm (smallest distance "
+            f"{1000 * np.nanmax(conf['clearance']):.2f} mm)")
+    keep = np.flatnonzero(conf["members_ok"])
+    progress.say(f"SceneGraph: {keep.size} of {n_front} front bases confirmed, "
+                 f"{len(conf['selection_dropped'])} candidates dropped before the selection")
+    sel = int(np.flatnonzero(keep == conf["selected"])[0])
+    Xf, ev = Xf[keep], ev.subset(keep)  # exactly the configurations SceneGraph confirmed
     pareto = [_entry(Xf, ev, i) for i in range(Xf.shape[0])]
-    sel = moprp.knee_point(ev.objectives, weights)
+    for entry, i in zip(pareto, keep, strict=True):
+        entry["scene_graph_clearance_m"] = float(conf["clearance"][i])
+        entry["scene_graph_pair"] = list(conf["pair"][i])
 
     # percentile ranks against random feasible bases (closed form: the reference population)
     t0 = time.perf_counter()
@@ -293,6 +347,11 @@ def run_placement(sc: moprp.Scenario, *, ik: str = "closed-form", weights=None,
                                               strict=True))
     selected["percentile_samples"] = int(X_rand.shape[0])
     selected["X_WBase"] = sc.X_WO @ moprp.base_pose(Xf[sel])
+    selected["scene_graph_clearance_m"] = pareto[sel]["scene_graph_clearance_m"]
+    selected["scene_graph_pair"] = pareto[sel]["scene_graph_pair"]
+    feed = conf["feed"]
+    selected["feed_clearance"] = {"distance_m": feed["distance"], "pair": feed["pair"],
+                                  "samples": feed["samples"], "limit_m": feed["limit"]}
     selected["rule"] = "weights" if weights is not None else "knee"
     if weights is not None:
         selected["weights"] = list(weights)
@@ -315,14 +374,22 @@ def run_placement(sc: moprp.Scenario, *, ik: str = "closed-form", weights=None,
             "over_eps": [float(ang.min() / sc.eps), float(ang.max() / sc.eps)] if ang.size
             else None,
         },
-        "evaluations": int(res.evaluations + n0),
+        "evaluations": int(res.evaluations),
         "generations": int(res.generations),
         "stopped": res.stopped,
+        "confirmation": {
+            "checker": "Drake SceneGraph ComputeSignedDistancePairwiseClosestPoints",
+            "clearance_m": sc.clearance,
+            "front": n_front,
+            "pareto_dropped": int(n_front - keep.size),
+            "selection_dropped": len(conf["selection_dropped"]),
+            "seconds": t_confirm,
+        },
         "pop": int(sc.pop),
         "seed": int(sc.seed),
         "seconds": time.perf_counter() - t_start,
-        "seconds_evaluation": res.seconds_eval + t_init,
-        "seconds_optimizer": res.seconds_total - res.seconds_eval,
+        "seconds_evaluation": res.seconds_evaluation,
+        "seconds_optimizer": res.seconds_total - res.seconds_evaluation,
         "seconds_percentiles_gii": t_post,
     }
     if ik == "drake":

@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from implantplan.analyses.figures.simulation import plot_circle, plot_feeding, plot_layouts
+from implantplan.analyses.moprp_fidelity import gii_units, register_analysis
 from implantplan.analyses.progress import Progress
 from implantplan.diagrams.feeding import (  # the case and the runs (bench_teleop reads them here)
     FINISH_SECONDS,  # noqa: F401
@@ -55,6 +56,7 @@ from implantplan.diagrams.feeding import (  # the case and the runs (bench_teleo
     run_feeding,
 )
 from implantplan.systems import actuator, moprp, validate
+from implantplan.systems import kinematics as kin
 from implantplan.systems.errors import InputError, PlanningFailure
 from implantplan.systems.files import read_json, write_json, write_text_atomic
 from implantplan.systems.fpsm import Fpsm
@@ -160,6 +162,10 @@ def analyze_layouts(
         feed = run_feeding(case, runs=runs, seed=seed, operator=operator)
         circle = run_circle(sc_plant, x, b, realizations=realizations, seed=seed)
         g = moprp.gii(x, b, sc_plant, np.random.default_rng(seed), n=100)
+        g_units = gii_units(x, b, sc_plant, np.random.default_rng(seed))
+        r_feed = kin.ik(moprp.feed_poses(x, sc_plant.feed_length, sc_plant.feed_samples),
+                        limits=sc_plant.limits, X_FT=sc_plant.X_FT)
+        q_feed = np.where(r_feed.valid[:, b, None], r_feed.q[:, b], np.nan)
         travel = np.array([r["joint_travel"] for r in feed["runs"]])
         entries.append(
             {
@@ -171,7 +177,10 @@ def analyze_layouts(
                 "path_error_realizations": None if circle is None else circle["per_realization"],
                 "path_error_mean": np.nan if circle is None else circle["path_error_mean"],
                 "gii": g["gii"],
+                "gii_mm_deg": g_units["mm/deg"],
                 "gii_reached": g["reached"],
+                # the index MOPRP minimizes: travel along the ideal straight feed (no operator)
+                "joint_variation_index": float(np.abs(np.diff(q_feed, axis=0)).sum()),
                 "max_vf_violation": max(r["max_vf_violation"] for r in feed["runs"]),
                 "collision_alarm": any(r["collision_alarm"] for r in feed["runs"]),
                 "realtime_factor": feed["realtime_factor"],
@@ -183,6 +192,8 @@ def analyze_layouts(
         "joint_travel": rank_of_first([e["joint_travel_mean"] for e in entries]),
         "path_error": rank_of_first([e["path_error_mean"] for e in entries]),
         "gii": rank_of_first([e["gii"] for e in entries], higher_is_better=True),
+        "gii_mm_deg": rank_of_first([e["gii_mm_deg"] for e in entries], higher_is_better=True),
+        "joint_variation_index": rank_of_first([e["joint_variation_index"] for e in entries]),
     }
     return {
         "scenario": scenario,
@@ -257,6 +268,7 @@ def register(subparsers) -> None:
     p.add_argument("--realizations", type=int, default=10, help="joint error draws (default 10)")
     _operator_options(p)
     p.set_defaults(func=cmd_layouts)
+    register_analysis(sub)
 
 
 def _check_count(value: int, name: str, lo: int = 1) -> None:

@@ -15,12 +15,10 @@ the scenario's X_WO, and the cart box on a ``cart`` body welded to base_link at 
 Collision filtering: adjacent arm links are filtered by the URDF's collision filter groups (and
 by MultibodyPlant's parent/child rule); everything welded to the world (cart, patient, base) is
 filtered among itself by MultibodyPlant; the actuator is welded to wrist3_Link, so it is
-filtered against the flange. Against the environment (patient, chair, cart) only the parts that
-``systems.moprp.ENV_PARTS`` tests are checked (:data:`ENV_GEOMETRY`, applied by
-:func:`filter_environment_pairs`): the rod, head and implant enter the mouth by design (their
-clearance is the FPSM's job, seed 000) and the base, shoulder and upper-arm housing sit on the
-cart, so MOPRP's capsule model and SceneGraph answer the same question. Every other pair is
-checked.
+filtered against the flange. :func:`filter_environment_pairs` adds one rule: the actuator's
+shapes (rod, head, implant) are not checked against the patient and chair, they enter the mouth
+by design (their clearance is the FPSM's job, seed 000). Every other pair is checked, and the
+fast model of ``systems.arm_collision`` checks exactly the same pairs.
 """
 
 from __future__ import annotations
@@ -60,7 +58,7 @@ from pydrake.multibody.tree import (
 from pydrake.systems.framework import Diagram, DiagramBuilder
 
 from implantplan import models
-from implantplan.systems import moprp, validate
+from implantplan.systems import arm_collision, moprp, validate
 from implantplan.systems.errors import InputError
 from implantplan.systems.frames import frame_from_z
 
@@ -75,16 +73,6 @@ ARM, CART, ACTUATOR, PATIENT = "aubo", "cart", "actuator", "patient"
 # MOPRP bases (analyses.simulate.select_layout, seed 0), rounded to 1 cm; tests/test_models.py
 # checks they stay feasible for MOPRP and collision-free in SceneGraph along the feed.
 DEFAULT_BASE_XYZ = {"lying": (0.56, -0.15, -0.25), "sitting": (0.56, -0.33, -0.25)}
-# moprp.ENV_PARTS (capsule names) -> the plant's collision geometry (SceneGraph name) that
-# model the same part; the actuator URDF has no motor body, so "actuator_body" has none.
-ENV_GEOMETRY = {
-    "upper_arm": f"{ARM}::upperArm_Link_collision_1",
-    "forearm_housing": f"{ARM}::foreArm_Link_collision_0",
-    "forearm": f"{ARM}::foreArm_Link_collision_1",
-    "wrist1": f"{ARM}::wrist1_Link_collision_0",
-    "wrist2": f"{ARM}::wrist2_Link_collision_0",
-    "wrist3": f"{ARM}::wrist3_Link_collision_0",
-}
 OBSTACLE_RGBA = {"capsule": (1.0, 0.85, 0.7, 0.6), "box": (0.8, 0.7, 0.5, 0.6)}
 CART_RGBA = (0.5, 0.5, 0.55, 0.6)
 
@@ -129,6 +117,7 @@ class ScenarioGeometry:
     cart: ModelInstanceIndex
     mouth: Frame
     environment: tuple
+    obstacles: tuple = ()
 
 
 def resolve_scenario(scenario) -> moprp.Scenario | None:
@@ -228,23 +217,25 @@ def add_scenario_geometry(plant: MultibodyPlant, sc: moprp.Scenario) -> Scenario
     cart_body = plant.AddRigidBody(CART, cart, SpatialInertia.Zero())
     plant.WeldFrames(plant.GetFrameByName("base_link"), cart_body.body_frame(), _rt(sc.X_BC))
     box = Box(*(2 * sc.cabinet_half))
+    obstacles = tuple(ids)
     ids.append(plant.RegisterCollisionGeometry(cart_body, RigidTransform(), box, CART, friction))
     plant.RegisterVisualGeometry(cart_body, RigidTransform(), box, CART, np.array(CART_RGBA))
-    return ScenarioGeometry(patient=patient, cart=cart, mouth=mouth, environment=tuple(ids))
+    return ScenarioGeometry(patient=patient, cart=cart, mouth=mouth, environment=tuple(ids),
+                            obstacles=obstacles)
 
 
-def filter_environment_pairs(scene_graph: SceneGraph, environment) -> None:
-    """Exclude environment vs robot pairs that MOPRP does not test (see the module docstring):
-    every proximity geometry that is neither in the environment nor in :data:`ENV_GEOMETRY`."""
-    inspector = scene_graph.model_inspector()
-    env = set(environment)
-    tested = set(ENV_GEOMETRY.values())
-    untested = [
-        g for g in inspector.GetAllGeometryIds(Role.kProximity)
-        if g not in env and inspector.GetName(g) not in tested
-    ]
+def filter_environment_pairs(plant: MultibodyPlant, scene_graph: SceneGraph,
+                             geometry: ScenarioGeometry) -> None:
+    """Exclude the actuator vs patient/chair pairs (see the module docstring; the rule is
+    ``systems.arm_collision.TOOL_VS_PATIENT_FILTERED``)."""
+    if not arm_collision.TOOL_VS_PATIENT_FILTERED or not plant.HasModelInstanceNamed(ACTUATOR):
+        return
+    tool = plant.GetModelInstanceByName(ACTUATOR)
+    tool_ids = [g for b in plant.GetBodyIndices(tool)
+                for g in plant.GetCollisionGeometriesForBody(plant.get_body(b))]
     scene_graph.collision_filter_manager().Apply(
-        CollisionFilterDeclaration().ExcludeBetween(GeometrySet(list(env)), GeometrySet(untested))
+        CollisionFilterDeclaration().ExcludeBetween(GeometrySet(list(geometry.obstacles)),
+                                                    GeometrySet(tool_ids))
     )
 
 
@@ -279,7 +270,7 @@ def add_scene(plant: MultibodyPlant, scene_graph: SceneGraph, scenario, X_WBase,
     env = add_scenario_geometry(plant, sc) if sc is not None else None
     plant.Finalize()
     if env is not None:
-        filter_environment_pairs(scene_graph, env.environment)
+        filter_environment_pairs(plant, scene_graph, env)
     return X_used, env
 
 

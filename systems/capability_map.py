@@ -287,20 +287,16 @@ def _relaxed_limits(limits: str) -> np.ndarray:
 
 
 def self_collision_free(q: np.ndarray) -> np.ndarray:
-    """(..., 6) joint vectors -> (...) bool: no overlap between arm capsules (DESIGN.md 8
-    primitives, :data:`systems.collision_primitives.ARM_CAPSULES`) on links two or more apart.
-    The arm capsules are symmetric about the joint-6 axis, so q6 never matters (roll stays free)."""
-    from implantplan.systems.collision_primitives import (
-        ARM_CAPSULES,
-        arm_capsules,
-        capsule_clearance,
-    )
+    """(..., 6) joint vectors -> (...) bool: no overlap between the bare arm's collision shapes
+    (the URDF geometry through the conservative model of systems.arm_collision, every pair the
+    plant's SceneGraph does not filter: links two or more apart). Past joint 6 there is only the
+    round wrist3 disc, so q6 moves the verdict only through the disc's enclosing boxes, at
+    contact."""
+    from implantplan.systems.arm_collision import model_for
 
-    links = np.array([c.link for c in ARM_CAPSULES])
-    ia, ib = np.nonzero(links[None, :] - links[:, None] >= 2)
-    seg, r = arm_capsules(q)
-    clr = capsule_clearance(seg[..., ia, :, :], r[ia], seg[..., ib, :, :], r[ib])
-    return np.all(clr > 0.0, axis=-1)
+    q = np.asarray(q, dtype=float)
+    d, _ = model_for(None, tool=False).clearance(q.reshape(-1, 6))
+    return (d[:, 0] > 0.0).reshape(q.shape[:-1])
 
 
 def _collision_filter(params: MapParams, res) -> np.ndarray:

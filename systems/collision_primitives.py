@@ -1,17 +1,14 @@
-"""Fast primitive collision tests for the arm: capsules of the AUBO-i10 links, the actuator, and
-distances capsule-capsule and capsule-box, vectorized over many configurations.
+"""Fast collision primitives, vectorized over many configurations: capsules (a segment swept by
+a sphere) fixed in link frames and posed by the joint angles (:func:`arm_capsules`), and the
+distances segment-segment, capsule-capsule and segment/capsule-box.
 
-The arm is modelled as capsules (a segment swept by a sphere) fixed in its link frames, from the
-collision primitives of DESIGN.md section 8. A capsule is the natural primitive here: the distance
-between two capsules is the distance between their segments minus both radii, a few dozen flops,
-so a placement search can test millions of configuration-pair combinations per second. The long
-links (upper arm, forearm) are capsules in the URDF too, so they are exact; the cylinder housings,
-discs and wrist boxes are approximated (see ``ARM_CAPSULES``), which is the departure from a
-mesh/box model, measured against SceneGraph in analyses/bench_moprp.py.
+The arm's collision model is not here: it is systems.arm_collision, generated from the plant's
+own geometry. These functions serve the cart-vs-patient check of systems.moprp, the compiled
+kernels of systems.arm_collision (:func:`_seg_seg`, :func:`_point_box`) and the reconstruction of
+the old hand-written capsule model that analyses/bench_moprp.py compares against.
 
 Frames: link index 0 is ``base_link``; index i (1..6) is the child frame of joint i, i.e. the
-frames returned by :func:`systems.kinematics.joint_frames`; the actuator is fixed to link 6
-(the flange, ``wrist3_Link``).
+frames returned by :func:`systems.kinematics.joint_frames`.
 """
 
 from __future__ import annotations
@@ -21,7 +18,6 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from implantplan.systems.actuator import IMPLANT_LENGTH, IMPLANT_RADIUS
 from implantplan.systems.errors import InputError
 from implantplan.systems.kinematics import joint_frames
 
@@ -37,73 +33,6 @@ class Capsule:
     radius: float
 
 
-# DESIGN.md section 8 primitives (as in models/aubo_i10/aubo_i10.urdf) as capsules. Cylinder
-# housings: the capsule's segment runs over the middle ~70% of the cylinder's length, so its round
-# ends reach a little past the cylinder's ends on the axis and cover most of the rim; the wrist
-# boxes (0.08 x 0.12 x 0.10) become capsules along their long axis. Tuned against Drake's
-# SceneGraph on random configurations (analyses/bench_moprp.py): misses (SceneGraph collides, the
-# capsules do not) were cut from 0.6% to under 0.1% of configurations at the price of ~0.5%
-# conservative verdicts.
-ARM_CAPSULES: tuple[Capsule, ...] = (
-    # base cylinder r 0.109, z 0..0.062: a sphere at mid height that encloses the disc's rim.
-    Capsule("base", 0, (0.0, 0.0, 0.031), (0.0, 0.0, 0.031), 0.109),
-    # shoulder cylinder r 0.076, z +-0.101
-    Capsule("shoulder", 1, (0.0, 0.0, -0.07), (0.0, 0.0, 0.07), 0.076),
-    # upper arm: housing cylinder r 0.076, z +-0.07 about the joint-2 axis; arm along x 0..0.647
-    Capsule("upper_arm_housing", 2, (0.0, 0.0, -0.045), (0.0, 0.0, 0.045), 0.076),
-    Capsule("upper_arm", 2, (0.0, 0.0, 0.0), (0.647, 0.0, 0.0), 0.058),
-    # forearm: housing r 0.058 at z 0.064..0.19, the arm along x 0..0.6005 at z 0.128, r 0.044
-    Capsule("forearm_housing", 3, (0.0, 0.0, 0.09), (0.0, 0.0, 0.164), 0.058),
-    Capsule("forearm", 3, (0.0, 0.0, 0.128), (0.6005, 0.0, 0.128), 0.044),
-    # wrists: boxes 0.08 x 0.12 x 0.10 centred at z -0.02 (wrist 1) and (0, -0.003, 0.005)
-    # (wrist 2), as capsules along the boxes' y axis
-    Capsule("wrist1", 4, (0.0, -0.03, -0.02), (0.0, 0.03, -0.02), 0.058),
-    Capsule("wrist2", 5, (0.0, -0.033, 0.005), (0.0, 0.027, 0.005), 0.058),
-    # wrist 3: disc r 0.0375, 0.031 thick behind the flange face
-    Capsule("wrist3", 6, (0.0, 0.0, -0.0155), (0.0, 0.0, -0.0155), 0.0375),
-)
-
-
-def actuator_capsules(
-    *,
-    rod_length: float,
-    rod_radius: float,
-    head_radius: float,
-    implant_length: float = IMPLANT_LENGTH,
-    implant_radius: float = IMPLANT_RADIUS,
-    body_length: float = 0.0,
-    body_radius: float = 0.0,
-) -> tuple[Capsule, ...]:
-    """Capsules of the contra-angle implanting actuator in the flange frame (link 6).
-
-    The handle rod runs along the flange +z from the flange face to the TCP at ``rod_length``
-    (diagrams/tools.py); the head (where the perpendicular implant sits) is a sphere at the rod's
-    end; the implant (d12, seed 000) sticks out of the head along the flange -y (the contra-angle's
-    implant axis, diagrams/tools.py). An optional motor body (``body_length`` > 0) is a wider
-    capsule from the flange face.
-    """
-    for name, v in (("rod_length", rod_length), ("rod_radius", rod_radius),
-                    ("head_radius", head_radius)):
-        if not np.isfinite(v) or v <= 0:
-            raise InputError(f"actuator.{name}", f"expected a positive length in m, got {v!r}")
-    for name, v in (("body_length", body_length), ("body_radius", body_radius),
-                    ("implant_length", implant_length), ("implant_radius", implant_radius)):
-        if not np.isfinite(v) or v < 0:
-            raise InputError(f"actuator.{name}", f"expected a length >= 0 in m, got {v!r}")
-    caps = [
-        Capsule("actuator_rod", 6, (0.0, 0.0, 0.0), (0.0, 0.0, rod_length), rod_radius),
-        Capsule("actuator_head", 6, (0.0, 0.0, rod_length), (0.0, 0.0, rod_length), head_radius),
-    ]
-    if implant_length > 0 and implant_radius > 0:
-        caps.append(Capsule("actuator_implant", 6, (0.0, 0.0, rod_length),
-                            (0.0, -implant_length, rod_length), implant_radius))
-    if body_length > 0 and body_radius > 0:
-        b1 = max(body_length - body_radius, body_radius)
-        caps.append(Capsule("actuator_body", 6, (0.0, 0.0, body_radius), (0.0, 0.0, b1),
-                            body_radius))
-    return tuple(caps)
-
-
 def capsule_arrays(capsules) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(links (K,), local segments (K, 2, 3), radii (K,)) of a capsule list."""
     links = np.array([c.link for c in capsules], dtype=np.int64)
@@ -112,12 +41,12 @@ def capsule_arrays(capsules) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return links, seg, radii
 
 
-def arm_capsules(q, capsules=ARM_CAPSULES) -> tuple[np.ndarray, np.ndarray]:
-    """Capsule segments of the arm (and any extra capsules, e.g. the actuator) in base_link.
+def arm_capsules(q, capsules) -> tuple[np.ndarray, np.ndarray]:
+    """Capsule segments fixed in the arm's link frames, posed in base_link.
 
     Args:
         q: (..., 6) joint vectors in rad.
-        capsules: sequence of :class:`Capsule` (default: the arm's links only).
+        capsules: sequence of :class:`Capsule`.
 
     Returns:
         ``(segments, radii)``: segments (..., K, 2, 3) endpoints in base_link (m), radii (K,).

@@ -14,8 +14,9 @@ a batch of base positions p (P, 3), all vectorized:
    more than ``max_joint_step`` between samples, so the same branch is followed along the feed);
    condition 1: joint 2 within the range that keeps the upper arm off the cabinet; condition 2:
    the actuator clear of the arm's links; plus the arm clear of the patient/chair and of the
-   cabinet box; collision tests with capsules (systems.collision_primitives) at the pre-feed and
-   target configurations.
+   cabinet box: every pair the plant's SceneGraph checks, with the fast conservative model
+   generated from the plant's geometry (systems.arm_collision) at the pre-feed and target
+   configurations (SceneGraph confirms the reported ones, diagrams.arm_clearance).
 4. **Indices** (paper Eq. 8-22, all minimized), from the body Jacobian J = [J_w; J_v] at the target
    (:func:`indices`): dexterity I_d = max(cond J_v, cond J_w); error range I_e = eps sigma_max(J_v)
    (the largest TCP position error for a joint error ball ||dq|| <= eps, Eq. 15-19); joint variation
@@ -37,19 +38,28 @@ extra collision checks that the paper handled by condition 1 alone.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from pathlib import Path
+import time
+from dataclasses import dataclass, fields
 
 import numpy as np
 
-from implantplan import models
-from implantplan.systems import actuator as act
+from implantplan.systems import arm_collision
 from implantplan.systems import collision_primitives as cp
 from implantplan.systems import kinematics as kin
-from implantplan.systems import validate
-from implantplan.systems.errors import InputError
-from implantplan.systems.files import read_yaml
+from implantplan.systems.errors import InputError, PlanningFailure
 from implantplan.systems.frames import invert, rpy_to_rotation, transform
+from implantplan.systems.nsga2 import non_dominated_sort, nsga2
+
+# The scenario schema lives in systems.scenario; its names are part of this module's interface.
+from implantplan.systems.scenario import (  # noqa: F401
+    BUNDLED,
+    Actuator,
+    Obstacle,
+    Scenario,
+    load_scenario,
+    scenario_from_dict,
+    scenario_path,
+)
 
 # Base axes in Oral (columns): Base X = Oral X, Base Y = -Oral Z, Base Z = Oral Y.
 R_OB = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
@@ -58,276 +68,6 @@ R_OE = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 R_BE = R_OB.T @ R_OE
 X_OE = transform(R_OE, np.zeros(3))  # End in Oral (or in Tool, for a site's target)
 INDEX_NAMES = ("dexterity", "error_range", "joint_variation")
-
-# Which capsules are tested against which (names from collision_primitives).
-ACTUATOR = ("actuator_rod", "actuator_head", "actuator_implant", "actuator_body")
-SELF_PAIRS = tuple(
-    [(a, b) for a in ACTUATOR for b in
-     ("base", "shoulder", "upper_arm_housing", "upper_arm", "forearm_housing", "forearm")]
-    + [(a, b) for a in ("wrist2", "wrist3") for b in
-       ("base", "shoulder", "upper_arm_housing", "upper_arm")]
-    + [("forearm", "base"), ("forearm", "shoulder")]
-)
-# Parts tested against the patient/chair and the cabinet: the arm beyond the shoulder and the
-# actuator's body. The rod and head enter the mouth by design; their clearance is seed 000's
-# feeding-line safety, not this check.
-ENV_PARTS = ("upper_arm", "forearm_housing", "forearm", "wrist1", "wrist2", "wrist3",
-             "actuator_body")  # actuator_body only when the actuator has one
-
-
-# --------------------------------------------------------------------------------------------
-# Scenario
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Obstacle:
-    """A patient/chair primitive in the world frame: a capsule (p0, p1, radius) or a box."""
-
-    name: str
-    kind: str  # "capsule" | "box"
-    p0: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    p1: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    radius: float = 0.0
-    X_WB: np.ndarray = field(default_factory=lambda: np.eye(4))  # box centre pose
-    half_size: np.ndarray = field(default_factory=lambda: np.zeros(3))
-
-
-@dataclass(frozen=True)
-class Actuator:
-    """Implanting actuator geometry (m), defaults = systems.actuator's modelled actuator: the rod
-    along the flange +z to the TCP (End) at ``rod_length`` with the flange's axes, the head at the
-    TCP; an optional motor body (``body_length`` > 0) from the flange face."""
-
-    rod_length: float = act.ROD_LENGTH
-    rod_radius: float = act.ROD_RADIUS
-    head_radius: float = act.HEAD_RADIUS
-    implant_length: float = act.IMPLANT_LENGTH
-    implant_radius: float = act.IMPLANT_RADIUS
-    body_length: float = 0.0
-    body_radius: float = 0.0
-
-    def X_FT(self) -> np.ndarray:
-        """TCP in the flange frame, translation (0, 0, rod_length) (systems.actuator.X_FT)."""
-        return act.X_FT(self.rod_length)
-
-    def capsules(self) -> tuple[cp.Capsule, ...]:
-        return cp.actuator_capsules(
-            rod_length=self.rod_length,
-            rod_radius=self.rod_radius,
-            head_radius=self.head_radius,
-            implant_length=self.implant_length,
-            implant_radius=self.implant_radius,
-            body_length=self.body_length,
-            body_radius=self.body_radius,
-        )
-
-
-@dataclass(frozen=True)
-class Scenario:
-    """A placement problem (see models/scenarios/*.yaml for the file format).
-
-    Attributes:
-        name, posture: labels ("lying" / "sitting" for the bundled ones).
-        X_WO: Oral (feeding target) pose in the world.
-        lower, upper: (3,) bounds of the base position in Oral (m).
-        joint2_range: (2,) condition 1, joint 2 range in rad.
-        X_BC, cabinet_half: cabinet/cart box below the base, pose in Base and half sizes (m).
-        obstacles: patient and chair primitives in the world.
-        actuator: actuator geometry; X_FT its TCP in the flange frame.
-        eps: joint error radius (rad) of the error range index.
-        feed_length: m; feed_samples: poses along the feed (>= 2).
-        clearance: minimum capsule clearance (m) counted as collision-free.
-        max_joint_step: largest joint step between feed samples still counted continuous (rad).
-        limits: "175" or "360" (AUBO variants).
-        pop, gen, seed, patience, hv_tol: NSGA-II settings.
-        percentile_samples: random feasible bases for the percentile ranks.
-    """
-
-    name: str
-    posture: str
-    X_WO: np.ndarray
-    lower: np.ndarray
-    upper: np.ndarray
-    joint2_range: np.ndarray
-    X_BC: np.ndarray
-    cabinet_half: np.ndarray
-    obstacles: tuple[Obstacle, ...]
-    actuator: Actuator
-    X_FT: np.ndarray
-    eps: float
-    feed_length: float
-    feed_samples: int
-    clearance: float
-    max_joint_step: float
-    limits: str
-    pop: int
-    gen: int
-    seed: int
-    patience: int | None
-    hv_tol: float
-    percentile_samples: int
-
-
-BUNDLED = ("lying", "sitting")
-
-
-def scenario_path(name: str) -> Path:
-    """Path of a bundled scenario file (models/scenarios/NAME.yaml)."""
-    return models.MODELS_DIR / "scenarios" / f"{name}.yaml"
-
-
-def load_scenario(spec: str | Path, *, X_FT=None) -> Scenario:
-    """Load and validate a scenario: a bundled name (``lying``/``sitting``) or a YAML file path.
-
-    Args:
-        spec: name or path.
-        X_FT: TCP pose in the flange frame overriding the one built from the file's actuator
-            section (e.g. diagrams.tools.X_FT of the modelled actuator).
-    """
-    path = scenario_path(str(spec)) if str(spec) in BUNDLED else Path(spec)
-    data = read_yaml(path, field="scenario")
-    return scenario_from_dict(data, X_FT=X_FT, source=str(path))
-
-
-def _get(d: dict, key: str, where: str, default=None, required=True):
-    if key not in d:
-        if required and default is None:
-            raise InputError(f"{where}{key}", "missing")
-        return default
-    return d[key]
-
-
-def _pose(d, field_name: str) -> np.ndarray:
-    if not isinstance(d, dict):
-        raise InputError(field_name, "expected a mapping with xyz_m and rpy_deg")
-    xyz = validate.vector(_get(d, "xyz_m", field_name + "."), field_name + ".xyz_m", 3)
-    rpy = validate.vector(d.get("rpy_deg", [0, 0, 0]), field_name + ".rpy_deg", 3)
-    return transform(rpy_to_rotation(np.deg2rad(rpy)), xyz)
-
-
-def scenario_from_dict(data: dict, *, X_FT=None, source: str = "scenario") -> Scenario:
-    """Validate a scenario mapping (as read from YAML); every error names the field."""
-    if not isinstance(data, dict):
-        raise InputError("scenario", f"{source} must be a mapping")
-    version = data.get("schema_version")
-    if version != 1:
-        raise InputError("schema_version", f"expected 1, got {version!r}")
-    name = str(data.get("name", Path(source).stem))
-    posture = data.get("posture")
-    if posture not in ("lying", "sitting", "other"):
-        raise InputError("posture", f"expected lying, sitting or other, got {posture!r}")
-    X_WO = _pose(_get(data, "oral", ""), "oral")
-
-    bounds = _get(data, "base_bounds_m", "")
-    if not isinstance(bounds, dict):
-        raise InputError("base_bounds_m", "expected a mapping with x, y, z: [lower, upper]")
-    lower, upper = np.zeros(3), np.zeros(3)
-    for i, axis in enumerate("xyz"):
-        pair = validate.vector(_get(bounds, axis, "base_bounds_m."), f"base_bounds_m.{axis}", 2)
-        if not pair[0] < pair[1]:
-            raise InputError(
-                f"base_bounds_m.{axis}",
-                f"expected [lower, upper] with lower < upper, got {pair.tolist()} "
-                "(inverted or empty bounds)",
-            )
-        lower[i], upper[i] = pair
-
-    cab = _get(data, "cabinet", "")
-    if not isinstance(cab, dict):
-        raise InputError("cabinet", "expected a mapping")
-    j2 = np.deg2rad(validate.vector(_get(cab, "joint2_range_deg", "cabinet."),
-                                    "cabinet.joint2_range_deg", 2))
-    if not j2[0] < j2[1]:
-        raise InputError("cabinet.joint2_range_deg", "expected [lower, upper] with lower < upper")
-    box = _get(cab, "box", "cabinet.")
-    if not isinstance(box, dict):
-        raise InputError("cabinet.box", "expected a mapping with center_m and size_m")
-    X_BC = transform(np.eye(3), validate.vector(_get(box, "center_m", "cabinet.box."),
-                                     "cabinet.box.center_m", 3))
-    size = validate.vector(_get(box, "size_m", "cabinet.box."), "cabinet.box.size_m", 3)
-    if np.any(size <= 0):
-        raise InputError("cabinet.box.size_m", "expected positive sizes")
-
-    obstacles = []
-    for k, ob in enumerate(data.get("obstacles", []) or []):
-        where = f"obstacles[{k}]"
-        if not isinstance(ob, dict):
-            raise InputError(where, "expected a mapping")
-        kind = ob.get("type")
-        oname = str(ob.get("name", f"obstacle{k}"))
-        if kind == "capsule":
-            obstacles.append(Obstacle(
-                name=oname, kind="capsule",
-                p0=validate.vector(_get(ob, "p0_m", where + "."), where + ".p0_m", 3),
-                p1=validate.vector(_get(ob, "p1_m", where + "."), where + ".p1_m", 3),
-                radius=validate.number(_get(ob, "radius_m", where + "."), where + ".radius_m",
-                                       positive=True),
-            ))
-        elif kind == "box":
-            bsize = validate.vector(_get(ob, "size_m", where + "."), where + ".size_m", 3)
-            if np.any(bsize <= 0):
-                raise InputError(where + ".size_m", "expected positive sizes")
-            rpy = validate.vector(ob.get("rpy_deg", [0, 0, 0]), where + ".rpy_deg", 3)
-            obstacles.append(Obstacle(
-                name=oname, kind="box",
-                X_WB=transform(rpy_to_rotation(np.deg2rad(rpy)),
-                               validate.vector(_get(ob, "center_m", where + "."),
-                                               where + ".center_m", 3)),
-                half_size=bsize / 2,
-            ))
-        else:
-            raise InputError(where + ".type", f"expected capsule or box, got {kind!r}")
-
-    act = data.get("actuator", {}) or {}
-    if not isinstance(act, dict):
-        raise InputError("actuator", "expected a mapping")
-    defaults = Actuator()
-    actuator = Actuator(**{
-        key: validate.number(act.get(f"{key}_m", getattr(defaults, key)), f"actuator.{key}_m",
-                  positive=key.startswith(("rod", "head")), nonneg=True)
-        for key in ("rod_length", "rod_radius", "head_radius", "implant_length",
-                    "implant_radius", "body_length", "body_radius")
-    })
-    X_FT = actuator.X_FT() if X_FT is None else kin._check_pose(X_FT, "X_FT")
-
-    eps = np.deg2rad(validate.number(_get(data, "joint_error_deg", ""), "joint_error_deg",
-                                     positive=True))
-    feed_length = validate.number(_get(data, "feed_length_m", ""), "feed_length_m", positive=True)
-    feed_samples = int(validate.number(data.get("feed_samples", 11), "feed_samples", positive=True,
-                            integer=True))
-    if feed_samples < 2:
-        raise InputError("feed_samples", f"expected >= 2 samples, got {feed_samples}")
-    clearance = validate.number(data.get("clearance_m", 0.005), "clearance_m", nonneg=True)
-    step = np.deg2rad(validate.number(data.get("max_joint_step_deg", 20.0), "max_joint_step_deg",
-                           positive=True))
-    limits = str(data.get("joint_limits_deg", "175"))
-    if limits not in ("175", "360"):
-        raise InputError("joint_limits_deg", f"expected 175 or 360, got {limits!r}")
-
-    ga = data.get("ga", {}) or {}
-    if not isinstance(ga, dict):
-        raise InputError("ga", "expected a mapping")
-    pop = int(validate.number(ga.get("pop", 500), "ga.pop", positive=True, integer=True))
-    gen = int(validate.number(ga.get("gen", 500), "ga.gen", positive=True, integer=True))
-    if pop < 4:
-        raise InputError("ga.pop", f"expected at least 4, got {pop}")
-    patience = ga.get("patience", 20)
-    if patience is not None:
-        patience = int(validate.number(patience, "ga.patience", positive=True, integer=True))
-    hv_tol = validate.number(ga.get("hv_tol", 1e-3), "ga.hv_tol", nonneg=True)
-    seed = int(validate.number(data.get("seed", 0), "seed", nonneg=True, integer=True))
-    n_pct = int(validate.number(data.get("percentile_samples", 2000), "percentile_samples",
-                                positive=True, integer=True))
-
-    return Scenario(
-        name=name, posture=posture, X_WO=X_WO, lower=lower, upper=upper, joint2_range=j2,
-        X_BC=X_BC, cabinet_half=size / 2, obstacles=tuple(obstacles), actuator=actuator,
-        X_FT=X_FT, eps=eps, feed_length=feed_length, feed_samples=feed_samples,
-        clearance=clearance, max_joint_step=step, limits=limits, pop=pop, gen=gen, seed=seed,
-        patience=patience, hv_tol=hv_tol, percentile_samples=n_pct,
-    )
-
 
 # --------------------------------------------------------------------------------------------
 # Target, feed, IK
@@ -442,64 +182,44 @@ def select(values, valid, rng: np.random.Generator) -> tuple[np.ndarray, np.ndar
 # --------------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class CollisionModel:
-    """Capsule pairs for one scenario, precomputed once."""
-
-    capsules: tuple[cp.Capsule, ...]
-    self_i: np.ndarray
-    self_j: np.ndarray
-    env_parts: np.ndarray
-
-    @classmethod
-    def for_scenario(cls, sc: Scenario) -> CollisionModel:
-        caps = cp.ARM_CAPSULES + sc.actuator.capsules()
-        names = [c.name for c in caps]
-        pairs = [(a, b) for a, b in SELF_PAIRS if a in names and b in names]
-        si = np.array([names.index(a) for a, _ in pairs])
-        sj = np.array([names.index(b) for _, b in pairs])
-        env = np.array([names.index(n) for n in ENV_PARTS if n in names])
-        return cls(capsules=caps, self_i=si, self_j=sj, env_parts=env)
+CollisionModel = arm_collision.ArmCollisionModel
 
 
-def collision_clearance(q, xyz, sc: Scenario, model: CollisionModel | None = None):
-    """Smallest clearances (m) of configurations ``q`` (N, 6) with the base at ``xyz`` (N, 3).
+def collision_model(sc: Scenario) -> arm_collision.ArmCollisionModel:
+    """The fast conservative model of the scenario's plant (systems.arm_collision): the arm and
+    actuator shapes from the URDFs, the scenario's cart, patient and chair, every pair the
+    plant's SceneGraph does not filter."""
+    return arm_collision.model_for(sc)
+
+
+def collision_clearance(q, xyz, sc: Scenario, model: CollisionModel | None = None, *,
+                        cutoff: float = np.inf):
+    """Lower bounds of the clearances (m) of configurations ``q`` (N, 6) with the base at ``xyz``
+    (N, 3), from the fast model (never above SceneGraph's signed distance).
+
+    Args:
+        cutoff: pairs farther apart than this may report a lower bound >= cutoff instead of
+            their distance (a verdict at the scenario's clearance needs cutoff >= clearance).
 
     Returns:
-        dict with ``self`` (actuator/wrist vs arm links, condition 2), ``environment`` (arm vs
-        patient/chair, in the world), ``cabinet`` (arm vs the cart box under the base), each (N,);
-        +inf when there is nothing to test.
+        dict with ``self`` (arm and actuator against themselves: condition 2 and the links),
+        ``environment`` (vs patient/chair), ``cabinet`` (vs the cart box under the base), each
+        (N,), +inf when there is nothing to test; and ``pair`` (N, 3) the closest pair's index
+        per group into ``model.pairs`` (-1 when none).
     """
-    model = model or CollisionModel.for_scenario(sc)
-    seg, rad = cp.arm_capsules(q, model.capsules)  # (N, K, 2, 3) in Base
-    n = seg.shape[0]
-    d_self = cp.min_capsule_clearance(seg, rad, seg, rad,
-                                      np.stack([model.self_i, model.self_j], axis=1))
-    parts = seg[:, model.env_parts]  # (N, E, 2, 3)
-    r_parts = rad[model.env_parts]
-    d_cab = cp.min_box_clearance(parts, r_parts, sc.X_BC[None, :3, :3],
-                                 np.broadcast_to(sc.X_BC[:3, 3], (n, 1, 3)),
-                                 sc.cabinet_half[None])
-    d_env = np.full(n, np.inf)
-    if sc.obstacles:
-        # world -> base: X_BW = X_OB^-1 X_OW = X_OB^-1 X_WO^-1 (rotation constant, shift by xyz)
-        X_BW = invert(base_pose(xyz)) @ invert(sc.X_WO)  # (N, 4, 4)
-        R_BW = X_BW[0, :3, :3]
-        t = X_BW[:, None, None, :3, 3]  # (N, 1, 1, 3)
-        caps = [o for o in sc.obstacles if o.kind == "capsule"]
-        boxes = [o for o in sc.obstacles if o.kind == "box"]
-        if caps:
-            oseg = np.array([[o.p0, o.p1] for o in caps])  # (C, 2, 3) in World
-            orad = np.array([o.radius for o in caps])
-            oseg_B = oseg @ R_BW.T + t  # (N, C, 2, 3)
-            d_env = np.minimum(d_env, cp.min_capsule_clearance(parts, r_parts, oseg_B, orad))
-        if boxes:
-            X_WBx = np.array([o.X_WB for o in boxes])  # (Bx, 4, 4)
-            R_box = R_BW @ X_WBx[:, :3, :3]
-            p_box = X_WBx[:, :3, 3] @ R_BW.T + X_BW[:, None, :3, 3]  # (N, Bx, 3)
-            half = np.array([o.half_size for o in boxes])
-            d_env = np.minimum(d_env, cp.min_box_clearance(parts, r_parts, R_box, p_box, half))
-    return {"self": d_self, "environment": d_env, "cabinet": d_cab}
+    model = model or collision_model(sc)
+    q = np.asarray(q, dtype=float).reshape(-1, 6)
+    xyz = np.broadcast_to(np.asarray(xyz, dtype=float), (q.shape[0], 3))
+    d, pair = model.clearance(q, arm_collision.world_in_base(xyz, sc.X_WO, R_OB), cutoff=cutoff)
+    out = {g: d[:, k] for k, g in enumerate(arm_collision.GROUPS)}
+    out["pair"] = pair
+    return out
+
+
+def is_clear(d, clearance: float) -> np.ndarray:
+    """Verdict on fast-model distances: clear when d >= clearance, up to the floating-point
+    rounding of the kinematic chain (:data:`systems.arm_collision.ROUNDING`, 1e-12 m)."""
+    return np.asarray(d) >= clearance - arm_collision.ROUNDING
 
 
 _BOX_CORNERS = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], float)
@@ -586,6 +306,10 @@ class BaseEvaluation:
     def feasible(self) -> np.ndarray:
         return self.branch >= 0
 
+    def subset(self, index) -> BaseEvaluation:
+        """The evaluation of the bases ``index`` (an index array or mask over P)."""
+        return BaseEvaluation(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
+
 
 (DROP_OK, DROP_IK, DROP_CONTINUITY, DROP_JOINT2, DROP_SELF, DROP_ENV, DROP_CABINET,
  DROP_CART) = range(8)
@@ -633,7 +357,7 @@ def evaluate_bases(
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise InputError("xyz", f"expected (P, 3) base positions, got {xyz.shape}")
     P = xyz.shape[0]
-    model = model or CollisionModel.for_scenario(sc)
+    model = model or collision_model(sc)
     K = sc.feed_samples
     X = feed_poses(xyz, sc.feed_length, K, X_OT)  # (P, K, 4, 4)
     q, ok = ik_solver(X, limits=sc.limits, X_FT=sc.X_FT)  # (P, K, B, 6), (P, K, B)
@@ -670,13 +394,13 @@ def evaluate_bases(
     if pb.size:
         q_ends = np.stack([q[pb, bb, 0], q[pb, bb, -1]], axis=1).reshape(-1, 6)
         xyz_ends = np.repeat(xyz[pb], 2, axis=0)
-        d = collision_clearance(q_ends, xyz_ends, sc, model)
+        d = collision_clearance(q_ends, xyz_ends, sc, model, cutoff=sc.clearance)
         deficit_total = np.zeros(pb.size)
         for key, code in (("cabinet", DROP_CABINET), ("environment", DROP_ENV),
                           ("self", DROP_SELF)):
             dk = d[key].reshape(-1, 2).min(axis=1)
-            bad = dk < sc.clearance
-            deficit_total += np.maximum(sc.clearance - dk, 0.0)
+            bad = ~is_clear(dk, sc.clearance)
+            deficit_total += np.where(bad, np.maximum(sc.clearance - dk, 1e-9), 0.0)
             sub = reason[pb, bb]
             reason[pb, bb] = np.where(bad, code, sub)
         hit = deficit_total > 0
@@ -709,7 +433,7 @@ def evaluate_bases(
 
 def problem(sc: Scenario, *, ik_solver=ik_closed_form):
     """The GA's evaluate callable: ``(X (n, 3), rng) -> (objectives, violation)``."""
-    model = CollisionModel.for_scenario(sc)
+    model = collision_model(sc)
 
     def evaluate(X, rng):
         ev = evaluate_bases(X, sc, rng, ik_solver=ik_solver, model=model)
@@ -728,6 +452,12 @@ def knee_point(F, weights=None) -> int:
     """Index of the selected front point: each objective normalized to [0, 1] over the front, the
     smallest weighted sum (equal weights: the point farthest below the plane through the
     normalized extremes, a knee in the sense of Das 1999)."""
+    return int(selection_order(F, weights)[0])
+
+
+def selection_order(F, weights=None) -> np.ndarray:
+    """Front indices from the selected point (:func:`knee_point`) to the least preferred: the
+    order in which candidates are taken when a better-ranked one fails confirmation."""
     F = np.asarray(F, dtype=float)
     if F.ndim != 2 or F.shape[0] == 0:
         raise InputError("front", "expected a non-empty (n, m) front")
@@ -736,7 +466,84 @@ def knee_point(F, weights=None) -> int:
         raise InputError("weights", f"expected {F.shape[1]} non-negative weights, not all 0")
     lo, hi = F.min(axis=0), F.max(axis=0)
     span = np.where(hi > lo, hi - lo, 1.0)
-    return int(np.argmin(((F - lo) / span) @ w))
+    return np.argsort(((F - lo) / span) @ w, kind="stable")
+
+
+def initial_population(sc: Scenario, evaluate, rng: np.random.Generator, pop: int):
+    """Seed the GA: 4 * pop uniform samples of the bounds, the feasible ones first (then the
+    least violating), so the first generation already spans the feasible region.
+
+    Returns:
+        ``(X0 (pop, 3), samples, (X (4 pop, 3), violation (4 pop,)))``.
+    """
+    X = sc.lower + rng.random((4 * pop, 3)) * (sc.upper - sc.lower)
+    F, cv = evaluate(X, rng)
+    order = np.lexsort((F[:, 0], cv))
+    return X[order[:pop]], X.shape[0], (X, cv)
+
+
+@dataclass
+class Front:
+    """What :func:`search` found: the feasible non-dominated bases and the run's figures.
+
+    Attributes:
+        X: (n, 3) base positions (m, in Oral); F: (n, 3) objectives (:data:`INDEX_NAMES`).
+        evaluations: base evaluations including the initial samples; generations, stopped: as
+            systems.nsga2 reports them; seconds_evaluation / seconds_total: wall time in the
+            problem / in the whole run; initial_feasible: feasible bases among the initial
+            samples; initial_samples: how many were drawn.
+    """
+
+    X: np.ndarray
+    F: np.ndarray
+    evaluations: int
+    generations: int
+    stopped: str
+    seconds_evaluation: float
+    seconds_total: float
+    initial_feasible: int
+    initial_samples: int
+
+
+def search(sc: Scenario, evaluate, *, explain=None, on_start=None, on_generation=None) -> Front:
+    """The MOPRP search (NSGA-II, systems.nsga2) over the base position, for one target or many.
+
+    Args:
+        sc: scenario (bounds, ga settings, seed).
+        evaluate: the problem ``(X (n, 3), rng) -> (F (n, 3), violation (n,))``, e.g.
+            :func:`problem` or a several-site combination of it.
+        explain: ``(X, rng) -> str``, why no initial sample is feasible (the PlanningFailure's
+            message); None gives a generic message.
+        on_start: ``(feasible, samples)`` called after the initial sampling.
+        on_generation: ``(generation, front_size, hypervolume)`` progress callback.
+
+    Raises:
+        PlanningFailure: no feasible base among the initial samples or on the final front.
+    """
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(sc.seed)
+    X0, n0, (Xs, cvs) = initial_population(sc, evaluate, rng, sc.pop)
+    t_init = time.perf_counter() - t0
+    n_ok = int(np.sum(cvs <= 0))
+    if n_ok == 0:
+        raise PlanningFailure(explain(Xs, rng) if explain is not None else
+                              f"no feasible base among {Xs.shape[0]} samples of the bounds")
+    if on_start is not None:
+        on_start(n_ok, n0)
+    res = nsga2(evaluate, sc.lower, sc.upper, pop=sc.pop, gen=sc.gen, seed=sc.seed + 1,
+                initial=X0, patience=sc.patience, hv_tol=sc.hv_tol,
+                on_generation=on_generation)
+    Xf = res.X[res.front]
+    F, cv = evaluate(Xf, np.random.default_rng(sc.seed))
+    keep = np.flatnonzero(cv <= 0)
+    keep = keep[non_dominated_sort(F[keep]) == 0]
+    if keep.size == 0:
+        raise PlanningFailure("the optimizer found no feasible base in the bounds")
+    return Front(X=Xf[keep], F=F[keep], evaluations=int(res.evaluations + n0),
+                 generations=int(res.generations), stopped=res.stopped,
+                 seconds_evaluation=res.seconds_eval + t_init,
+                 seconds_total=time.perf_counter() - t0, initial_feasible=n_ok,
+                 initial_samples=n0)
 
 
 def random_feasible(sc: Scenario, n: int, rng: np.random.Generator, *, ik_solver=ik_closed_form,
@@ -744,7 +551,7 @@ def random_feasible(sc: Scenario, n: int, rng: np.random.Generator, *, ik_solver
     """Up to ``n`` uniformly random feasible bases in the bounds (rejection sampling).
 
     Returns ``(xyz (m, 3), evaluation)`` with m <= n (fewer when feasible bases are rare)."""
-    model = CollisionModel.for_scenario(sc)
+    model = collision_model(sc)
     batch = batch or max(4 * n, 1000)
     found_x, found_f = [], []
     count = 0

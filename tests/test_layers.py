@@ -9,10 +9,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 LAYERS = {"models": 0, "systems": 1, "diagrams": 2, "analyses": 3}
 # Known exceptions, each with the issue that removes it. Keep this list short and dated.
-ALLOWED = {
-    # issue 11: the one MOPRP search moves initial_population out of the robot command
-    ("analyses.pipeline", "analyses.robot_place"),
-}
+ALLOWED: set[tuple[str, str]] = set()
 
 
 def modules() -> dict[str, Path]:

@@ -101,14 +101,19 @@ def write_layout_html(sc: moprp.Scenario, xyz, branch: int, path: Path) -> Path:
 def _plot_layout(sc, xyz, q, path, title) -> Path:
     import matplotlib.pyplot as plt
 
-    from implantplan.systems import collision_primitives as cp
+    from implantplan.systems import arm_collision
 
-    model = moprp.CollisionModel.for_scenario(sc)
-    seg_B, rad = cp.arm_capsules(q, model.capsules)
+    model = moprp.collision_model(sc)
     X_WB = sc.X_WO @ moprp.base_pose(xyz)
-    seg = seg_B @ X_WB[:3, :3].T + X_WB[:3, 3]
+    arm = [(shape, X_WB @ X) for shape, X in model.posed_shapes(q)
+           if shape.body not in (arm_collision.PATIENT_SCOPE, arm_collision.CART_SCOPE)]
+    # the arm's capsules and cylinders as thick segments along their axes, its boxes as boxes
+    seg = np.array([[X[:3, 3] - X[:3, 2] * sh.size[1] / 2, X[:3, 3] + X[:3, 2] * sh.size[1] / 2]
+                    for sh, X in arm if sh.kind in ("capsule", "cylinder")])
+    rad = np.array([sh.size[0] for sh, _ in arm if sh.kind in ("capsule", "cylinder")])
     corners = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], float)
     boxes = [(X_WB @ sc.X_BC, sc.cabinet_half, "tab:gray")]
+    boxes += [(X, np.asarray(sh.size) / 2, "tab:blue") for sh, X in arm if sh.kind == "box"]
     boxes += [(o.X_WB, o.half_size, "tan") for o in sc.obstacles if o.kind == "box"]
     caps = [(np.array([o.p0, o.p1]), o.radius) for o in sc.obstacles if o.kind == "capsule"]
     edges = [(a, b) for a in range(8) for b in range(a + 1, 8)
@@ -137,7 +142,7 @@ def _plot_layout(sc, xyz, q, path, title) -> Path:
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
-    handles = [Patch(color="tab:blue", alpha=0.45, label="arm (collision capsules)"),
+    handles = [Patch(color="tab:blue", alpha=0.45, label="arm (collision model)"),
                Patch(color="peachpuff", label="patient"),
                Line2D([], [], color="tan", label="chair"),
                Line2D([], [], color="tab:gray", label="cart"),

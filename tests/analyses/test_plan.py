@@ -32,11 +32,21 @@ def test_demo_writes_a_complete_passing_plan(demo_plan):
         np.testing.assert_allclose(s["vf"]["direction"], s["placement"]["line1"]["direction"],
                                    atol=1e-12)
         assert s["simulation"]["runs"][0]["reached_target"]
+        # SceneGraph confirmed the feed: each reported configuration carries its clearance
+        feed = s["ik"]["feed_clearance"]
+        assert feed["limit_m"] == 0.005 and feed["samples"] >= 61 and all(feed["pair"])
+        for key in ("scene_graph_clearance_m", "scene_graph_clearance_pre_m"):
+            assert s["ik"][key] >= feed["distance_m"] >= feed["limit_m"]
+    arm = [c for c in plan["checks"] if c["name"] == "arm clearance along the feed (SceneGraph)"]
+    assert [c["site"] for c in arm] == ["36", "46"]
+    assert all(c["pass"] and c["limit"] == 0.005 and " / " in c["pair"] for c in arm)
+    assert plan["base"]["selection_dropped"] >= 0
     assert (demo_plan / "fpsm.json").is_file() and (demo_plan / "layout.html").is_file()
     html = (demo_plan / "report.html").read_text()
     for img in __import__("re").findall(r"src='([^']+)'", html):
         assert (demo_plan / img).is_file(), img
     assert "PASS" in html and "<iframe" in html
+    assert "arm clearance along the feed (SceneGraph) (aubo::" in html
 
 
 def test_feeding_targets_are_consistent_across_frames(demo_plan):
@@ -298,7 +308,7 @@ def test_every_check_of_the_demo_has_a_stable_unique_id_and_a_bound(demo_plan):
     assert {c["id"] for c in plan["checks"]} >= {"fpsm.penetration_depth", "site.on_tissue",
                                                   "placement.line1_clearance"}
     html = (demo_plan / "report.html").read_text()
-    assert "maximum (value &lt;= limit)" in html and "Provenance" in html
+    assert "max (value &lt;= limit)" in html and "Provenance" in html
     assert plan["provenance"]["inputs"]["case"]["sha256"]
 
 

@@ -63,7 +63,7 @@ def test_layouts_ranks_and_plots(tmp_path):
                  "--out", str(out), "--quiet"]) == 0
     data = read(out / "layouts.json")
     assert data["of"] == 3 and data["layouts"][0]["label"] == "win"
-    for key in ("joint_travel", "path_error", "gii"):
+    for key in ("joint_travel", "path_error", "gii", "gii_mm_deg", "joint_variation_index"):
         assert 1 <= data["ranks"][key] <= 3
     for name in ("path_error", "joint_travel", "gii"):
         assert (out / f"layouts_{name}.png").stat().st_size > 0

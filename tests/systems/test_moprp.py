@@ -1,15 +1,10 @@
-"""MOPRP core (systems.moprp), the NSGA-II/hypervolume (systems.nsga2) and the capsule
-primitives (systems.collision_primitives)."""
+"""MOPRP core (systems.moprp): indices, selection, the scenario, the problem and the search."""
 
 import dataclasses
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
-from hypothesis.extra.numpy import arrays
 
-from implantplan.systems import collision_primitives as cp
 from implantplan.systems import kinematics as kin
 from implantplan.systems import moprp, nsga2
 from implantplan.systems.errors import InputError
@@ -155,14 +150,16 @@ def test_condition_1_rejects_every_branch_at_a_reachable_base(lying):
 
 def test_actuator_into_the_forearm_is_condition_2():
     """With the arm upright (q1..q3 = 0) and the wrist turned over (q4 = q5 = 180 deg) the rod
-    points straight down the forearm: the rod's axis meets the forearm capsule's axis, so the
-    clearance is -(r_rod + r_forearm) = -(0.006 + 0.044); at home the actuator is clear."""
+    points straight down the forearm: the rod's axis meets the forearm capsule's axis. The rod
+    (a cylinder) is enclosed by its capsule (clearance -(r_rod + r_forearm) = -0.05) and by
+    boxes that the forearm's axis passes through (-r_forearm = -0.044); the model reports the
+    largest of these lower bounds; at home the actuator is clear."""
     sc = moprp.load_scenario("lying")
     model = moprp.CollisionModel.for_scenario(sc)
     q = np.deg2rad([[0, 0, 0, 180, 180, 0], [0, 0, 0, 0, 0, 0]])
     d = moprp.collision_clearance(q, np.zeros((2, 3)), sc, model)["self"]
-    assert d[0] == pytest.approx(-0.05, abs=1e-9)
-    assert d[1] > 0.1
+    assert d[0] == pytest.approx(-0.044, abs=1e-9)
+    assert d[1] > sc.clearance
 
 
 # ---------------------------------------------------------------- selection
@@ -270,61 +267,7 @@ def test_both_bundled_scenarios_load():
         np.testing.assert_allclose(sc.X_WO[:3, 1], [0, 0, 1], atol=1e-12)
 
 
-# ---------------------------------------------------------------- NSGA-II and hypervolume
-
-
-def test_hypervolume_by_hand():
-    assert nsga2.hypervolume(np.zeros((1, 3)), np.ones(3)) == pytest.approx(1.0)
-    # boxes 1 x .5 x .5 and .5 x 1 x 1 overlapping in .5^3: .25 + .5 - .125
-    F = np.array([[0.0, 0.5, 0.5], [0.5, 0.0, 0.0]])
-    assert nsga2.hypervolume(F, np.ones(3)) == pytest.approx(0.625)
-    assert nsga2.hypervolume(np.array([[0.0, 0.5], [0.5, 0.0]]), np.ones(2)) == pytest.approx(0.75)
-    # points beyond the reference add nothing, dominated points add nothing
-    F2 = np.vstack([F, [[2.0, 0.0, 0.0], [0.6, 0.1, 0.1]]])
-    assert nsga2.hypervolume(F2, np.ones(3)) == pytest.approx(0.625)
-
-
-@settings(max_examples=30, deadline=None)
-@given(arrays(np.float64, (12, 3), elements=st.floats(0, 1)))
-def test_hypervolume_matches_inclusion_exclusion_on_a_grid(F):
-    F = np.round(F * 4) / 4  # grid points: exact count of dominated 1/4-cells
-    cells = (np.stack(np.meshgrid(*[np.arange(4) / 4] * 3, indexing="ij"), -1).reshape(-1, 3)
-             + 0.125)
-    dom = np.any(np.all(cells[:, None, :] >= F[None], axis=-1), axis=1)
-    assert nsga2.hypervolume(F, np.ones(3)) == pytest.approx(dom.sum() / 64, abs=1e-12)
-
-
-@settings(max_examples=40, deadline=None)
-@given(arrays(np.float64, (30, 3), elements=st.sampled_from([0.0, 1.0, 2.0, 3.0])),
-       arrays(np.float64, (30,), elements=st.sampled_from([0.0, 0.0, 0.5, 1.0])))
-def test_compiled_sort_matches_the_domination_matrix(F, cv):
-    D = nsga2.domination_matrix(F, cv)
-    rank = nsga2.non_dominated_sort(F, cv)
-    # rank 0 = dominated by nobody; each point of rank r > 0 is dominated by one of rank r - 1
-    # and by none of rank >= r
-    for j in range(F.shape[0]):
-        dominators = rank[D[:, j]]
-        if rank[j] == 0:
-            assert dominators.size == 0
-        else:
-            assert dominators.max() == rank[j] - 1
-        assert np.all(dominators < rank[j])
-
-
-def test_nsga2_finds_a_known_front():
-    """Schaffer's problem: f = (x^2, (x - 2)^2); the Pareto set is x in [0, 2]."""
-
-    def evaluate(X, rng):
-        x = X[:, 0]
-        return np.stack([x**2, (x - 2) ** 2], axis=1), np.zeros(len(x))
-
-    r = nsga2.nsga2(evaluate, [-10.0], [10.0], pop=40, gen=60, seed=3, patience=None)
-    x = r.X[r.front, 0]
-    assert x.size >= 30
-    assert x.min() >= -1e-3 and x.max() <= 2 + 1e-3
-    assert x.max() - x.min() > 1.8
-    r2 = nsga2.nsga2(evaluate, [-10.0], [10.0], pop=40, gen=60, seed=3, patience=None)
-    np.testing.assert_array_equal(r.X, r2.X)
+# ---------------------------------------------------------------- the search
 
 
 def test_nsga2_moprp_front_is_feasible_and_non_dominated(lying):
@@ -337,84 +280,25 @@ def test_nsga2_moprp_front_is_feasible_and_non_dominated(lying):
     assert r.evaluations == 40 * 16
 
 
-def test_nsga2_rejects_bad_bounds():
-    with pytest.raises(InputError):
-        nsga2.nsga2(lambda X, rng: (X, np.zeros(len(X))), [1.0], [0.0], pop=8, gen=2, seed=0)
+def test_search_returns_a_feasible_non_dominated_front(lying):
+    sc = dataclasses.replace(lying, pop=40, gen=10)
+    res = moprp.search(sc, moprp.problem(sc))
+    assert res.X.shape[0] >= 5 and res.F.shape == (res.X.shape[0], 3)
+    assert not nsga2.domination_matrix(res.F).any()
+    ev = moprp.evaluate_bases(res.X, sc, np.random.default_rng(0))
+    assert ev.feasible.all()
+    assert res.evaluations == 4 * 40 + 40 * (res.generations + 1)
+    order = moprp.selection_order(res.F)
+    assert order[0] == moprp.knee_point(res.F) and sorted(order) == list(range(res.X.shape[0]))
 
 
-# ---------------------------------------------------------------- capsule primitives
+def test_search_without_feasible_samples_explains(lying):
+    from implantplan.systems.errors import PlanningFailure
 
-
-def test_segment_distances_by_hand():
-    a = np.array([[0.0, 0, 0], [1.0, 0, 0]])
-    # parallel, offset by 2 in y
-    assert cp.segment_distance(a, a + [0, 2, 0]) == pytest.approx(2.0)
-    # skew: a along x at z=0, b along y through (0.5, *, 3)
-    b = np.array([[0.5, -1, 3.0], [0.5, 1, 3.0]])
-    assert cp.segment_distance(a, b) == pytest.approx(3.0)
-    # beyond the end: closest points are the endpoints (1,0,0) and (2,0,1)
-    c = np.array([[2.0, 0, 1], [3.0, 0, 1]])
-    assert cp.segment_distance(a, c) == pytest.approx(np.sqrt(2))
-    # point (degenerate segment) above the middle
-    p = np.array([[0.5, 0.0, 0.7], [0.5, 0.0, 0.7]])
-    assert cp.segment_distance(a, p) == pytest.approx(0.7)
-    assert cp.capsule_clearance(a, 0.1, b, 0.2) == pytest.approx(2.7)
-
-
-def test_segment_box_distance_by_hand():
-    box = np.eye(4)
-    half = np.array([0.5, 0.5, 0.5])
-    seg = np.array([[2.0, 0, 0], [2.0, 0, 3.0]])
-    assert cp.segment_box_distance(seg, box, half) == pytest.approx(1.5)
-    seg2 = np.array([[1.5, 1.5, -3.0], [1.5, 1.5, 3.0]])  # passes the vertical edge
-    assert cp.segment_box_distance(seg2, box, half) == pytest.approx(np.sqrt(2))
-    assert cp.segment_box_distance(np.array([[-2.0, 0, 0], [2.0, 0, 0]]), box, half) == 0.0
-    # batched version agrees with the single one, rotated box
-    from implantplan.systems.frames import rot_z, transform
-
-    Xb = transform(rot_z(np.pi / 4), [1.0, 0.0, 0.0])
-    d1 = cp.segment_box_distance(seg, Xb, half)
-    d2 = cp.min_box_clearance(seg[None, None], np.zeros(1), Xb[None, :3, :3],
-                              Xb[None, None, :3, 3], half[None])
-    assert d2[0] == pytest.approx(float(d1), abs=1e-9)
-
-
-@settings(max_examples=50, deadline=None)
-@given(arrays(np.float64, (2, 2, 3), elements=st.floats(-1, 1)))
-def test_segment_distance_is_the_min_over_samples(S):
-    t = np.linspace(0, 1, 401)
-    pa = S[0, 0] + t[:, None] * (S[0, 1] - S[0, 0])
-    pb = S[1, 0] + t[:, None] * (S[1, 1] - S[1, 0])
-    brute = np.linalg.norm(pa[:, None] - pb[None], axis=-1).min()
-    d = cp.segment_distance(S[0], S[1])
-    assert d <= brute + 1e-12
-    assert d >= brute - 2 * np.linalg.norm(S[:, 1] - S[:, 0], axis=-1).max() / 400 - 1e-12
-
-
-def test_arm_capsules_at_home_by_hand():
-    seg, rad = cp.arm_capsules(np.zeros(6))
-    names = [c.name for c in cp.ARM_CAPSULES]
-    ua = seg[names.index("upper_arm")]
-    np.testing.assert_allclose(ua, [[0, -0.2013, 0.1632], [0, -0.2013, 0.8102]], atol=1e-12)
-    fa = seg[names.index("forearm")]
-    # forearm capsule at z 0.128 of its frame = base y offset (the frame's z is base +y here)
-    np.testing.assert_allclose(fa[:, 2], [0.8102, 1.4107], atol=1e-12)
-    assert rad[names.index("upper_arm")] == 0.058
-    # batched shapes
-    seg2, _ = cp.arm_capsules(np.zeros((4, 2, 6)))
-    assert seg2.shape == (4, 2, len(cp.ARM_CAPSULES), 2, 3)
-
-
-def test_min_capsule_clearance_matches_pairwise():
-    rng = np.random.default_rng(0)
-    A = rng.normal(size=(20, 3, 2, 3))
-    B = rng.normal(size=(20, 4, 2, 3))
-    ra, rb = rng.random(3) * 0.1, rng.random(4) * 0.1
-    full = cp.capsule_clearance(A[:, :, None], ra[None, :, None], B[:, None], rb[None, None])
-    np.testing.assert_allclose(cp.min_capsule_clearance(A, ra, B, rb), full.min(axis=(1, 2)))
-    pairs = np.array([[0, 1], [2, 3]])
-    np.testing.assert_allclose(cp.min_capsule_clearance(A, ra, B, rb, pairs),
-                               np.minimum(full[:, 0, 1], full[:, 2, 3]))
+    sc = dataclasses.replace(lying, pop=8, gen=2, lower=np.array([4.0, 0.0, 0.0]),
+                             upper=np.array([5.0, 0.1, 0.1]))
+    with pytest.raises(PlanningFailure, match="why: 32"):
+        moprp.search(sc, moprp.problem(sc), explain=lambda X, rng: f"why: {X.shape[0]}")
 
 
 def test_cart_clearance_by_hand():
