@@ -262,9 +262,10 @@ def register_analysis(sub) -> None:
     p.add_argument("--draws", type=int, default=25, help="draws of the random layouts")
     p.add_argument("--random", type=int, default=20, help="random layouts per draw (paper: 20)")
     p.add_argument("--pool", type=int, default=300, help="feasible layouts per pool")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--quiet", action="store_true")
-    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--seed", type=int, default=0, help="seed of the random layouts (default 0)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--out", type=Path, required=True,
+                   help="output folder (moprp_fidelity.json and .png)")
     p.set_defaults(func=_cmd)
 
 
