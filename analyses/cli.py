@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import sys
 
 from implantplan import __version__
@@ -72,6 +73,9 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
+    # Drake logs through Python's logging; its INFO lines ("Meshcat listening ...") are noise in
+    # a command's output: warnings and errors still show.
+    logging.getLogger("drake").setLevel(logging.WARNING)
     parser = build_parser(argv)
     args = parser.parse_args(argv)
     try:
