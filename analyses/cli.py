@@ -71,11 +71,16 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def _warnings_and_up(record: logging.LogRecord) -> bool:
+    return record.levelno >= logging.WARNING
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     # Drake logs through Python's logging; its INFO lines ("Meshcat listening ...") are noise in
-    # a command's output: warnings and errors still show.
-    logging.getLogger("drake").setLevel(logging.WARNING)
+    # a command's output: warnings and errors still show. A filter, because pydrake sets the
+    # logger's level when it is first imported.
+    logging.getLogger("drake").addFilter(_warnings_and_up)
     parser = build_parser(argv)
     args = parser.parse_args(argv)
     try:
