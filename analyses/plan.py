@@ -36,7 +36,7 @@ from implantplan.systems.errors import InputError
 from implantplan.systems.files import write_json
 from implantplan.systems.frames import wrap_angle
 
-DEMO_OUT = "implantplan-demo"
+DEMO_OUT = "out/implantplan-demo"  # out/ is where every README command writes
 # Pass/fail limits of the checks (DESIGN.md section 4 and issue 6 acceptance figures).
 MAX_PENETRATION_DEPTH = 0.5e-3  # m, dense check of the FPSM fit
 GRID_TOL_D = 0.1e-3  # m, PSO vs exhaustive grid

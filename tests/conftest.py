@@ -1,5 +1,7 @@
 """Fixtures shared by several test files."""
 
+import contextlib
+import io
 import os
 
 import pytest
@@ -15,8 +17,18 @@ if os.environ.get("CI"):
 
 
 @pytest.fixture(scope="session")
-def demo_plan(tmp_path_factory):
-    """The bundled default case planned once (one feed per site, with the 3D scene)."""
+def demo_run(tmp_path_factory):
+    """``implantplan demo`` once, as the README's first command runs it (the case's feeds, the 3D
+    scenes): ``(plan folder, everything it printed)``."""
     out = tmp_path_factory.mktemp("demo") / "plan"
-    assert main(["demo", "--out", str(out), "--runs", "1", "--quiet"]) == 0
-    return out
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(printed):
+        code = main(["demo", "--out", str(out)])
+    assert code == 0, printed.getvalue()
+    return out, printed.getvalue()
+
+
+@pytest.fixture(scope="session")
+def demo_plan(demo_run):
+    """The bundled default case planned once (the plan folder of :func:`demo_run`)."""
+    return demo_run[0]
