@@ -269,6 +269,7 @@ def build_teleop(
             case.vf,
             case.X_WCenter,
             case.X_WE(q0),
+            R_ET=X_ET[:3, :3],
             period=period,
             stiffness=stiffness,
             damping=damping,
