@@ -1,0 +1,325 @@
+"""Control-barrier safety supervisor of the tool against the FPSM (DESIGN.md section 7).
+
+The barrier is the clearance h(X) of the whole tool body at its pose X (the FPSM's clearance:
+:func:`clearance`, the one place the supervisor asks for it) and the safe set is
+h >= margin. A commanded tool twist V = [w; v] (w the angular velocity, v the TCP's velocity,
+both in Center) is filtered so that
+
+    dh/dt = grad h . V >= b,   b = min(-alpha (h - margin), 0)
+
+(control-barrier style, Ames et al.): far from the wall any approach slower than
+alpha (h - margin) passes; at the margin no approach is left; below it (which the filter itself
+never causes) the command may not approach further but is not turned into a retreat, so the
+supervisor never amplifies a command. The fixture's return law brings the tool back.
+
+Discrete time (period dt), in one batched clearance call per step of 14 poses: the pose X, 12
+poses perturbed along the twist's coordinates (translations by +-eps_p, rotations about the TCP
+by +-eps_w: the central-difference gradient g of h with respect to the twist) and the commanded
+next pose X + dt V:
+
+1. if h(X + dt V) >= h + dt b - 10 nm (the discrete barrier condition holds for the command
+   itself, no linearization) or h is +inf (the tool is outside the mouth), V passes untouched;
+2. otherwise V is projected on the half-space g . V' >= 0.9 b (aiming at 90% of the allowed
+   approach: room for the linearization error of a non-smooth h) in the metric
+   |V|_M^2 = L^2 |w|^2 + |v|^2 (L = ``length_scale``: a rotation is "costly" in proportion to
+   the lever it swings): V' = V + lambda M^-1 g, lambda = (0.9 b - g . V) / (g^T M^-1 g) >= 0.
+   The half-space contains 0 (b <= 0), so the projection is non-expansive: |V'|_M <= |V|_M;
+3. h being a minimum over the tool's parts (not smooth), the projected command is checked on
+   h itself at X + dt s V' for s = 1, 3/4, 1/2, 1/4 (one more batched call): the largest s that
+   meets the discrete condition is taken, s = 0 (stop) if none does. Stopping always meets it.
+
+With the sound FPSM clearance (a certified lower bound of the exact clearance) h >= margin - a
+few tenths of a millimetre at every step thus bounds the exact distance of the tool to the
+tissue. The estimator's alarm stays as the second line of defence.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.systems.framework import BasicVector, LeafSystem
+
+from implantplan.systems.errors import InputError
+from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.fpsm_estimator import ToolLines
+from implantplan.systems.frames import invert
+from implantplan.systems.vf_system import step_pose
+
+AIM = 0.9  # the projection aims at this share of the allowed approach rate
+SCALES = np.array([1.0, 0.75, 0.5, 0.25])  # tried on h itself after the projection
+TOLERANCE = 1e-8  # m: rounding allowed in the discrete barrier condition per step
+FAR = 1.0e3  # stand-in for +inf (the tool wholly outside the mouth) on the output ports (m)
+
+
+def clearance(fpsm: Fpsm, X_CT: np.ndarray, tool: ToolLines) -> np.ndarray:
+    """Clearance (m) of the whole tool at K poses ``X_CT`` (K, 4, 4) of its Tool frame in Center.
+
+    The one place the supervisor takes its barrier from: today the tool's lines of Eq. 19 (the
+    rod as its axis against the FPSM shrunk by r, Eq. 12; the implant path against the model),
+    the smallest d_safe over both, in one compiled call.
+    """
+    K = X_CT.shape[0]
+    n = tool.start_T.shape[0]
+    R, p = X_CT[:, :3, :3], X_CT[:, :3, 3]
+    start = np.einsum("kij,lj->kli", R, tool.start_T) + p[:, None, :]
+    u = np.einsum("kij,lj->kli", R, tool.direction_T)
+    u /= np.linalg.norm(u, axis=-1, keepdims=True)
+    s = fpsm._line_safety(start.reshape(-1, 3), u.reshape(-1, 3), np.inf,
+                          np.tile(tool.radius, K), 0.5, 0.5)
+    return s.d_safe_min.reshape(K, n).min(axis=1)
+
+
+@dataclass(frozen=True)
+class Barrier:
+    """Settings of the barrier filter (SI units).
+
+    Attributes:
+        margin: the clinical margin h must keep (m); default 1 mm.
+        alpha: the barrier's rate (1/s): an approach slower than alpha (h - margin) passes.
+        length_scale: L (m) of the twist metric L^2 |w|^2 + |v|^2.
+        eps_p, eps_w: finite-difference steps of the gradient (m, rad).
+    """
+
+    margin: float = 0.001
+    alpha: float = 20.0
+    length_scale: float = 10.0
+    eps_p: float = 1e-4
+    eps_w: float = 1e-3
+
+    def __post_init__(self):
+        for name in ("margin", "alpha", "length_scale", "eps_p", "eps_w"):
+            value = getattr(self, name)
+            if not np.isfinite(value) or value < 0 or (name != "margin" and value == 0):
+                raise InputError(f"barrier.{name}", f"expected a finite value > 0, got {value}")
+
+
+def perturbed_poses(X_CT: np.ndarray, eps_p: float, eps_w: float) -> np.ndarray:
+    """(K, 12, 4, 4): each pose rotated about its TCP by +eps_w about Center x, y, z, translated
+    by +eps_p along Center x, y, z (the twist's coordinates [w; v]), then the same by -eps."""
+    out = np.repeat(X_CT[:, None], 12, axis=1)
+    for half, sign in ((0, 1.0), (6, -1.0)):
+        c, s = np.cos(eps_w), sign * np.sin(eps_w)
+        for i in range(3):
+            j, k = (i + 1) % 3, (i + 2) % 3
+            Ri = np.eye(3)
+            Ri[j, j], Ri[j, k], Ri[k, j], Ri[k, k] = c, -s, s, c
+            out[:, half + i, :3, :3] = Ri @ X_CT[:, :3, :3]
+            out[:, half + 3 + i, i, 3] += sign * eps_p
+    return out
+
+
+def stepped_poses(X_CT: np.ndarray, V: np.ndarray, dt) -> np.ndarray:
+    """(K, 4, 4) poses after dt under twists V (K, 6) = [w; v] (w about the TCP; exact
+    rotation by Drake's AngleAxis, through :func:`systems.vf_system.step_pose`)."""
+    dt = np.broadcast_to(np.asarray(dt, dtype=float), (X_CT.shape[0],))
+    out = X_CT.copy()
+    for i in range(X_CT.shape[0]):
+        p, R = step_pose(X_CT[i, :3, 3], X_CT[i, :3, :3], V[i], float(dt[i]))
+        out[i, :3, 3], out[i, :3, :3] = p, R
+    return out
+
+
+def barrier_filter(V, h, g, *, margin: float, alpha: float, length_scale: float):
+    """The projection of step 2 for K commands, vectorized.
+
+    Args:
+        V: (K, 6) commanded twists [w; v]; h: (K,) barrier values (m; +inf: no constraint);
+        g: (K, 6) gradients of h with respect to the twist.
+
+    Returns:
+        (V' (K, 6), b (K,) the required rate, active (K,) bool: the command was changed).
+    """
+    V = np.asarray(V, dtype=float).reshape(-1, 6)
+    h = np.asarray(h, dtype=float).reshape(-1)
+    g = np.asarray(g, dtype=float).reshape(-1, 6)
+    finite = np.isfinite(h) & np.all(np.isfinite(g), axis=1)
+    b = np.where(finite, np.minimum(-alpha * (np.where(finite, h, 0.0) - margin), 0.0), -np.inf)
+    Minv = np.concatenate([np.full(3, 1.0 / length_scale**2), np.ones(3)])
+    gMg = np.sum(g * g * Minv, axis=1)
+    gV = np.sum(g * V, axis=1)
+    active = finite & (gV < b) & (gMg > 0)
+    lam = np.where(active, (b - gV) / np.where(gMg > 0, gMg, 1.0), 0.0)
+    return V + lam[:, None] * g * Minv, b, active
+
+
+@dataclass(frozen=True)
+class Supervised:
+    """One supervisor step for K poses (Center frame, SI); fields (K, ...).
+
+    Attributes:
+        V: (K, 6) the filtered twist.
+        h: (K,) barrier value at the pose (m, +inf outside the mouth).
+        h_next: (K,) barrier value one period ahead under V.
+        scale: (K,) |V|_M / |V_command|_M (1: untouched, 0: stopped).
+        active: (K,) the command was changed.
+    """
+
+    V: np.ndarray
+    h: np.ndarray
+    h_next: np.ndarray
+    scale: np.ndarray
+    active: np.ndarray
+
+
+def supervise(fpsm: Fpsm, X_CT, V_C, tool: ToolLines, barrier: Barrier, dt: float) -> Supervised:
+    """Steps 1-3 of the module docstring for K tool poses ``X_CT`` (K, 4, 4) in Center and
+    commanded twists ``V_C`` (K, 6) in Center, over a period ``dt`` (s)."""
+    X = np.asarray(X_CT, dtype=float).reshape(-1, 4, 4)
+    V = np.asarray(V_C, dtype=float).reshape(-1, 6)
+    K = X.shape[0]
+    if V.shape[0] != K:
+        raise InputError("V_C", f"expected one twist per pose ({K}), got {V.shape[0]}")
+    eps = np.concatenate([np.full(3, barrier.eps_w), np.full(3, barrier.eps_p)])
+    poses = np.concatenate(
+        [X[:, None], perturbed_poses(X, barrier.eps_p, barrier.eps_w),
+         stepped_poses(X, V, dt)[:, None]], axis=1
+    )
+    H = clearance(fpsm, poses.reshape(-1, 4, 4), tool).reshape(K, 14)
+    h, h_cmd = H[:, 0], H[:, 13]
+    with np.errstate(invalid="ignore"):
+        g = (H[:, 1:7] - H[:, 7:13]) / (2.0 * eps)
+    g = np.where(np.isfinite(g), g, 0.0)  # a step out of the mouth (h -> +inf): no constraint
+    b = np.where(np.isfinite(h), np.minimum(-barrier.alpha * (h - barrier.margin), 0.0), -np.inf)
+    ok = ~np.isfinite(h) | (h_cmd >= h + dt * b - TOLERANCE)
+    V_out, h_next = V.copy(), h_cmd.copy()
+    scale = np.ones(K)
+    todo = np.flatnonzero(~ok)
+    if todo.size:
+        # aim at 90% of the allowed approach: room for the linearization of a non-smooth h
+        Vp, _, _ = barrier_filter(V[todo], h[todo], g[todo], margin=barrier.margin,
+                                  alpha=AIM * barrier.alpha, length_scale=barrier.length_scale)
+        S = SCALES.size
+        trial = np.repeat(X[todo], S, axis=0)
+        Vt = (Vp[:, None, :] * SCALES[None, :, None]).reshape(-1, 6)
+        Ht = clearance(fpsm, stepped_poses(trial, Vt, dt), tool).reshape(todo.size, S)
+        good = Ht >= (h[todo] + dt * b[todo] - TOLERANCE)[:, None]
+        first = np.where(good.any(axis=1), good.argmax(axis=1), S)
+        chosen = np.concatenate([SCALES, [0.0]])[first]
+        V_out[todo] = Vp * chosen[:, None]
+        h_next[todo] = np.where(first < S, Ht[np.arange(todo.size), np.minimum(first, S - 1)],
+                                h[todo])
+        M = np.concatenate([np.full(3, barrier.length_scale**2), np.ones(3)])
+        norm = np.sqrt(np.sum(V[todo] ** 2 * M, axis=1))
+        scale[todo] = np.where(norm > 0, np.sqrt(np.sum(V_out[todo] ** 2 * M, axis=1))
+                               / np.where(norm > 0, norm, 1.0), 1.0)
+    return Supervised(V=V_out, h=h, h_next=h_next, scale=scale, active=~ok)
+
+
+class SafetySupervisor(LeafSystem):
+    """Filters the fixture's corrected twist with the FPSM barrier; integrates the desired pose.
+
+    .. pydrake_system::
+
+        name: SafetySupervisor
+        input_ports:
+        - V_WE_corrected
+        output_ports:
+        - X_WE_desired
+        - V_WE_filtered
+        - barrier
+
+    ``V_WE_corrected`` (6): the twist to filter, [w; v] in World (the fixture's output).
+    ``X_WE_desired`` (abstract RigidTransform): the desired tool pose, integrated every period
+    from the filtered twist (discrete state), for differential IK; the barrier is evaluated at
+    it (the pose the command drives the tool to). ``V_WE_filtered`` (6): the filtered twist of
+    the last update, in World. ``barrier`` (3): [h (m; 1e3 for +inf, the tool outside the
+    mouth), scale (|V_filtered|_M / |V_corrected|_M), active (1.0 when the command was
+    changed)] at the last update.
+
+    Args:
+        fpsm: the surrogate model (Center frame).
+        X_WCenter: (4, 4) pose of Center in World.
+        X_WE_initial: (4, 4) initial desired pose.
+        tool: the tool for :func:`clearance` (its lines in the measured frame E's Tool axes).
+        R_ET: (3, 3) the Tool axes in E (identity if None); the Tool origin is E's.
+        barrier: the filter's settings.
+        period: update period (s).
+        enabled: False integrates the command unfiltered (experiments without the supervisor).
+    """
+
+    def __init__(
+        self,
+        fpsm: Fpsm,
+        X_WCenter,
+        X_WE_initial,
+        tool: ToolLines,
+        *,
+        R_ET=None,
+        barrier: Barrier | None = None,
+        period: float = 0.005,
+        enabled: bool = True,
+    ):
+        super().__init__()
+        if not np.isfinite(period) or period <= 0:
+            raise InputError("period", f"expected a period > 0 s, got {period}")
+        self._fpsm, self._tool = fpsm, tool
+        self._barrier = barrier or Barrier()
+        self._period = float(period)
+        self._enabled = bool(enabled)
+        self._X_CW = invert(np.asarray(X_WCenter, dtype=float))
+        self._R_ET = np.eye(3) if R_ET is None else np.asarray(R_ET, dtype=float)
+        X0 = np.asarray(X_WE_initial, dtype=float)
+        self._V_in = self.DeclareVectorInputPort("V_WE_corrected", 6)
+        # state: [p_WE (3), R_WE row-major (9), V filtered (6), h, scale, active]
+        self.DeclareDiscreteState(self._state_of(X0))
+        self.DeclarePeriodicDiscreteUpdateEvent(self._period, 0.0, self._update)
+        self._X_des = self.DeclareAbstractOutputPort(
+            "X_WE_desired",
+            lambda: AbstractValue.Make(RigidTransform()),
+            self._calc_desired,
+            prerequisites_of_calc={self.xd_ticket()},
+        )
+        self._V_out = self.DeclareVectorOutputPort(
+            "V_WE_filtered", 6, self._calc_filtered, prerequisites_of_calc={self.xd_ticket()}
+        )
+        self._h = self.DeclareVectorOutputPort(
+            "barrier", 3, self._calc_barrier, prerequisites_of_calc={self.xd_ticket()}
+        )
+
+    @staticmethod
+    def _state_of(X_WE) -> np.ndarray:
+        return np.concatenate([X_WE[:3, 3], X_WE[:3, :3].ravel(), np.zeros(6), [FAR, 1.0, 0.0]])
+
+    def filter(self, X_WE, V_W) -> tuple[np.ndarray, Supervised]:
+        """(filtered [w; v] in World, the core's result) for a desired pose and a twist."""
+        R_CW = self._X_CW[:3, :3]
+        X_CT = self._X_CW @ X_WE
+        X_CT[:3, :3] = X_CT[:3, :3] @ self._R_ET
+        V_C = np.concatenate([R_CW @ V_W[:3], R_CW @ V_W[3:]])
+        res = supervise(self._fpsm, X_CT[None], V_C[None], self._tool, self._barrier,
+                        self._period)
+        V = res.V[0]
+        return np.concatenate([R_CW.T @ V[:3], R_CW.T @ V[3:]]), res
+
+    def _update(self, context, discrete_state):
+        x = context.get_discrete_state(0).get_value()
+        V = np.array(self._V_in.Eval(context), dtype=float)
+        p, R = x[:3], x[3:12].reshape(3, 3)
+        h, scale, active = FAR, 1.0, 0.0
+        if self._enabled:
+            X = np.eye(4)
+            X[:3, :3], X[:3, 3] = R, p
+            V, res = self.filter(X, V)
+            h = min(float(res.h[0]), FAR)
+            scale, active = float(res.scale[0]), float(res.active[0])
+        p, R = step_pose(p, R, V, self._period)
+        discrete_state.get_mutable_vector(0).SetFromVector(
+            np.concatenate([p, R.ravel(), V, [h, scale, active]])
+        )
+
+    def _calc_desired(self, context, value):
+        x = context.get_discrete_state(0).get_value()
+        value.set_value(RigidTransform(RotationMatrix(x[3:12].reshape(3, 3)), x[:3]))
+
+    def _calc_filtered(self, context, output: BasicVector):
+        output.SetFromVector(context.get_discrete_state(0).get_value()[12:18])
+
+    def _calc_barrier(self, context, output: BasicVector):
+        output.SetFromVector(context.get_discrete_state(0).get_value()[18:21])
+
+    def set_desired_pose(self, context, X_WE) -> None:
+        """Reset the desired pose (e.g. to the tool's pose at the start of a run)."""
+        context.SetDiscreteState(0, self._state_of(np.asarray(X_WE, dtype=float)))

@@ -1,0 +1,146 @@
+"""SafetySupervisor: the control-barrier filter on a cylinder FPSM (hand-derived clearances),
+tested alone (FixValue on the input, the periodic update evaluated), and its core's properties."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from implantplan.systems.errors import InputError
+from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.fpsm_estimator import ToolLines
+from implantplan.systems.frames import transform
+from implantplan.systems.safety_supervisor import (
+    Barrier,
+    SafetySupervisor,
+    barrier_filter,
+    clearance,
+    supervise,
+)
+
+# A cylinder FPSM of radius 50 mm from z = 0 to 100 mm (opening at the top); the tool's rod
+# (radius 6 mm) points up the cylinder (Tool x = Center z), its implant along Tool -z = Center -x.
+CYL = Fpsm.cylinder(0.05, 0.0, 0.1, slices=11)
+TOOL = ToolLines.contra_angle(0.006, 0.031)
+# Tool x, y, z = Center z, -y, x
+R_CT = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])
+DT = 0.005
+BAR = Barrier(margin=0.001, alpha=20.0)
+
+
+def pose(x: float, z: float = 0.05) -> np.ndarray:
+    return transform(R_CT, [x, 0.0, z])
+
+
+def test_clearance_by_hand():
+    """TCP at x = 42 mm: the rod's axis (radius 6 mm, vertical) has d_safe = 50 - 6 - 42 = 2 mm
+    all along; the implant points to Tool -z = Center -x, so its path is at x = 42 - 31 = 11 mm,
+    39 mm from the wall. h = 2 mm."""
+    np.testing.assert_allclose(clearance(CYL, pose(0.042)[None], TOOL), [0.002], atol=1e-12)
+    # wholly above the opening: +inf
+    assert clearance(CYL, pose(0.0, 0.2)[None], TOOL)[0] == np.inf
+
+
+def test_a_command_away_from_the_wall_or_slow_enough_passes_untouched():
+    V = np.array([[0, 0, 0, -0.04, 0.0, 0.01],  # away from the wall (Center -x), and up
+                  [0, 0, 0, 0.0, 0.0, -0.01],  # along the wall
+                  [0, 0, 0, 0.019, 0.0, 0.0]])  # towards it, slower than alpha (h - m) = 20 mm/s
+    res = supervise(CYL, np.repeat(pose(0.042)[None], 3, axis=0), V, TOOL, BAR, DT)
+    np.testing.assert_array_equal(res.V, V)
+    assert not res.active.any()
+    np.testing.assert_array_equal(res.scale, 1.0)
+
+
+def test_a_command_towards_the_wall_is_slowed_to_the_barrier_rate():
+    """h = 2 mm, margin 1 mm, alpha 20/s: the approach may be at most 20 (2 - 1) = 20 mm/s.
+    Pushing at 40 mm/s towards the wall (Center +x) is cut to about that (the projection also
+    shares a little with a rotation, weighted by L^2 = 1 m^2 against the rod's 0.05 m lever)."""
+    V = np.array([[0, 0, 0, 0.04, 0.0, 0.0]])
+    res = supervise(CYL, pose(0.042)[None], V, TOOL, BAR, DT)
+    assert res.active[0]
+    assert 0.9 * 0.0199 <= res.V[0, 3] <= 0.0201  # it aims at 90% of the allowed rate
+    assert np.abs(res.V[0, :3]).max() < 2e-3  # rad/s
+    assert res.h_next[0] >= res.h[0] - DT * 20.0 * (res.h[0] - 0.001) - 1e-8
+    assert 0.0 < res.scale[0] < 1.0
+    # at the margin nothing towards the wall is left; the part along it passes
+    res = supervise(CYL, pose(0.043)[None], np.array([[0, 0, 0, 0.04, 0.0, -0.01]]), TOOL, BAR,
+                    DT)
+    assert abs(res.V[0, 3]) < 1e-4 and res.V[0, 5] == pytest.approx(-0.01, abs=1e-4)
+    # below the margin (0.5 mm: h = 0.5 mm) an approach is stopped, not turned into a retreat
+    res = supervise(CYL, pose(0.0435)[None], np.array([[0, 0, 0, 0.04, 0.0, 0.0]]), TOOL, BAR,
+                    DT)
+    assert -1e-4 < res.V[0, 3] < 1e-4
+    assert res.h_next[0] >= res.h[0] - 1e-8
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    V=arrays(float, (6,), elements=st.floats(-1.0, 1.0)),
+    g=arrays(float, (6,), elements=st.floats(-1.0, 1.0)),
+    h=st.floats(-0.01, 0.05),
+)
+def test_barrier_filter_never_amplifies_and_meets_the_constraint(V, g, h):
+    out, b, active = barrier_filter(V[None], [h], g[None], margin=0.001, alpha=20.0,
+                                    length_scale=0.5)
+    M = np.array([0.25] * 3 + [1.0] * 3)
+    assert np.sum(out[0] ** 2 * M) <= np.sum(V**2 * M) * (1 + 1e-12) + 1e-15
+    assert out[0] @ g >= min(b[0], V @ g) - 1e-12
+    assert b[0] <= 0.0
+    if V @ g >= b[0]:
+        np.testing.assert_array_equal(out[0], V)  # a command that meets it passes untouched
+        assert not active[0]
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    x=st.floats(0.02, 0.0439),
+    V=arrays(float, (6,), elements=st.floats(-0.1, 0.1)),
+)
+def test_supervised_step_keeps_the_barrier_and_never_amplifies(x, V):
+    """On the cylinder, any command: one period of the filtered twist meets the discrete barrier
+    condition on h itself, and |V'|_M <= |V|_M."""
+    res = supervise(CYL, pose(x)[None], V[None], TOOL, BAR, DT)
+    b = min(-20.0 * (res.h[0] - 0.001), 0.0)
+    assert res.h_next[0] >= res.h[0] + DT * b - 1e-8
+    M = np.array([1.0] * 3 + [1.0] * 3)
+    assert np.sum(res.V[0] ** 2 * M) <= np.sum(V**2 * M) * (1 + 1e-12) + 1e-18
+    assert 0.0 <= res.scale[0] <= 1.0 + 1e-12
+
+
+def test_the_system_alone_filters_and_integrates():
+    X_WC = transform(np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+                     [0.5, 0.2, 0.8])
+    X_WE = X_WC @ pose(0.042)
+    system = SafetySupervisor(CYL, X_WC, X_WE, TOOL, barrier=BAR, period=DT)
+    context = system.CreateDefaultContext()
+    # towards the wall: Center +x = World +y
+    system.GetInputPort("V_WE_corrected").FixValue(context, [0, 0, 0, 0, 0.04, 0])
+    xd = system.EvalUniquePeriodicDiscreteUpdate(context).get_vector(0).get_value().copy()
+    step = xd[:3] - X_WE[:3, 3]
+    assert 0.9 * 0.0199 * DT <= step[1] <= 0.0201 * DT
+    h, scale, active = xd[18:21]
+    assert h == pytest.approx(0.002, abs=1e-12) and 0 < scale < 1 and active == 1.0
+    context.SetDiscreteState(0, xd)
+    np.testing.assert_allclose(system.GetOutputPort("barrier").Eval(context), [h, scale, 1.0])
+    np.testing.assert_allclose(system.GetOutputPort("V_WE_filtered").Eval(context), xd[12:18])
+    np.testing.assert_allclose(
+        system.GetOutputPort("X_WE_desired").Eval(context).translation(), xd[:3])
+    # away from the wall: untouched, integrated exactly
+    system.GetInputPort("V_WE_corrected").FixValue(context, [0, 0, 0, 0, -0.04, 0.01])
+    xd2 = system.EvalUniquePeriodicDiscreteUpdate(context).get_vector(0).get_value()
+    np.testing.assert_allclose(xd2[:3] - xd[:3], [0, -0.04 * DT, 0.01 * DT], atol=1e-15)
+    np.testing.assert_array_equal(xd2[12:18], [0, 0, 0, 0, -0.04, 0.01])
+    # disabled: the command is integrated unfiltered
+    off = SafetySupervisor(CYL, X_WC, X_WE, TOOL, barrier=BAR, period=DT, enabled=False)
+    c2 = off.CreateDefaultContext()
+    off.GetInputPort("V_WE_corrected").FixValue(c2, [0, 0, 0, 0, 0.04, 0])
+    xd3 = off.EvalUniquePeriodicDiscreteUpdate(c2).get_vector(0).get_value()
+    np.testing.assert_allclose(xd3[:3] - X_WE[:3, 3], [0, 0.04 * DT, 0], atol=1e-15)
+
+
+def test_bad_settings():
+    with pytest.raises(InputError, match="barrier.alpha"):
+        Barrier(alpha=0.0)
+    with pytest.raises(InputError, match="period"):
+        SafetySupervisor(CYL, np.eye(4), np.eye(4), TOOL, period=0.0)
