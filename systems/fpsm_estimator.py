@@ -110,22 +110,17 @@ def tool_safety(
     X = X.reshape(-1, 4, 4)
     if not np.isfinite(alarm_margin):
         raise InputError("alarm_margin", "expected a finite distance (m)")
-    f, d = [], []
-    for i in range(2):
-        start = apply(X, lines.start_T[i])
-        direction = np.einsum("kij,j->ki", X[:, :3, :3], lines.direction_T[i])
-        s = fpsm.line_safety(
-            start,
-            direction,
-            radius=float(lines.radius[i]),
-            lambda_avg=lambda_avg,
-            lambda_min=lambda_min,
-        )
-        f.append(s.f_safe)
-        d.append(s.d_safe_min)
-    d_min = np.minimum(d[0], d[1])
+    # both lines of all poses in one compiled call (the lines' radii differ: one per line)
+    K = X.shape[0]
+    start = (X[:, None, :3, :3] @ lines.start_T[None, :, :, None])[..., 0] + X[:, None, :3, 3]
+    direction = (X[:, None, :3, :3] @ lines.direction_T[None, :, :, None])[..., 0]
+    direction = direction / np.linalg.norm(direction, axis=-1, keepdims=True)
+    s = fpsm._line_safety(start.reshape(-1, 3), direction.reshape(-1, 3), np.inf,
+                          np.tile(lines.radius, K), lambda_avg, lambda_min)
+    f, d = s.f_safe.reshape(K, 2), s.d_safe_min.reshape(K, 2)
+    d_min = np.minimum(d[:, 0], d[:, 1])
     return ToolSafety(
-        f_safe_line1=f[0], f_safe_line2=f[1], min_d_safe=d_min, alarm=d_min <= alarm_margin
+        f_safe_line1=f[:, 0], f_safe_line2=f[:, 1], min_d_safe=d_min, alarm=d_min <= alarm_margin
     )
 
 

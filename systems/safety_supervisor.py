@@ -37,13 +37,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from pydrake.common.value import AbstractValue
-from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, LeafSystem
 
 from implantplan.systems.errors import InputError
-from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.fpsm import Fpsm, _line_kernel
 from implantplan.systems.fpsm_estimator import ToolLines
 from implantplan.systems.frames import invert
 from implantplan.systems.vf_system import step_pose
@@ -54,22 +55,65 @@ TOLERANCE = 1e-8  # m: rounding allowed in the discrete barrier condition per st
 FAR = 1.0e3  # stand-in for +inf (the tool wholly outside the mouth) on the output ports (m)
 
 
-def clearance(fpsm: Fpsm, X_CT: np.ndarray, tool: ToolLines) -> np.ndarray:
-    """Clearance (m) of the whole tool at K poses ``X_CT`` (K, 4, 4) of its Tool frame in Center.
+class ToolClearance:
+    """Clearance (m) of the whole tool at K poses X_CT (K, 4, 4) of its Tool frame in Center,
+    prepared once for a model and a tool: the one place the supervisor takes its barrier from.
 
-    The one place the supervisor takes its barrier from: today the tool's lines of Eq. 19 (the
-    rod as its axis against the FPSM shrunk by r, Eq. 12; the implant path against the model),
-    the smallest d_safe over both, in one compiled call.
+    Today: the tool's lines of Eq. 19 (the rod as its axis against the FPSM shrunk by r, Eq. 12;
+    the implant path against the model), the smallest d_safe over both, in one compiled call
+    (the kernel of :meth:`Fpsm.line_safety`, its arguments prepared here: ~10 us a pose).
     """
-    K = X_CT.shape[0]
-    n = tool.start_T.shape[0]
-    R, p = X_CT[:, :3, :3], X_CT[:, :3, 3]
-    start = np.einsum("kij,lj->kli", R, tool.start_T) + p[:, None, :]
-    u = np.einsum("kij,lj->kli", R, tool.direction_T)
-    u /= np.linalg.norm(u, axis=-1, keepdims=True)
-    s = fpsm._line_safety(start.reshape(-1, 3), u.reshape(-1, 3), np.inf,
-                          np.tile(tool.radius, K), 0.5, 0.5)
-    return s.d_safe_min.reshape(K, n).min(axis=1)
+
+    def __init__(self, fpsm: Fpsm, tool: ToolLines):
+        self.fpsm, self.tool = fpsm, tool
+        self._start_T = np.ascontiguousarray(tool.start_T.T)  # (3, n)
+        u = tool.direction_T / np.linalg.norm(tool.direction_T, axis=1, keepdims=True)
+        self._dir_T = np.ascontiguousarray(u.T)
+        self._radius = np.ascontiguousarray(tool.radius, dtype=float)
+        self._args = (np.ascontiguousarray(fpsm.rho), np.ascontiguousarray(fpsm.slice_z),
+                      float(fpsm.settings.get("shrink_m", 0.0)), fpsm.max_radius, 0.5, 0.5)
+
+    def __call__(self, X_CT: np.ndarray) -> np.ndarray:
+        X = np.ascontiguousarray(X_CT, dtype=float).reshape(-1, 4, 4)
+        out = np.empty(X.shape[0])
+        _lines_clearance(X, self._start_T, self._dir_T, self._radius, *self._args, out)
+        return out
+
+
+@numba.njit(cache=True)
+def _lines_clearance(X, start_T, dir_T, radius, rho, slice_z, shrink, max_radius, lam_avg,
+                     lam_min, out):
+    """The tool's lines at K poses through the line kernel of systems.fpsm; min d_safe."""
+    K, n = X.shape[0], radius.size
+    m = K * n
+    start = np.empty((m, 3))
+    u = np.empty((m, 3))
+    rad = np.empty(m)
+    for k in range(K):
+        for i in range(n):
+            row = k * n + i
+            rad[row] = radius[i]
+            for a in range(3):
+                sa = X[k, a, 3]
+                ua = 0.0
+                for b in range(3):
+                    sa += X[k, a, b] * start_T[b, i]
+                    ua += X[k, a, b] * dir_T[b, i]
+                start[row, a] = sa
+                u[row, a] = ua
+    d = np.empty(m)
+    _line_kernel(start, u, np.full(m, np.inf), rad, rho, slice_z, shrink, max_radius, lam_avg,
+                 lam_min, np.empty(m), d, np.empty(m), np.empty(m, dtype=np.int64))
+    for k in range(K):
+        best = np.inf
+        for i in range(n):
+            best = min(best, d[k * n + i])
+        out[k] = best
+
+
+def clearance(fpsm: Fpsm, X_CT: np.ndarray, tool: ToolLines) -> np.ndarray:
+    """:class:`ToolClearance` in one call (K, 4, 4) -> (K,)."""
+    return ToolClearance(fpsm, tool)(X_CT)
 
 
 @dataclass(frozen=True)
@@ -145,67 +189,84 @@ def barrier_filter(V, h, g, *, margin: float, alpha: float, length_scale: float)
     return V + lam[:, None] * g * Minv, b, active
 
 
+def barrier_holds(h, h_next, barrier: Barrier, dt: float) -> np.ndarray:
+    """The discrete barrier condition h_next >= h + dt b (b = min(-alpha (h - margin), 0)),
+    within ``TOLERANCE``; always true where h is +inf (outside the mouth)."""
+    h = np.asarray(h, dtype=float)
+    with np.errstate(invalid="ignore"):
+        b = np.minimum(-barrier.alpha * (h - barrier.margin), 0.0)
+        return ~np.isfinite(h) | (np.asarray(h_next) >= h + dt * b - TOLERANCE)
+
+
 @dataclass(frozen=True)
 class Supervised:
     """One supervisor step for K poses (Center frame, SI); fields (K, ...).
 
     Attributes:
         V: (K, 6) the filtered twist.
+        X_next: (K, 4, 4) the pose one period ahead under V.
         h: (K,) barrier value at the pose (m, +inf outside the mouth).
-        h_next: (K,) barrier value one period ahead under V.
+        h_next: (K,) barrier value at X_next.
         scale: (K,) |V|_M / |V_command|_M (1: untouched, 0: stopped).
         active: (K,) the command was changed.
     """
 
     V: np.ndarray
+    X_next: np.ndarray
     h: np.ndarray
     h_next: np.ndarray
     scale: np.ndarray
     active: np.ndarray
 
 
-def supervise(fpsm: Fpsm, X_CT, V_C, tool: ToolLines, barrier: Barrier, dt: float) -> Supervised:
+def supervise(clear: ToolClearance, X_CT, V_C, barrier: Barrier, dt: float, *,
+              h=None) -> Supervised:
     """Steps 1-3 of the module docstring for K tool poses ``X_CT`` (K, 4, 4) in Center and
-    commanded twists ``V_C`` (K, 6) in Center, over a period ``dt`` (s)."""
+    commanded twists ``V_C`` (K, 6) in Center, over a period ``dt`` (s). ``h`` (K,): the
+    barrier at the poses if known (the supervisor keeps it from its previous step)."""
     X = np.asarray(X_CT, dtype=float).reshape(-1, 4, 4)
     V = np.asarray(V_C, dtype=float).reshape(-1, 6)
     K = X.shape[0]
     if V.shape[0] != K:
         raise InputError("V_C", f"expected one twist per pose ({K}), got {V.shape[0]}")
-    eps = np.concatenate([np.full(3, barrier.eps_w), np.full(3, barrier.eps_p)])
-    poses = np.concatenate(
-        [X[:, None], perturbed_poses(X, barrier.eps_p, barrier.eps_w),
-         stepped_poses(X, V, dt)[:, None]], axis=1
-    )
-    H = clearance(fpsm, poses.reshape(-1, 4, 4), tool).reshape(K, 14)
-    h, h_cmd = H[:, 0], H[:, 13]
-    with np.errstate(invalid="ignore"):
-        g = (H[:, 1:7] - H[:, 7:13]) / (2.0 * eps)
-    g = np.where(np.isfinite(g), g, 0.0)  # a step out of the mouth (h -> +inf): no constraint
-    b = np.where(np.isfinite(h), np.minimum(-barrier.alpha * (h - barrier.margin), 0.0), -np.inf)
-    ok = ~np.isfinite(h) | (h_cmd >= h + dt * b - TOLERANCE)
-    V_out, h_next = V.copy(), h_cmd.copy()
+    X_cmd = stepped_poses(X, V, dt)
+    if h is None:
+        H = clear(np.concatenate([X, X_cmd]))
+        h, h_cmd = H[:K], H[K:]
+    else:
+        h, h_cmd = np.asarray(h, dtype=float).reshape(K), clear(X_cmd)
+    ok = barrier_holds(h, h_cmd, barrier, dt)
+    V_out, X_next, h_next = V.copy(), X_cmd, h_cmd.copy()
     scale = np.ones(K)
     todo = np.flatnonzero(~ok)
     if todo.size:
+        n = todo.size
+        eps = np.concatenate([np.full(3, barrier.eps_w), np.full(3, barrier.eps_p)])
+        H = clear(perturbed_poses(X[todo], barrier.eps_p, barrier.eps_w).reshape(-1, 4, 4))
+        H = H.reshape(n, 12)
+        with np.errstate(invalid="ignore"):
+            g = (H[:, :6] - H[:, 6:]) / (2.0 * eps)
+        g = np.where(np.isfinite(g), g, 0.0)  # a step out of the mouth (h -> +inf): no limit
         # aim at 90% of the allowed approach: room for the linearization of a non-smooth h
-        Vp, _, _ = barrier_filter(V[todo], h[todo], g[todo], margin=barrier.margin,
+        Vp, _, _ = barrier_filter(V[todo], h[todo], g, margin=barrier.margin,
                                   alpha=AIM * barrier.alpha, length_scale=barrier.length_scale)
         S = SCALES.size
-        trial = np.repeat(X[todo], S, axis=0)
         Vt = (Vp[:, None, :] * SCALES[None, :, None]).reshape(-1, 6)
-        Ht = clearance(fpsm, stepped_poses(trial, Vt, dt), tool).reshape(todo.size, S)
-        good = Ht >= (h[todo] + dt * b[todo] - TOLERANCE)[:, None]
+        Xt = stepped_poses(np.repeat(X[todo], S, axis=0), Vt, dt)
+        Ht = clear(Xt).reshape(n, S)
+        good = barrier_holds(np.repeat(h[todo], S).reshape(n, S), Ht, barrier, dt)
         first = np.where(good.any(axis=1), good.argmax(axis=1), S)
         chosen = np.concatenate([SCALES, [0.0]])[first]
         V_out[todo] = Vp * chosen[:, None]
-        h_next[todo] = np.where(first < S, Ht[np.arange(todo.size), np.minimum(first, S - 1)],
-                                h[todo])
+        pick = np.arange(n) * S + np.minimum(first, S - 1)
+        stop = first == S
+        X_next[todo] = np.where(stop[:, None, None], X[todo], Xt[pick])
+        h_next[todo] = np.where(stop, h[todo], Ht.reshape(-1)[pick])
         M = np.concatenate([np.full(3, barrier.length_scale**2), np.ones(3)])
         norm = np.sqrt(np.sum(V[todo] ** 2 * M, axis=1))
         scale[todo] = np.where(norm > 0, np.sqrt(np.sum(V_out[todo] ** 2 * M, axis=1))
                                / np.where(norm > 0, norm, 1.0), 1.0)
-    return Supervised(V=V_out, h=h, h_next=h_next, scale=scale, active=~ok)
+    return Supervised(V=V_out, X_next=X_next, h=h, h_next=h_next, scale=scale, active=~ok)
 
 
 class SafetySupervisor(LeafSystem):
@@ -223,17 +284,22 @@ class SafetySupervisor(LeafSystem):
 
     ``V_WE_corrected`` (6): the twist to filter, [w; v] in World (the fixture's output).
     ``X_WE_desired`` (abstract RigidTransform): the desired tool pose, integrated every period
-    from the filtered twist (discrete state), for differential IK; the barrier is evaluated at
-    it (the pose the command drives the tool to). ``V_WE_filtered`` (6): the filtered twist of
-    the last update, in World. ``barrier`` (3): [h (m; 1e3 for +inf, the tool outside the
-    mouth), scale (|V_filtered|_M / |V_corrected|_M), active (1.0 when the command was
-    changed)] at the last update.
+    from the filtered twist (discrete state, kept as the Tool pose in Center), for differential
+    IK; the barrier is evaluated at it (the pose the command drives the tool to).
+    ``V_WE_filtered`` (6): the filtered twist of the last update, in World. ``barrier`` (3): [h
+    at the desired pose (m; 1e3 for +inf, the tool outside the mouth), scale
+    (|V_filtered|_M / |V_corrected|_M), active (1.0 when the command was changed at the last
+    update)].
+
+    Each update costs one clearance query (the commanded next pose: the barrier at the pose
+    itself is kept from the previous update); only a command that fails the discrete barrier
+    condition pays for the gradient (12 poses) and the check of the projection (4 poses).
 
     Args:
         fpsm: the surrogate model (Center frame).
         X_WCenter: (4, 4) pose of Center in World.
         X_WE_initial: (4, 4) initial desired pose.
-        tool: the tool for :func:`clearance` (its lines in the measured frame E's Tool axes).
+        tool: the tool for :class:`ToolClearance`, in its Tool frame.
         R_ET: (3, 3) the Tool axes in E (identity if None); the Tool origin is E's.
         barrier: the filter's settings.
         period: update period (s).
@@ -255,16 +321,20 @@ class SafetySupervisor(LeafSystem):
         super().__init__()
         if not np.isfinite(period) or period <= 0:
             raise InputError("period", f"expected a period > 0 s, got {period}")
-        self._fpsm, self._tool = fpsm, tool
+        self._clear = ToolClearance(fpsm, tool)
         self._barrier = barrier or Barrier()
         self._period = float(period)
         self._enabled = bool(enabled)
-        self._X_CW = invert(np.asarray(X_WCenter, dtype=float))
-        self._R_ET = np.eye(3) if R_ET is None else np.asarray(R_ET, dtype=float)
-        X0 = np.asarray(X_WE_initial, dtype=float)
+        self._X_WC = np.asarray(X_WCenter, dtype=float)
+        self._X_CW = invert(self._X_WC)
+        self._R_CW = np.ascontiguousarray(self._X_CW[:3, :3])
+        R_ET = np.eye(3) if R_ET is None else np.asarray(R_ET, dtype=float)
+        self._X_ET = np.eye(4)
+        self._X_ET[:3, :3] = R_ET
+        self._X_TE = invert(self._X_ET)
         self._V_in = self.DeclareVectorInputPort("V_WE_corrected", 6)
-        # state: [p_WE (3), R_WE row-major (9), V filtered (6), h, scale, active]
-        self.DeclareDiscreteState(self._state_of(X0))
+        # state: [p_CT (3), R_CT row-major (9), V filtered in World (6), h, scale, active]
+        self.DeclareDiscreteState(self._state_of(np.asarray(X_WE_initial, dtype=float)))
         self.DeclarePeriodicDiscreteUpdateEvent(self._period, 0.0, self._update)
         self._X_des = self.DeclareAbstractOutputPort(
             "X_WE_desired",
@@ -279,40 +349,45 @@ class SafetySupervisor(LeafSystem):
             "barrier", 3, self._calc_barrier, prerequisites_of_calc={self.xd_ticket()}
         )
 
-    @staticmethod
-    def _state_of(X_WE) -> np.ndarray:
-        return np.concatenate([X_WE[:3, 3], X_WE[:3, :3].ravel(), np.zeros(6), [FAR, 1.0, 0.0]])
-
-    def filter(self, X_WE, V_W) -> tuple[np.ndarray, Supervised]:
-        """(filtered [w; v] in World, the core's result) for a desired pose and a twist."""
-        R_CW = self._X_CW[:3, :3]
-        X_CT = self._X_CW @ X_WE
-        X_CT[:3, :3] = X_CT[:3, :3] @ self._R_ET
-        V_C = np.concatenate([R_CW @ V_W[:3], R_CW @ V_W[3:]])
-        res = supervise(self._fpsm, X_CT[None], V_C[None], self._tool, self._barrier,
-                        self._period)
-        V = res.V[0]
-        return np.concatenate([R_CW.T @ V[:3], R_CW.T @ V[3:]]), res
+    def _state_of(self, X_WE) -> np.ndarray:
+        X_CT = self._X_CW @ X_WE @ self._X_ET
+        h = self._clear(X_CT[None])[0]
+        return np.concatenate([X_CT[:3, 3], X_CT[:3, :3].ravel(), np.zeros(6),
+                               [min(h, FAR), 1.0, 0.0]])
 
     def _update(self, context, discrete_state):
         x = context.get_discrete_state(0).get_value()
-        V = np.array(self._V_in.Eval(context), dtype=float)
-        p, R = x[:3], x[3:12].reshape(3, 3)
-        h, scale, active = FAR, 1.0, 0.0
+        V_W = self._V_in.Eval(context)
+        R_CW = self._R_CW
+        V = np.concatenate([R_CW @ V_W[:3], R_CW @ V_W[3:]])
+        p, R = step_pose(x[:3], x[3:12].reshape(3, 3), V, self._period)
+        h0 = np.inf if x[18] >= FAR else float(x[18])
+        h, scale, active = h0, 1.0, 0.0
         if self._enabled:
-            X = np.eye(4)
-            X[:3, :3], X[:3, 3] = R, p
-            V, res = self.filter(X, V)
-            h = min(float(res.h[0]), FAR)
-            scale, active = float(res.scale[0]), float(res.active[0])
-        p, R = step_pose(p, R, V, self._period)
+            X1 = np.eye(4)
+            X1[:3, :3], X1[:3, 3] = R, p
+            h = float(self._clear(X1[None])[0])
+            bar = self._barrier
+            # barrier_holds, on floats (the common case must be cheap)
+            b = min(-bar.alpha * (h0 - bar.margin), 0.0) if h0 < np.inf else -np.inf
+            if h0 < np.inf and not h >= h0 + self._period * b - TOLERANCE:  # the slow path
+                X0 = np.eye(4)
+                X0[:3, :3], X0[:3, 3] = x[3:12].reshape(3, 3), x[:3]
+                res = supervise(self._clear, X0[None], V[None], self._barrier, self._period,
+                                h=[h0])
+                V, h = res.V[0], res.h_next[0]
+                p, R = res.X_next[0, :3, 3], res.X_next[0, :3, :3]
+                scale, active = res.scale[0], 1.0
+        V_W = np.concatenate([R_CW.T @ V[:3], R_CW.T @ V[3:]])
         discrete_state.get_mutable_vector(0).SetFromVector(
-            np.concatenate([p, R.ravel(), V, [h, scale, active]])
+            np.concatenate([p, R.ravel(), V_W, [min(h, FAR), scale, active]])
         )
 
     def _calc_desired(self, context, value):
         x = context.get_discrete_state(0).get_value()
-        value.set_value(RigidTransform(RotationMatrix(x[3:12].reshape(3, 3)), x[:3]))
+        X = np.eye(4)
+        X[:3, :3], X[:3, 3] = x[3:12].reshape(3, 3), x[:3]
+        value.set_value(RigidTransform(self._X_WC @ X @ self._X_TE))
 
     def _calc_filtered(self, context, output: BasicVector):
         output.SetFromVector(context.get_discrete_state(0).get_value()[12:18])

@@ -14,6 +14,7 @@ from implantplan.systems.frames import transform
 from implantplan.systems.safety_supervisor import (
     Barrier,
     SafetySupervisor,
+    ToolClearance,
     barrier_filter,
     clearance,
     supervise,
@@ -27,6 +28,7 @@ TOOL = ToolLines.contra_angle(0.006, 0.031)
 R_CT = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])
 DT = 0.005
 BAR = Barrier(margin=0.001, alpha=20.0)
+CLEAR = ToolClearance(CYL, TOOL)
 
 
 def pose(x: float, z: float = 0.05) -> np.ndarray:
@@ -46,7 +48,7 @@ def test_a_command_away_from_the_wall_or_slow_enough_passes_untouched():
     V = np.array([[0, 0, 0, -0.04, 0.0, 0.01],  # away from the wall (Center -x), and up
                   [0, 0, 0, 0.0, 0.0, -0.01],  # along the wall
                   [0, 0, 0, 0.019, 0.0, 0.0]])  # towards it, slower than alpha (h - m) = 20 mm/s
-    res = supervise(CYL, np.repeat(pose(0.042)[None], 3, axis=0), V, TOOL, BAR, DT)
+    res = supervise(CLEAR, np.repeat(pose(0.042)[None], 3, axis=0), V, BAR, DT)
     np.testing.assert_array_equal(res.V, V)
     assert not res.active.any()
     np.testing.assert_array_equal(res.scale, 1.0)
@@ -57,19 +59,17 @@ def test_a_command_towards_the_wall_is_slowed_to_the_barrier_rate():
     Pushing at 40 mm/s towards the wall (Center +x) is cut to about that (the projection also
     shares a little with a rotation, weighted by L^2 = 1 m^2 against the rod's 0.05 m lever)."""
     V = np.array([[0, 0, 0, 0.04, 0.0, 0.0]])
-    res = supervise(CYL, pose(0.042)[None], V, TOOL, BAR, DT)
+    res = supervise(CLEAR, pose(0.042)[None], V, BAR, DT)
     assert res.active[0]
     assert 0.9 * 0.0199 <= res.V[0, 3] <= 0.0201  # it aims at 90% of the allowed rate
     assert np.abs(res.V[0, :3]).max() < 2e-3  # rad/s
     assert res.h_next[0] >= res.h[0] - DT * 20.0 * (res.h[0] - 0.001) - 1e-8
     assert 0.0 < res.scale[0] < 1.0
     # at the margin nothing towards the wall is left; the part along it passes
-    res = supervise(CYL, pose(0.043)[None], np.array([[0, 0, 0, 0.04, 0.0, -0.01]]), TOOL, BAR,
-                    DT)
+    res = supervise(CLEAR, pose(0.043)[None], np.array([[0, 0, 0, 0.04, 0.0, -0.01]]), BAR, DT)
     assert abs(res.V[0, 3]) < 1e-4 and res.V[0, 5] == pytest.approx(-0.01, abs=1e-4)
     # below the margin (0.5 mm: h = 0.5 mm) an approach is stopped, not turned into a retreat
-    res = supervise(CYL, pose(0.0435)[None], np.array([[0, 0, 0, 0.04, 0.0, 0.0]]), TOOL, BAR,
-                    DT)
+    res = supervise(CLEAR, pose(0.0435)[None], np.array([[0, 0, 0, 0.04, 0.0, 0.0]]), BAR, DT)
     assert -1e-4 < res.V[0, 3] < 1e-4
     assert res.h_next[0] >= res.h[0] - 1e-8
 
@@ -100,43 +100,51 @@ def test_barrier_filter_never_amplifies_and_meets_the_constraint(V, g, h):
 def test_supervised_step_keeps_the_barrier_and_never_amplifies(x, V):
     """On the cylinder, any command: one period of the filtered twist meets the discrete barrier
     condition on h itself, and |V'|_M <= |V|_M."""
-    res = supervise(CYL, pose(x)[None], V[None], TOOL, BAR, DT)
+    res = supervise(CLEAR, pose(x)[None], V[None], BAR, DT)
     b = min(-20.0 * (res.h[0] - 0.001), 0.0)
     assert res.h_next[0] >= res.h[0] + DT * b - 1e-8
     M = np.array([1.0] * 3 + [1.0] * 3)
     assert np.sum(res.V[0] ** 2 * M) <= np.sum(V**2 * M) * (1 + 1e-12) + 1e-18
     assert 0.0 <= res.scale[0] <= 1.0 + 1e-12
+    assert CLEAR(res.X_next)[0] == res.h_next[0]  # the barrier at the pose it steps to
 
 
 def test_the_system_alone_filters_and_integrates():
     X_WC = transform(np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
                      [0.5, 0.2, 0.8])
-    X_WE = X_WC @ pose(0.042)
-    system = SafetySupervisor(CYL, X_WC, X_WE, TOOL, barrier=BAR, period=DT)
+    R_ET = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])  # any fixed rotation
+    X_WE = X_WC @ pose(0.042) @ transform(R_ET.T, np.zeros(3))
+    system = SafetySupervisor(CYL, X_WC, X_WE, TOOL, R_ET=R_ET, barrier=BAR, period=DT)
     context = system.CreateDefaultContext()
+    np.testing.assert_allclose(system.GetOutputPort("X_WE_desired").Eval(context).GetAsMatrix4(),
+                               X_WE, atol=1e-15)
+    assert system.GetOutputPort("barrier").Eval(context)[0] == pytest.approx(0.002, abs=1e-12)
     # towards the wall: Center +x = World +y
     system.GetInputPort("V_WE_corrected").FixValue(context, [0, 0, 0, 0, 0.04, 0])
     xd = system.EvalUniquePeriodicDiscreteUpdate(context).get_vector(0).get_value().copy()
-    step = xd[:3] - X_WE[:3, 3]
-    assert 0.9 * 0.0199 * DT <= step[1] <= 0.0201 * DT
+    step = xd[:3] - pose(0.042)[:3, 3]  # the state keeps the Tool pose in Center
+    assert 0.9 * 0.0199 * DT <= step[0] <= 0.0201 * DT
     h, scale, active = xd[18:21]
-    assert h == pytest.approx(0.002, abs=1e-12) and 0 < scale < 1 and active == 1.0
+    assert h == pytest.approx(0.002 - step[0], abs=1e-6) and 0 < scale < 1 and active == 1.0
     context.SetDiscreteState(0, xd)
     np.testing.assert_allclose(system.GetOutputPort("barrier").Eval(context), [h, scale, 1.0])
     np.testing.assert_allclose(system.GetOutputPort("V_WE_filtered").Eval(context), xd[12:18])
     np.testing.assert_allclose(
-        system.GetOutputPort("X_WE_desired").Eval(context).translation(), xd[:3])
+        system.GetOutputPort("X_WE_desired").Eval(context).translation(),
+        X_WE[:3, 3] + X_WC[:3, :3] @ step, atol=1e-15)
     # away from the wall: untouched, integrated exactly
     system.GetInputPort("V_WE_corrected").FixValue(context, [0, 0, 0, 0, -0.04, 0.01])
     xd2 = system.EvalUniquePeriodicDiscreteUpdate(context).get_vector(0).get_value()
-    np.testing.assert_allclose(xd2[:3] - xd[:3], [0, -0.04 * DT, 0.01 * DT], atol=1e-15)
+    np.testing.assert_allclose(xd2[:3] - xd[:3], [-0.04 * DT, 0, 0.01 * DT], atol=1e-15)
     np.testing.assert_array_equal(xd2[12:18], [0, 0, 0, 0, -0.04, 0.01])
+    assert xd2[20] == 0.0
     # disabled: the command is integrated unfiltered
-    off = SafetySupervisor(CYL, X_WC, X_WE, TOOL, barrier=BAR, period=DT, enabled=False)
+    off = SafetySupervisor(CYL, X_WC, X_WE, TOOL, R_ET=R_ET, barrier=BAR, period=DT,
+                           enabled=False)
     c2 = off.CreateDefaultContext()
     off.GetInputPort("V_WE_corrected").FixValue(c2, [0, 0, 0, 0, 0.04, 0])
     xd3 = off.EvalUniquePeriodicDiscreteUpdate(c2).get_vector(0).get_value()
-    np.testing.assert_allclose(xd3[:3] - X_WE[:3, 3], [0, 0.04 * DT, 0], atol=1e-15)
+    np.testing.assert_allclose(xd3[:3] - pose(0.042)[:3, 3], [0.04 * DT, 0, 0], atol=1e-15)
 
 
 def test_bad_settings():
