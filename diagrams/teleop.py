@@ -1,11 +1,14 @@
 """The teleoperated-feeding diagram (DESIGN.md section 7).
 
 ```
-MasterDevice --V_WE_command--> VirtualFixtureForceLaw --X_WE_desired--> DiffIK integrator
+MasterDevice --V_WE_command--> VirtualFixtureForceLaw --V_WE_corrected--> SafetySupervisor
+SafetySupervisor --X_WE_desired--> DiffIK integrator
 DiffIK --q_desired--> (kinematic) positions of the plant   | (dynamic) interpolator ->
                       inverse dynamics controller -> MultibodyPlant at 1 ms
 q (plant) --> ToolPose --X_WE--> VirtualFixtureForceLaw, FpsmEstimator, MasterDevice (finishing)
-loggers: q, tool position, VF violation, FPSM safety, alarm;  scene graph --> Meshcat (optional)
+(the supervisor evaluates its barrier at the desired pose it integrates)
+loggers: q, supervisor barrier, FPSM safety, alarm (the tool pose and the fixture's violation
+         follow from q offline);  scene graph --> Meshcat (optional)
 ```
 
 Two modes:
@@ -363,7 +366,6 @@ def build_teleop(
 
     loggers = {
         "q": LogVectorOutput(q_port, builder, period),
-        "p_WE": LogVectorOutput(tool_pose.GetOutputPort("p_WE"), builder, period),
         "barrier": LogVectorOutput(supervisor.GetOutputPort("barrier"), builder, period),
         "safety": LogVectorOutput(estimator.GetOutputPort("safety"), builder, estimator_period),
         "alarm": LogVectorOutput(estimator.GetOutputPort("alarm"), builder, estimator_period),
@@ -451,12 +453,13 @@ def simulate(teleop: Teleop, duration: float, *, motion: MasterMotion | None = N
     q = logs["q"].data().T[:, :6].copy()
     # the fixture's violation at every logged pose, offline (one batched call, not in the loop)
     case = teleop.case
-    X_CT = np.linalg.inv(case.X_WCenter) @ case.X_WE(q) @ X_ET
+    X_WE = case.X_WE(q)  # the tool's poses from the logged joints (no pose logger in the loop)
+    X_CT = np.linalg.inv(case.X_WCenter) @ X_WE @ X_ET
     violation, angle_violation = case.vf.body_violation(X_CT)
     return FeedRun(
         t=logs["q"].sample_times().copy(),
         q=q,
-        p_WE=logs["p_WE"].data().T.copy(),
+        p_WE=X_WE[:, :3, 3].copy(),
         violation=violation,
         t_safety=logs["safety"].sample_times().copy(),
         f_safe_line1=safety[:, 0].copy(),

@@ -37,15 +37,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 from pydrake.common.value import AbstractValue
-from pydrake.math import RigidTransform
+from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.framework import BasicVector, LeafSystem
 
 from implantplan.systems.errors import InputError
-from implantplan.systems.fpsm import Fpsm, _line_kernel
-from implantplan.systems.fpsm_estimator import ToolLines
+from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.fpsm_estimator import LinesAtPoses, ToolLines
 from implantplan.systems.frames import invert
 from implantplan.systems.vf_system import step_pose
 
@@ -61,54 +60,15 @@ class ToolClearance:
 
     Today: the tool's lines of Eq. 19 (the rod as its axis against the FPSM shrunk by r, Eq. 12;
     the implant path against the model), the smallest d_safe over both, in one compiled call
-    (the kernel of :meth:`Fpsm.line_safety`, its arguments prepared here: ~10 us a pose).
+    (systems.fpsm_estimator.LinesAtPoses: ~5 us a pose).
     """
 
     def __init__(self, fpsm: Fpsm, tool: ToolLines):
         self.fpsm, self.tool = fpsm, tool
-        self._start_T = np.ascontiguousarray(tool.start_T.T)  # (3, n)
-        u = tool.direction_T / np.linalg.norm(tool.direction_T, axis=1, keepdims=True)
-        self._dir_T = np.ascontiguousarray(u.T)
-        self._radius = np.ascontiguousarray(tool.radius, dtype=float)
-        self._args = (np.ascontiguousarray(fpsm.rho), np.ascontiguousarray(fpsm.slice_z),
-                      float(fpsm.settings.get("shrink_m", 0.0)), fpsm.max_radius, 0.5, 0.5)
+        self._lines = LinesAtPoses(fpsm, tool)
 
     def __call__(self, X_CT: np.ndarray) -> np.ndarray:
-        X = np.ascontiguousarray(X_CT, dtype=float).reshape(-1, 4, 4)
-        out = np.empty(X.shape[0])
-        _lines_clearance(X, self._start_T, self._dir_T, self._radius, *self._args, out)
-        return out
-
-
-@numba.njit(cache=True)
-def _lines_clearance(X, start_T, dir_T, radius, rho, slice_z, shrink, max_radius, lam_avg,
-                     lam_min, out):
-    """The tool's lines at K poses through the line kernel of systems.fpsm; min d_safe."""
-    K, n = X.shape[0], radius.size
-    m = K * n
-    start = np.empty((m, 3))
-    u = np.empty((m, 3))
-    rad = np.empty(m)
-    for k in range(K):
-        for i in range(n):
-            row = k * n + i
-            rad[row] = radius[i]
-            for a in range(3):
-                sa = X[k, a, 3]
-                ua = 0.0
-                for b in range(3):
-                    sa += X[k, a, b] * start_T[b, i]
-                    ua += X[k, a, b] * dir_T[b, i]
-                start[row, a] = sa
-                u[row, a] = ua
-    d = np.empty(m)
-    _line_kernel(start, u, np.full(m, np.inf), rad, rho, slice_z, shrink, max_radius, lam_avg,
-                 lam_min, np.empty(m), d, np.empty(m), np.empty(m, dtype=np.int64))
-    for k in range(K):
-        best = np.inf
-        for i in range(n):
-            best = min(best, d[k * n + i])
-        out[k] = best
+        return self._lines(X_CT)[1].min(axis=1)
 
 
 def clearance(fpsm: Fpsm, X_CT: np.ndarray, tool: ToolLines) -> np.ndarray:
@@ -333,7 +293,8 @@ class SafetySupervisor(LeafSystem):
         self._X_ET[:3, :3] = R_ET
         self._X_TE = invert(self._X_ET)
         self._V_in = self.DeclareVectorInputPort("V_WE_corrected", 6)
-        # state: [p_CT (3), R_CT row-major (9), V filtered in World (6), h, scale, active]
+        # state: [p_CT (3), R_CT row-major (9), V filtered in World (6), h, scale, active,
+        #         p_WE (3), R_WE row-major (9)]
         self.DeclareDiscreteState(self._state_of(np.asarray(X_WE_initial, dtype=float)))
         self.DeclarePeriodicDiscreteUpdateEvent(self._period, 0.0, self._update)
         self._X_des = self.DeclareAbstractOutputPort(
@@ -353,7 +314,7 @@ class SafetySupervisor(LeafSystem):
         X_CT = self._X_CW @ X_WE @ self._X_ET
         h = self._clear(X_CT[None])[0]
         return np.concatenate([X_CT[:3, 3], X_CT[:3, :3].ravel(), np.zeros(6),
-                               [min(h, FAR), 1.0, 0.0]])
+                               [min(h, FAR), 1.0, 0.0], X_WE[:3, 3], X_WE[:3, :3].ravel()])
 
     def _update(self, context, discrete_state):
         x = context.get_discrete_state(0).get_value()
@@ -378,16 +339,17 @@ class SafetySupervisor(LeafSystem):
                 V, h = res.V[0], res.h_next[0]
                 p, R = res.X_next[0, :3, 3], res.X_next[0, :3, :3]
                 scale, active = res.scale[0], 1.0
-        V_W = np.concatenate([R_CW.T @ V[:3], R_CW.T @ V[3:]])
+        R_WC = R_CW.T
+        V_W = np.concatenate([R_WC @ V[:3], R_WC @ V[3:]])
+        p_W = R_WC @ p + self._X_WC[:3, 3]  # the World pose DiffIK reads (E = T rotated)
+        R_W = R_WC @ R @ self._X_TE[:3, :3]
         discrete_state.get_mutable_vector(0).SetFromVector(
-            np.concatenate([p, R.ravel(), V_W, [min(h, FAR), scale, active]])
+            np.concatenate([p, R.ravel(), V_W, [min(h, FAR), scale, active], p_W, R_W.ravel()])
         )
 
     def _calc_desired(self, context, value):
         x = context.get_discrete_state(0).get_value()
-        X = np.eye(4)
-        X[:3, :3], X[:3, 3] = x[3:12].reshape(3, 3), x[:3]
-        value.set_value(RigidTransform(self._X_WC @ X @ self._X_TE))
+        value.set_value(RigidTransform(RotationMatrix(x[24:33].reshape(3, 3)), x[21:24]))
 
     def _calc_filtered(self, context, output: BasicVector):
         output.SetFromVector(context.get_discrete_state(0).get_value()[12:18])

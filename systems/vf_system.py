@@ -26,7 +26,7 @@ import numpy as np
 from pydrake.common.eigen_geometry import AngleAxis
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform, RotationMatrix
-from pydrake.systems.framework import BasicVector, LeafSystem, ValueProducer
+from pydrake.systems.framework import BasicVector, LeafSystem
 
 from implantplan.systems import virtual_fixture as vfc
 from implantplan.systems.errors import InputError
@@ -112,14 +112,7 @@ class VirtualFixtureForceLaw(LeafSystem):
         self._X_meas = self.DeclareAbstractInputPort(
             "X_WE_measured", AbstractValue.Make(RigidTransform())
         )
-        self._law = self.DeclareCacheEntry(
-            description="body_law",
-            value_producer=ValueProducer(
-                allocate=AbstractValue.Make(np.zeros(12)).Clone, calc=self._calc_law
-            ),
-            prerequisites_of_calc={self.all_input_ports_ticket()},
-        )
-        ticket = self._law.ticket()
+        ticket = self.all_input_ports_ticket()
         self._integrate = bool(integrate)
         if self._integrate:
             X0 = np.eye(4) if X_WE_initial is None else np.asarray(X_WE_initial, dtype=float)
@@ -127,9 +120,11 @@ class VirtualFixtureForceLaw(LeafSystem):
             self.DeclareDiscreteState(np.concatenate([X0[:3, 3], X0[:3, :3].ravel(), [0, 0]]))
             self.DeclarePeriodicDiscreteUpdateEvent(self._period, 0.0, self._update)
             ticket = self.xd_ticket()
+        # each output evaluates the law itself (one compiled call): in the diagram only the
+        # corrected twist is read, once per step
         self._V_out = self.DeclareVectorOutputPort(
             "V_WE_corrected", 6, self._calc_corrected,
-            prerequisites_of_calc={self._law.ticket()},
+            prerequisites_of_calc={self.all_input_ports_ticket()},
         )
         self._violation = self.DeclareVectorOutputPort(
             "violation", 1, self._calc_violation, prerequisites_of_calc={ticket}
@@ -138,7 +133,8 @@ class VirtualFixtureForceLaw(LeafSystem):
             "angle_violation", 1, self._calc_angle, prerequisites_of_calc={ticket}
         )
         self._force = self.DeclareVectorOutputPort(
-            "F_W_fixture", 3, self._calc_force, prerequisites_of_calc={self._law.ticket()}
+            "F_W_fixture", 3, self._calc_force,
+            prerequisites_of_calc={self.all_input_ports_ticket()}
         )
         if self._integrate:
             self._X_des = self.DeclareAbstractOutputPort(
@@ -165,14 +161,11 @@ class VirtualFixtureForceLaw(LeafSystem):
 
     def corrected(self, context) -> np.ndarray:
         """[w; v] corrected command in World for the inputs in ``context``."""
-        return self._law.Eval(context)[:6].copy()
-
-    def _calc_law(self, context, value):
-        value.set_value(self.law(context))
+        return self.law(context)[:6]
 
     def _update(self, context, discrete_state):
         x = context.get_discrete_state(0).get_value()
-        law = self._law.Eval(context)
+        law = self.law(context)
         p, R = step_pose(x[:3], x[3:12].reshape(3, 3), law[:6], self._period)
         discrete_state.get_mutable_vector(0).SetFromVector(
             np.concatenate([p, R.ravel(), law[6:8]])
@@ -185,12 +178,12 @@ class VirtualFixtureForceLaw(LeafSystem):
         value.set_value(RigidTransform(RotationMatrix(x[3:12].reshape(3, 3)), x[:3]))
 
     def _calc_corrected(self, context, output: BasicVector):
-        output.SetFromVector(self._law.Eval(context)[:6])
+        output.SetFromVector(self.law(context)[:6])
 
     def _violations(self, context) -> np.ndarray:
         if self._integrate:
             return context.get_discrete_state(0).get_value()[12:14]
-        return self._law.Eval(context)[6:8]
+        return self.law(context)[6:8]
 
     def _calc_violation(self, context, output: BasicVector):
         output.SetAtIndex(0, self._violations(context)[0])
@@ -199,7 +192,7 @@ class VirtualFixtureForceLaw(LeafSystem):
         output.SetAtIndex(0, self._violations(context)[1])
 
     def _calc_force(self, context, output: BasicVector):
-        output.SetFromVector(self._law.Eval(context)[8:11])
+        output.SetFromVector(self.law(context)[8:11])
 
     def set_desired_pose(self, context, X_WE) -> None:
         """Reset the desired pose (e.g. to the tool's pose at the start of a run)."""
