@@ -66,6 +66,7 @@ from implantplan.systems.frames import transform
 from implantplan.systems.master_device import IncrementalMapping, MasterDevice, MasterMotion
 from implantplan.systems.moprp import R_OE
 from implantplan.systems.safety_supervisor import Barrier, SafetySupervisor
+from implantplan.systems.tool_clearance import ToolGeometry
 from implantplan.systems.vf_system import VirtualFixtureForceLaw
 from implantplan.systems.virtual_fixture import VirtualFixture
 
@@ -296,7 +297,7 @@ def build_teleop(
             case.fpsm,
             case.X_WCenter,
             case.X_WE(q0),
-            ToolLines.contra_angle(case.rod_radius, case.implant_length),
+            ToolGeometry(rod_radius=case.rod_radius, implant_length=case.implant_length),
             R_ET=X_ET[:3, :3],
             barrier=barrier,
             period=period,

@@ -1,9 +1,10 @@
 """Control-barrier safety supervisor of the tool against the FPSM (DESIGN.md section 7).
 
-The barrier is the clearance h(X) of the whole tool body at its pose X (the FPSM's clearance:
-:func:`clearance`, the one place the supervisor asks for it) and the safe set is
-h >= margin. A commanded tool twist V = [w; v] (w the angular velocity, v the TCP's velocity,
-both in Center) is filtered so that
+The barrier is the clearance h(X) of the whole tool body (rod, head, implant) at its pose X: the
+sound FPSM clearance of systems.tool_clearance (a certified lower bound of the body's distance to
+the FPSM boundary; :class:`~implantplan.systems.tool_clearance.ToolClearance`, prepared once),
+and the safe set is h >= margin. A commanded tool twist V = [w; v] (w the angular velocity, v
+the TCP's velocity, both in Center) is filtered so that
 
     dh/dt = grad h . V >= b,   b = min(-alpha (h - margin), 0)
 
@@ -44,8 +45,8 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm import Fpsm
-from implantplan.systems.fpsm_estimator import LinesAtPoses, ToolLines
 from implantplan.systems.frames import invert
+from implantplan.systems.tool_clearance import ToolClearance, ToolGeometry
 from implantplan.systems.vf_system import step_pose
 
 AIM = 0.9  # the projection aims at this share of the allowed approach rate
@@ -54,25 +55,10 @@ TOLERANCE = 1e-8  # m: rounding allowed in the discrete barrier condition per st
 FAR = 1.0e3  # stand-in for +inf (the tool wholly outside the mouth) on the output ports (m)
 
 
-class ToolClearance:
-    """Clearance (m) of the whole tool at K poses X_CT (K, 4, 4) of its Tool frame in Center,
-    prepared once for a model and a tool: the one place the supervisor takes its barrier from.
-
-    Today: the tool's lines of Eq. 19 (the rod as its axis against the FPSM shrunk by r, Eq. 12;
-    the implant path against the model), the smallest d_safe over both, in one compiled call
-    (systems.fpsm_estimator.LinesAtPoses: ~5 us a pose).
-    """
-
-    def __init__(self, fpsm: Fpsm, tool: ToolLines):
-        self.fpsm, self.tool = fpsm, tool
-        self._lines = LinesAtPoses(fpsm, tool)
-
-    def __call__(self, X_CT: np.ndarray) -> np.ndarray:
-        return self._lines(X_CT)[1].min(axis=1)
-
-
-def clearance(fpsm: Fpsm, X_CT: np.ndarray, tool: ToolLines) -> np.ndarray:
-    """:class:`ToolClearance` in one call (K, 4, 4) -> (K,)."""
+def clearance(fpsm: Fpsm, X_CT: np.ndarray, tool: ToolGeometry) -> np.ndarray:
+    """The barrier h (m) at K poses ``X_CT`` (K, 4, 4) of the Tool frame in Center: the sound
+    FPSM clearance of the whole tool body (systems.tool_clearance, a certified lower bound of its
+    distance to the FPSM boundary). The supervisor holds a prepared :class:`ToolClearance`."""
     return ToolClearance(fpsm, tool)(X_CT)
 
 
@@ -271,7 +257,7 @@ class SafetySupervisor(LeafSystem):
         fpsm: Fpsm,
         X_WCenter,
         X_WE_initial,
-        tool: ToolLines,
+        tool: ToolGeometry,
         *,
         R_ET=None,
         barrier: Barrier | None = None,
@@ -327,7 +313,7 @@ class SafetySupervisor(LeafSystem):
         if self._enabled:
             X1 = np.eye(4)
             X1[:3, :3], X1[:3, 3] = R, p
-            h = float(self._clear(X1[None])[0])
+            h = self._clear.one(X1)
             bar = self._barrier
             # barrier_holds, on floats (the common case must be cheap)
             b = min(-bar.alpha * (h0 - bar.margin), 0.0) if h0 < np.inf else -np.inf
