@@ -14,10 +14,11 @@ At every logged pose (200 Hz) of every run:
 
 - the **exact tool clearance**: FCL (python-fcl) distance between the tool's body and the opened
   scan mesh (a BVH of its triangles; without the lips and cheeks in front of the mouth opening,
-  which the case takes as retracted: :func:`exact_for`), the tool as capsules: the handle rod
-  (radius r, from P1 = [r, 0, 0] along Tool x for 0.2 m), the head (a sphere of radius r at
-  the TCP) and the implant (from [r, 0, 0] to [r, 0, -d12]: its axis, radius 0.1 mm); a
-  colliding pose gets minus the largest contact depth;
+  which the case takes as retracted: :func:`exact_for`), the tool as the capsules of
+  systems.tool_clearance.ToolGeometry (the body the supervisor bounds: the handle rod, radius
+  r, from P1 = [r, 0, 0] along Tool x for 0.2 m; the head, a sphere of radius r at the TCP; the
+  implant from [r, 0, 0] to [r, 0, -d12], its axis, here of radius 0.1 mm); a colliding pose
+  gets minus the largest contact depth;
 - the fixture's body violation (the TCP and the rod's entry crossing against delta);
 - the supervisor's barrier h (the FPSM clearance at the desired pose).
 
@@ -40,8 +41,10 @@ from implantplan.diagrams.feeding import FINISH_SECONDS, TARGET_TOLERANCE
 from implantplan.diagrams.teleop import TeleopCase, build_teleop, simulate
 from implantplan.systems.adversarial_operator import KINDS, Directions, adversarial_motion
 from implantplan.systems.files import write_json
+from implantplan.systems.frames import frame_from_z, transform
 from implantplan.systems.master_device import feeding_runs
 from implantplan.systems.safety_supervisor import Barrier
+from implantplan.systems.tool_clearance import ToolGeometry
 
 MARGIN_SLACK = 0.0002  # m: the exact clearance may dip this far below the margin
 MAX_VIOLATION = 0.0005  # m: the fixture's body violation must stay below this
@@ -49,25 +52,27 @@ IMPLANT_AXIS_RADIUS = 1e-4  # m: the implant as its axis (a thin capsule for FCL
 
 
 class ExactClearance:
-    """FCL distance of the tool's capsules to a triangle mesh (both in the mesh frame, m)."""
+    """FCL distance of the tool's capsules to a triangle mesh (both in the mesh frame, m).
 
-    def __init__(self, vertices, faces, *, rod_radius: float, implant_length: float,
-                 rod_length: float = 0.2):
+    The tool is systems.tool_clearance's :class:`ToolGeometry` (the body the barrier bounds):
+    each of its capsules (segment a-b in Tool, radius r) as an FCL capsule, a sphere where the
+    segment is a point; a radius-0 segment (the implant's axis) gets ``IMPLANT_AXIS_RADIUS``.
+    """
+
+    def __init__(self, vertices, faces, tool: ToolGeometry):
         model = fcl.BVHModel()
         model.beginModel(len(vertices), len(faces))
         model.addSubModel(np.asarray(vertices, dtype=float), np.asarray(faces, dtype=np.int64))
         model.endModel()
         self._mesh = fcl.CollisionObject(model, fcl.Transform())
-        r, d12 = float(rod_radius), float(implant_length)
-        # (shape, centre in T, axis in T): fcl capsules lie along their local z, centred
-        self._parts = [
-            (fcl.Capsule(r, rod_length), np.array([r + rod_length / 2, 0, 0]), 0),
-            (fcl.Sphere(r), np.zeros(3), None),
-            (fcl.Capsule(IMPLANT_AXIS_RADIUS, d12), np.array([r, 0, -d12 / 2]), 2),
-        ]
-        # local z -> Tool x (rod) / Tool z (implant)
-        self._R_axis = {0: np.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]]), 2: np.eye(3),
-                        None: np.eye(3)}
+        self._parts = []  # (shape, X_T_shape)
+        for a, b, r in zip(*tool.capsules_T(), strict=True):
+            r = max(float(r), IMPLANT_AXIS_RADIUS)
+            length = float(np.linalg.norm(b - a))
+            if length < 1e-12:
+                self._parts.append((fcl.Sphere(r), transform(np.eye(3), a)))
+            else:  # fcl capsules lie along their local z, centred
+                self._parts.append((fcl.Capsule(r, length), frame_from_z((a + b) / 2, b - a)))
 
     def __call__(self, X_MT: np.ndarray) -> np.ndarray:
         """(K,) clearance (m) of the tool at poses X_MT (K, 4, 4) of its Tool frame in the mesh
@@ -77,9 +82,9 @@ class ExactClearance:
         creq = fcl.CollisionRequest(num_max_contacts=16, enable_contact=True)
         for k, X in enumerate(np.asarray(X_MT, dtype=float)):
             best = np.inf
-            for shape, c_T, axis in self._parts:
-                R = X[:3, :3] @ self._R_axis[axis]
-                obj = fcl.CollisionObject(shape, fcl.Transform(R, X[:3, :3] @ c_T + X[:3, 3]))
+            for shape, X_TS in self._parts:
+                X_MS = X @ X_TS
+                obj = fcl.CollisionObject(shape, fcl.Transform(X_MS[:3, :3], X_MS[:3, 3]))
                 d = fcl.distance(obj, self._mesh, dreq, fcl.DistanceResult())
                 if d <= 0.0:
                     res = fcl.CollisionResult()
@@ -110,8 +115,7 @@ def exact_for(tc: TeleopCase, mesh) -> ExactClearance:
     z = V @ X_CM[2, :3] + X_CM[2, 3]
     faces = np.asarray(mesh.faces)
     keep = np.all(z[faces] <= tc.fpsm.z_range[1], axis=1)
-    return ExactClearance(V, faces[keep], rod_radius=tc.rod_radius,
-                          implant_length=tc.implant_length)
+    return ExactClearance(V, faces[keep], tc.tool)
 
 
 def run_one(teleop, tc: TeleopCase, motion, exact: ExactClearance, *, finish_seconds=None):

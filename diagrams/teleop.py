@@ -104,6 +104,11 @@ class TeleopCase:
     label: str = ""
 
     @property
+    def tool(self) -> ToolGeometry:
+        """The tool body the supervisor bounds (rod, head, implant; systems.tool_clearance)."""
+        return ToolGeometry(rod_radius=self.rod_radius, implant_length=self.implant_length)
+
+    @property
     def X_FE(self) -> np.ndarray:
         """The plant's TCP (End) in the flange frame."""
         return actuator.X_FT()
@@ -297,7 +302,7 @@ def build_teleop(
             case.fpsm,
             case.X_WCenter,
             case.X_WE(q0),
-            ToolGeometry(rod_radius=case.rod_radius, implant_length=case.implant_length),
+            case.tool,
             R_ET=X_ET[:3, :3],
             barrier=barrier,
             period=period,

@@ -10,6 +10,7 @@ from implantplan.diagrams.teleop import build_teleop
 from implantplan.systems.adversarial_operator import Directions, adversarial_motion
 from implantplan.systems.master_device import feeding_runs
 from implantplan.systems.safety_supervisor import Barrier
+from implantplan.systems.tool_clearance import ToolGeometry
 
 MARGIN = Barrier().margin
 
@@ -63,8 +64,8 @@ def test_exact_reference_by_hand():
     import trimesh
 
     box = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
-    ex = A.ExactClearance(box.vertices, box.faces, rod_radius=0.006, implant_length=0.031,
-                          rod_length=0.04)
+    ex = A.ExactClearance(box.vertices, box.faces,
+                          ToolGeometry(rod_radius=0.006, implant_length=0.031, rod_length=0.04))
     X = np.eye(4)
     X[:3, :3] = np.array([[0.0, 0, -1], [0, 1, 0], [1, 0, 0]])  # Tool x -> +z, Tool z -> -x
     X[:3, 3] = [0.0, 0.034, 0.0]  # the rod's axis at y = 34 mm, the box's wall at y = 50 mm
