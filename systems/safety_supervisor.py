@@ -38,7 +38,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
+from pydrake.common.eigen_geometry import AngleAxis
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.framework import BasicVector, LeafSystem
@@ -215,6 +217,44 @@ def supervise(clear: ToolClearance, X_CT, V_C, barrier: Barrier, dt: float, *,
     return Supervised(V=V_out, X_next=X_next, h=h, h_next=h_next, scale=scale, active=~ok)
 
 
+@numba.njit(cache=True)
+def _advance(x, V_W, dR, dt, R_CW, X_WC, X_TE, new, X1):
+    """The supervisor's state one period on under the twist V_W (World) left as it is: the Tool
+    pose in Center (p + v dt, dR R), the twist, scale 1, not active, the World pose of E; X1 the
+    new Tool pose in Center (4, 4). ``new[18]`` (h) is left to the caller."""
+    for i in range(3):
+        v = 0.0
+        for j in range(3):
+            v += R_CW[i, j] * V_W[3 + j]
+        new[i] = x[i] + v * dt
+        for j in range(3):
+            acc = 0.0
+            for k in range(3):
+                acc += dR[i, k] * x[3 + 3 * k + j]
+            new[3 + 3 * i + j] = acc
+    for i in range(6):
+        new[12 + i] = V_W[i]
+    new[19], new[20] = 1.0, 0.0
+    for i in range(3):
+        pw = X_WC[i, 3]
+        for j in range(3):
+            pw += X_WC[i, j] * new[j]
+        new[21 + i] = pw
+        for j in range(3):
+            acc = 0.0
+            for k in range(3):
+                RWk = 0.0
+                for m in range(3):
+                    RWk += X_WC[i, m] * new[3 + 3 * m + k]
+                acc += RWk * X_TE[k, j]
+            new[24 + 3 * i + j] = acc
+    for i in range(3):
+        X1[i, 3] = new[i]
+        for j in range(3):
+            X1[i, j] = new[3 + 3 * i + j]
+    X1[3, 0], X1[3, 1], X1[3, 2], X1[3, 3] = 0.0, 0.0, 0.0, 1.0
+
+
 class SafetySupervisor(LeafSystem):
     """Filters the fixture's corrected twist with the FPSM barrier; integrates the desired pose.
 
@@ -274,6 +314,7 @@ class SafetySupervisor(LeafSystem):
         self._X_WC = np.asarray(X_WCenter, dtype=float)
         self._X_CW = invert(self._X_WC)
         self._R_CW = np.ascontiguousarray(self._X_CW[:3, :3])
+        self._X_WC = np.ascontiguousarray(self._X_WC)
         R_ET = np.eye(3) if R_ET is None else np.asarray(R_ET, dtype=float)
         self._X_ET = np.eye(4)
         self._X_ET[:3, :3] = R_ET
@@ -304,15 +345,17 @@ class SafetySupervisor(LeafSystem):
 
     def _update(self, context, discrete_state):
         x = context.get_discrete_state(0).get_value()
-        V_W = self._V_in.Eval(context)
-        R_CW = self._R_CW
-        V = np.concatenate([R_CW @ V_W[:3], R_CW @ V_W[3:]])
-        p, R = step_pose(x[:3], x[3:12].reshape(3, 3), V, self._period)
+        V_W = np.asarray(self._V_in.Eval(context), dtype=float)
+        # the rotation of one period (Drake's AngleAxis; the operator's command has none)
+        w_C = self._R_CW @ V_W[:3]
+        angle = float(np.linalg.norm(w_C)) * self._period
+        dR = np.eye(3) if angle == 0.0 else RotationMatrix(
+            AngleAxis(angle, w_C * (self._period / angle))).matrix()
+        new = np.empty(33)
+        X1 = np.empty((4, 4))
+        _advance(x, V_W, dR, self._period, self._R_CW, self._X_WC, self._X_TE, new, X1)
         h0 = np.inf if x[18] >= FAR else float(x[18])
-        h, scale, active = h0, 1.0, 0.0
         if self._enabled:
-            X1 = np.eye(4)
-            X1[:3, :3], X1[:3, 3] = R, p
             h = self._clear.one(X1)
             bar = self._barrier
             # barrier_holds, on floats (the common case must be cheap)
@@ -320,18 +363,21 @@ class SafetySupervisor(LeafSystem):
             if h0 < np.inf and not h >= h0 + self._period * b - TOLERANCE:  # the slow path
                 X0 = np.eye(4)
                 X0[:3, :3], X0[:3, 3] = x[3:12].reshape(3, 3), x[:3]
+                V = np.concatenate([w_C, self._R_CW @ V_W[3:]])
                 res = supervise(self._clear, X0[None], V[None], self._barrier, self._period,
                                 h=[h0])
                 V, h = res.V[0], res.h_next[0]
                 p, R = res.X_next[0, :3, 3], res.X_next[0, :3, :3]
-                scale, active = res.scale[0], 1.0
-        R_WC = R_CW.T
-        V_W = np.concatenate([R_WC @ V[:3], R_WC @ V[3:]])
-        p_W = R_WC @ p + self._X_WC[:3, 3]  # the World pose DiffIK reads (E = T rotated)
-        R_W = R_WC @ R @ self._X_TE[:3, :3]
-        discrete_state.get_mutable_vector(0).SetFromVector(
-            np.concatenate([p, R.ravel(), V_W, [min(h, FAR), scale, active], p_W, R_W.ravel()])
-        )
+                R_WC = self._R_CW.T
+                new[:3], new[3:12] = p, R.ravel()
+                new[12:15], new[15:18] = R_WC @ V[:3], R_WC @ V[3:]
+                new[19], new[20] = res.scale[0], 1.0
+                new[21:24] = R_WC @ p + self._X_WC[:3, 3]
+                new[24:33] = (R_WC @ R @ self._X_TE[:3, :3]).ravel()
+            new[18] = min(h, FAR)
+        else:
+            new[18] = min(h0, FAR)
+        discrete_state.get_mutable_vector(0).SetFromVector(new)
 
     def _calc_desired(self, context, value):
         x = context.get_discrete_state(0).get_value()
