@@ -1,5 +1,7 @@
 """VirtualFixtureForceLaw: the admittance law around a cylinder fixture, tested alone."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -10,7 +12,7 @@ from pydrake.math import RigidTransform
 
 from implantplan.systems.frames import rot_x, rot_y, transform
 from implantplan.systems.vf_system import VirtualFixtureForceLaw
-from implantplan.systems.virtual_fixture import VirtualFixture
+from implantplan.systems.virtual_fixture import LATERAL_TOLERANCE, VirtualFixture
 
 K, B = 2000.0, 100.0  # N/m, N s/m -> return gain 20 1/s
 # Fixture along Center +z through the target at the origin, an axis region of radius 6 mm (a
@@ -117,15 +119,9 @@ def test_update_near_the_wall_uses_the_full_law():
 
 # -- the body: the rod axis and the orientation ------------------------------------------------
 
-BODY = VirtualFixture(  # the default tolerances: delta 0.5 mm, beta 0.5 deg; tool radius 6 mm
-    origin=[0.0, 0.0, 0.0],
-    direction=[0.0, 0.0, 1.0],
-    entry_distance=0.05,
-    cylinder_radius=0.006,
-    segment_lengths=[0.03],
-    half_angles=[np.deg2rad(15.0)],
-    R_ref=R_CT,
-)
+# the same fixture with the default tolerances (delta 0.5 mm, beta 0.5 deg; tool radius 6 mm)
+# and the planned orientation
+BODY = dataclasses.replace(VF, lateral_tolerance=LATERAL_TOLERANCE, R_ref=R_CT)
 
 
 def test_the_rod_axis_is_bounded_not_only_the_tcp():
