@@ -1,6 +1,7 @@
 """The adversarial-operator study of the safety layer on the default case (issue 12 acceptance).
 
-Run: ``python -m implantplan.analyses.adversarial [--seeds 4] [--normal 3] [--json FILE]``
+Run: ``python -m implantplan.analyses.adversarial [--seeds 4] [--normal 3] [--no-fixture]
+[--json FILE]``
 
 The bundled default case (models/cases/default.yaml: the opened ArtiSynth scan, sites 36 and 46)
 is planned as ``implantplan plan`` does (FPSM fit, placement with its virtual fixture, robot base;
@@ -141,13 +142,14 @@ def run_one(teleop, tc: TeleopCase, motion, exact: ExactClearance, *, finish_sec
 
 
 def study(*, seeds: int = 4, normal: int = 3, seed: int = 0, barrier: Barrier | None = None,
-          kinds=KINDS, progress=print) -> dict:
-    """Every site x (kinds x seeds + normal feeds) of the default case; see the module docs."""
+          kinds=KINDS, fixture: bool = True, progress=print) -> dict:
+    """Every site x (kinds x seeds + normal feeds) of the default case; see the module docs.
+    ``fixture=False`` leaves the supervisor alone against the operator."""
     cases, mesh = default_case_sites()
     barrier = barrier or Barrier()
     runs = []
     for k, tc in enumerate(cases):
-        teleop = build_teleop(tc, barrier=barrier)
+        teleop = build_teleop(tc, barrier=barrier, vf_enabled=fixture)
         exact = exact_for(tc, mesh)
         start, target = tc.X_WE(tc.q_start)[:3, 3], tc.X_WTarget[:3, 3]
         dirs = Directions.of_case(tc.X_WTarget, tc.X_WCenter)
@@ -166,7 +168,7 @@ def study(*, seeds: int = 4, normal: int = 3, seed: int = 0, barrier: Barrier | 
                          f"{1e3 * r['min_exact_clearance']:7.3f} mm, VF "
                          f"{1e3 * r['max_vf_violation']:.3f} mm, h "
                          f"{1e3 * r['min_barrier']:.3f} mm, reached {r['reached_target']}")
-    return {"runs": runs, "margin": barrier.margin, "alpha": barrier.alpha,
+    return {"runs": runs, "margin": barrier.margin, "alpha": barrier.alpha, "fixture": fixture,
             "summary": summarize(runs, barrier.margin)}
 
 
@@ -197,10 +199,13 @@ def main(argv=None) -> int:
     parser.add_argument("--seeds", type=int, default=4, help="seeds per kind and site")
     parser.add_argument("--normal", type=int, default=3, help="calm feeds per site")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--no-fixture", action="store_true",
+                        help="the supervisor alone (the fixture passes every command)")
     parser.add_argument("--json", help="write every run here")
     args = parser.parse_args(argv)
     t0 = time.perf_counter()
-    res = study(seeds=args.seeds, normal=args.normal, seed=args.seed)
+    res = study(seeds=args.seeds, normal=args.normal, seed=args.seed,
+                fixture=not args.no_fixture)
     print(f"\n{'kind':>12} {'runs':>5} {'poses':>7} {'min exact mm':>13} {'<0':>4} "
           f"{'<m-0.2':>7} {'max VF mm':>10} {'min h mm':>9} {'reached':>8}")
     for kind, s in res["summary"].items():
@@ -208,7 +213,8 @@ def main(argv=None) -> int:
               f"{s['below_zero']:>4} {s['below_margin_slack']:>7} "
               f"{1e3 * s['max_vf_violation']:>10.3f} {1e3 * s['min_barrier']:>9.3f} "
               f"{s['reached']:>4}/{s['runs']}")
-    print(f"margin {1e3 * res['margin']:.1f} mm; {time.perf_counter() - t0:.0f} s")
+    print(f"margin {1e3 * res['margin']:.1f} mm, fixture {'on' if res['fixture'] else 'off'}; "
+          f"{time.perf_counter() - t0:.0f} s")
     if args.json:
         write_json(args.json, res, kind="adversarial")
     return 0

@@ -59,6 +59,19 @@ def test_without_the_safety_layer_the_push_enters_the_tissue(site):
     assert r["alarm"]
 
 
+def test_the_supervisor_alone_keeps_the_margin_against_the_exact_anatomy(site):
+    """Fixture off: the barrier on the sound FPSM clearance stops the push at h = 1 mm, and the
+    exact clearance stays above margin - 0.2 mm."""
+    tc, _, exact = site
+    start, target = tc.X_WE(tc.q_start)[:3, 3], tc.X_WTarget[:3, 3]
+    motion = adversarial_motion("jaw", start, target,
+                                Directions.of_case(tc.X_WTarget, tc.X_WCenter), seed=2)
+    r = A.run_one(build_teleop(tc, vf_enabled=False), tc, motion, exact)
+    assert r["supervisor_active_share"] > 0.0
+    assert r["min_barrier"] >= MARGIN - 1e-6
+    assert r["min_exact_clearance"] >= MARGIN - A.MARGIN_SLACK
+
+
 def test_exact_reference_by_hand():
     """FCL on a box room: the tool's rod (radius 6 mm) 10 mm from a wall has clearance 4 mm."""
     import trimesh
@@ -87,3 +100,9 @@ def test_the_54_run_study():
     assert s["violation_over"] == 0
     normal = res["summary"]["normal"]
     assert normal["reached"] == normal["runs"]
+
+
+@pytest.mark.slow
+def test_the_54_run_study_with_the_supervisor_alone():
+    s = A.study(seeds=4, normal=3, fixture=False, progress=None)["summary"]["all"]
+    assert s["below_zero"] == 0 and s["below_margin_slack"] == 0
