@@ -26,8 +26,10 @@ next pose X + dt V:
    the lever it swings): V' = V + lambda M^-1 g, lambda = (0.9 b - g . V) / (g^T M^-1 g) >= 0.
    The half-space contains 0 (b <= 0), so the projection is non-expansive: |V'|_M <= |V|_M;
 3. h being a minimum over the tool's parts (not smooth), the projected command is checked on
-   h itself at X + dt s V' for s = 1, 3/4, 1/2, 1/4 (one more batched call): the largest s that
-   meets the discrete condition is taken, s = 0 (stop) if none does. Stopping always meets it.
+   h itself at X + dt V' and, only if that fails, at s = 3/4, 1/2, 1/4 of it (one batched call):
+   the largest s that meets the discrete condition is taken, s = 0 (stop) if none does.
+   Stopping always meets it, so the guarantee does not rest on the gradient: the LeafSystem
+   reuses one gradient over up to 4 consecutive steps at the wall.
 
 With the sound FPSM clearance (a certified lower bound of the exact clearance) h >= margin - a
 few tenths of a millimetre at every step thus bounds the exact distance of the tool to the
@@ -53,6 +55,7 @@ from implantplan.systems.vf_system import step_pose
 
 AIM = 0.9  # the projection aims at this share of the allowed approach rate
 SCALES = np.array([1.0, 0.75, 0.5, 0.25])  # tried on h itself after the projection
+GRADIENT_REUSE = 4  # consecutive steps at the wall that share one finite-difference gradient
 TOLERANCE = 1e-8  # m: rounding allowed in the discrete barrier condition per step
 FAR = 1.0e3  # stand-in for +inf (the tool wholly outside the mouth) on the output ports (m)
 
@@ -157,6 +160,7 @@ class Supervised:
         h_next: (K,) barrier value at X_next.
         scale: (K,) |V|_M / |V_command|_M (1: untouched, 0: stopped).
         active: (K,) the command was changed.
+        g: (K, 6) the gradient used where active (NaN elsewhere).
     """
 
     V: np.ndarray
@@ -165,13 +169,17 @@ class Supervised:
     h_next: np.ndarray
     scale: np.ndarray
     active: np.ndarray
+    g: np.ndarray
 
 
 def supervise(clear: ToolClearance, X_CT, V_C, barrier: Barrier, dt: float, *,
-              h=None) -> Supervised:
+              h=None, g=None) -> Supervised:
     """Steps 1-3 of the module docstring for K tool poses ``X_CT`` (K, 4, 4) in Center and
     commanded twists ``V_C`` (K, 6) in Center, over a period ``dt`` (s). ``h`` (K,): the
-    barrier at the poses if known (the supervisor keeps it from its previous step)."""
+    barrier at the poses if known (the supervisor keeps it from its previous step); ``g``
+    (K, 6): a gradient to use instead of the finite differences (the supervisor reuses one over
+    a few consecutive steps at the wall; it only shapes the projection, which step 3 checks on h
+    itself)."""
     X = np.asarray(X_CT, dtype=float).reshape(-1, 4, 4)
     V = np.asarray(V_C, dtype=float).reshape(-1, 6)
     K = X.shape[0]
@@ -186,23 +194,41 @@ def supervise(clear: ToolClearance, X_CT, V_C, barrier: Barrier, dt: float, *,
     ok = barrier_holds(h, h_cmd, barrier, dt)
     V_out, X_next, h_next = V.copy(), X_cmd, h_cmd.copy()
     scale = np.ones(K)
+    g_out = np.full((K, 6), np.nan)
     todo = np.flatnonzero(~ok)
     if todo.size:
         n = todo.size
-        eps = np.concatenate([np.full(3, barrier.eps_w), np.full(3, barrier.eps_p)])
-        H = clear(perturbed_poses(X[todo], barrier.eps_p, barrier.eps_w).reshape(-1, 4, 4))
-        H = H.reshape(n, 12)
-        with np.errstate(invalid="ignore"):
-            g = (H[:, :6] - H[:, 6:]) / (2.0 * eps)
-        g = np.where(np.isfinite(g), g, 0.0)  # a step out of the mouth (h -> +inf): no limit
+        if g is None:
+            eps = np.concatenate([np.full(3, barrier.eps_w), np.full(3, barrier.eps_p)])
+            H = clear(perturbed_poses(X[todo], barrier.eps_p, barrier.eps_w).reshape(-1, 4, 4))
+            H = H.reshape(n, 12)
+            with np.errstate(invalid="ignore"):
+                g_todo = (H[:, :6] - H[:, 6:]) / (2.0 * eps)
+            g_todo = np.where(np.isfinite(g_todo), g_todo, 0.0)  # out of the mouth: no limit
+            g_out[todo] = g_todo
+        else:
+            g_todo = np.asarray(g, dtype=float).reshape(K, 6)[todo]
+            g_out[todo] = g_todo
         # aim at 90% of the allowed approach: room for the linearization of a non-smooth h
-        Vp, _, _ = barrier_filter(V[todo], h[todo], g, margin=barrier.margin,
+        Vp, _, _ = barrier_filter(V[todo], h[todo], g_todo, margin=barrier.margin,
                                   alpha=AIM * barrier.alpha, length_scale=barrier.length_scale)
         S = SCALES.size
-        Vt = (Vp[:, None, :] * SCALES[None, :, None]).reshape(-1, 6)
-        Xt = stepped_poses(np.repeat(X[todo], S, axis=0), Vt, dt)
-        Ht = clear(Xt).reshape(n, S)
-        good = barrier_holds(np.repeat(h[todo], S).reshape(n, S), Ht, barrier, dt)
+        # the full projected step first; the smaller scales only where it fails
+        Xt = np.repeat(X[todo], S, axis=0).reshape(n, S, 4, 4)
+        Ht = np.full((n, S), -np.inf)
+        Xt[:, 0] = stepped_poses(X[todo], Vp, dt)
+        Ht[:, 0] = clear(Xt[:, 0])
+        good = np.zeros((n, S), dtype=bool)
+        good[:, 0] = barrier_holds(h[todo], Ht[:, 0], barrier, dt)
+        rest = np.flatnonzero(~good[:, 0])
+        if rest.size:
+            Vr = (Vp[rest, None, :] * SCALES[None, 1:, None]).reshape(-1, 6)
+            Xr = stepped_poses(np.repeat(X[todo][rest], S - 1, axis=0), Vr, dt)
+            Xt[rest, 1:] = Xr.reshape(rest.size, S - 1, 4, 4)
+            Ht[rest, 1:] = clear(Xr).reshape(rest.size, S - 1)
+            good[rest, 1:] = barrier_holds(np.repeat(h[todo][rest], S - 1).reshape(-1, S - 1),
+                                           Ht[rest, 1:], barrier, dt)
+        Xt = Xt.reshape(n * S, 4, 4)
         first = np.where(good.any(axis=1), good.argmax(axis=1), S)
         chosen = np.concatenate([SCALES, [0.0]])[first]
         V_out[todo] = Vp * chosen[:, None]
@@ -214,7 +240,8 @@ def supervise(clear: ToolClearance, X_CT, V_C, barrier: Barrier, dt: float, *,
         norm = np.sqrt(np.sum(V[todo] ** 2 * M, axis=1))
         scale[todo] = np.where(norm > 0, np.sqrt(np.sum(V_out[todo] ** 2 * M, axis=1))
                                / np.where(norm > 0, norm, 1.0), 1.0)
-    return Supervised(V=V_out, X_next=X_next, h=h, h_next=h_next, scale=scale, active=~ok)
+    return Supervised(V=V_out, X_next=X_next, h=h, h_next=h_next, scale=scale, active=~ok,
+                      g=g_out)
 
 
 @numba.njit(cache=True)
@@ -321,7 +348,7 @@ class SafetySupervisor(LeafSystem):
         self._X_TE = invert(self._X_ET)
         self._V_in = self.DeclareVectorInputPort("V_WE_corrected", 6)
         # state: [p_CT (3), R_CT row-major (9), V filtered in World (6), h, scale, active,
-        #         p_WE (3), R_WE row-major (9)]
+        #         p_WE (3), R_WE row-major (9), gradient (6), its age in steps]
         self.DeclareDiscreteState(self._state_of(np.asarray(X_WE_initial, dtype=float)))
         self.DeclarePeriodicDiscreteUpdateEvent(self._period, 0.0, self._update)
         self._X_des = self.DeclareAbstractOutputPort(
@@ -341,7 +368,8 @@ class SafetySupervisor(LeafSystem):
         X_CT = self._X_CW @ X_WE @ self._X_ET
         h = self._clear(X_CT[None])[0]
         return np.concatenate([X_CT[:3, 3], X_CT[:3, :3].ravel(), np.zeros(6),
-                               [min(h, FAR), 1.0, 0.0], X_WE[:3, 3], X_WE[:3, :3].ravel()])
+                               [min(h, FAR), 1.0, 0.0], X_WE[:3, 3], X_WE[:3, :3].ravel(),
+                               np.zeros(6), [GRADIENT_REUSE]])
 
     def _update(self, context, discrete_state):
         x = context.get_discrete_state(0).get_value()
@@ -351,7 +379,7 @@ class SafetySupervisor(LeafSystem):
         angle = float(np.linalg.norm(w_C)) * self._period
         dR = np.eye(3) if angle == 0.0 else RotationMatrix(
             AngleAxis(angle, w_C * (self._period / angle))).matrix()
-        new = np.empty(33)
+        new = np.empty(40)
         X1 = np.empty((4, 4))
         _advance(x, V_W, dR, self._period, self._R_CW, self._X_WC, self._X_TE, new, X1)
         h0 = np.inf if x[18] >= FAR else float(x[18])
@@ -364,8 +392,11 @@ class SafetySupervisor(LeafSystem):
                 X0 = np.eye(4)
                 X0[:3, :3], X0[:3, 3] = x[3:12].reshape(3, 3), x[:3]
                 V = np.concatenate([w_C, self._R_CW @ V_W[3:]])
+                age = int(x[39])
                 res = supervise(self._clear, X0[None], V[None], self._barrier, self._period,
-                                h=[h0])
+                                h=[h0], g=x[None, 33:39] if age < GRADIENT_REUSE else None)
+                new[33:39] = res.g[0]
+                new[39] = age + 1 if age < GRADIENT_REUSE else 1
                 V, h = res.V[0], res.h_next[0]
                 p, R = res.X_next[0, :3, 3], res.X_next[0, :3, :3]
                 R_WC = self._R_CW.T
@@ -377,6 +408,8 @@ class SafetySupervisor(LeafSystem):
             new[18] = min(h, FAR)
         else:
             new[18] = min(h0, FAR)
+        if new[20] == 0.0:  # not at the wall this step: the next slow step computes afresh
+            new[33:39], new[39] = 0.0, GRADIENT_REUSE
         discrete_state.get_mutable_vector(0).SetFromVector(new)
 
     def _calc_desired(self, context, value):

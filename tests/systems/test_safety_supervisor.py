@@ -119,10 +119,14 @@ def test_supervised_step_keeps_the_barrier_and_never_amplifies(x, V):
     res = supervise(CLEAR, pose(x)[None], V[None], BAR, DT)
     b = min(-20.0 * (res.h[0] - 0.001), 0.0)
     assert res.h_next[0] >= res.h[0] + DT * b - 1e-8
-    M = np.array([1.0] * 3 + [1.0] * 3)
+    M = np.array([BAR.length_scale**2] * 3 + [1.0] * 3)  # the metric of the projection
     assert np.sum(res.V[0] ** 2 * M) <= np.sum(V**2 * M) * (1 + 1e-12) + 1e-18
     assert 0.0 <= res.scale[0] <= 1.0 + 1e-12
     assert CLEAR(res.X_next)[0] == res.h_next[0]  # the barrier at the pose it steps to
+    # the guarantee does not rest on the gradient: a wrong one still meets the condition
+    wrong = supervise(CLEAR, pose(x)[None], V[None], BAR, DT, g=np.roll(V, 2)[None])
+    assert wrong.h_next[0] >= wrong.h[0] + DT * b - 1e-8
+    assert np.sum(wrong.V[0] ** 2 * M) <= np.sum(V**2 * M) * (1 + 1e-12) + 1e-18
 
 
 def test_the_system_alone_filters_and_integrates():
