@@ -10,7 +10,9 @@ kinematic >= 20x real time, dynamic >= 5x):
   it), the supervisor's update (one barrier query per step when the command meets the barrier
   condition) and the FPSM estimator (at 50 Hz: a quarter of its cost per step), each on its own
   with the inputs the diagram gave it; the same along an adversarial push towards the cheek
-  with the fixture off (the supervisor alone stops it: its slow path near the wall);
+  with the fixture off (the supervisor alone stops it: its slow path near the wall; each sample
+  alone, so without the gradient reuse of consecutive steps), and the supervisor's exclusive
+  time per step inside the diagram on that push;
 - the full diagram (master, fixture, supervisor, estimator, DiffIK 200 Hz, tool pose, loggers) on
   the case (``default``: site 36 of models/cases/default.yaml planned as ``implantplan plan``
   does; ``cylinder``: seed 000's cylinder check in the lying scenario), one scripted feed per
@@ -265,6 +267,15 @@ def main(argv=None) -> int:
         run = T.simulate(timed, m.duration + S.FINISH_SECONDS, motion=m)
         kin_sim += run.sim_seconds
         kin_wall += run.wall_seconds
+    # the supervisor inside the diagram on the push (fixture off), its gradient reused at the wall
+    push_timer = ExclusiveTimer()
+    push_timer.patch()
+    try:
+        timed_push = T.build_teleop(case, vf_enabled=False)
+    finally:
+        push_timer.restore()
+    steps = T.simulate(timed_push, push.duration + 0.5, motion=push).t.size
+    in_loop = 1e6 * push_timer.seconds["SafetySupervisor"] / steps
 
     print(f"safety layer per 200 Hz step (us, best of 7 over 100 logged steps; {args.case} "
           "case; target <= 50 us)")
@@ -272,6 +283,8 @@ def main(argv=None) -> int:
     for name, c in (("calm scripted feed", calm), ("cheek push, no fixture", pushed)):
         print(f"{name:<22} {c['fixture']:>8.1f} {c['supervisor']:>11.1f} {c['estimator']:>12.1f} "
               f"{c['total']:>8.1f}")
+    print(f"  in the loop on the push (its gradient reused over steps at the wall): supervisor "
+          f"{in_loop:.1f} us per step")
     print(f"  (supervisor active at {100 * push_run.barrier[:, 2].mean():.0f}% of the push's "
           f"steps, {100 * kin_run.barrier[:, 2].mean():.0f}% of the calm feed's; min barrier "
           f"{1e3 * push_run.barrier[:, 0].min():.3f} mm on the push)")
