@@ -314,21 +314,13 @@ def capability_stage(case: Case, robot: RobotResult, *, progress=None) -> Capabi
 # -- teleoperated feeding per site ---------------------------------------------------------------
 
 
-def simulation_stage(case: Case, fit: FitResult, placements: list[Placement],
-                     robot: RobotResult, *, runs: int | None = None, progress=None) -> list[dict]:
-    """A short teleop feeding simulation per site (seed 001's feeding test on the Drake diagram):
-    scripted operator feeds from the pre-feed configuration to the feeding target, VF active,
-    FPSM estimator watching."""
-    runs = case.sim_runs if runs is None else runs
-    if runs == 0:
-        if progress is not None:
-            progress.say("no feeding runs asked for (simulation.runs = 0 / --runs 0)")
-        return []
+def teleop_cases(case: Case, fit: FitResult, placements: list[Placement],
+                 robot: RobotResult) -> list[TeleopCase]:
+    """Each site's feeding case in the room: layout, start pose, FPSM, fixture, target."""
     sc = robot.scenario
     X_WC = sc.X_WO @ robot.X_OC
-    out = []
-    for k, (site, p) in enumerate(zip(case.sites, placements, strict=True)):
-        tc = TeleopCase(
+    return [
+        TeleopCase(
             scenario=case.posture,
             X_WBase=robot.X_WBase,
             q_start=robot.q_pre[k],
@@ -341,6 +333,23 @@ def simulation_stage(case: Case, fit: FitResult, placements: list[Placement],
             limits=sc.limits,
             label=f"site {site.name}",
         )
+        for k, (site, p) in enumerate(zip(case.sites, placements, strict=True))
+    ]
+
+
+def simulation_stage(case: Case, fit: FitResult, placements: list[Placement],
+                     robot: RobotResult, *, runs: int | None = None, progress=None) -> list[dict]:
+    """A short teleop feeding simulation per site (seed 001's feeding test on the Drake diagram):
+    scripted operator feeds from the pre-feed configuration to the feeding target, VF active,
+    FPSM estimator watching."""
+    runs = case.sim_runs if runs is None else runs
+    if runs == 0:
+        if progress is not None:
+            progress.say("no feeding runs asked for (simulation.runs = 0 / --runs 0)")
+        return []
+    out = []
+    for k, (site, tc) in enumerate(zip(case.sites, teleop_cases(case, fit, placements, robot),
+                                       strict=True)):
         res = run_feeding(tc, runs=runs, seed=case.seed + k, mode=case.sim_mode)
         res["site"] = site.name
         out.append(res)

@@ -1,11 +1,14 @@
 """The teleoperated-feeding diagram (DESIGN.md section 7).
 
 ```
-MasterDevice --V_WE_command--> VirtualFixtureForceLaw --X_WE_desired--> DiffIK integrator
+MasterDevice --V_WE_command--> VirtualFixtureForceLaw --V_WE_corrected--> SafetySupervisor
+SafetySupervisor --X_WE_desired--> DiffIK integrator
 DiffIK --q_desired--> (kinematic) positions of the plant   | (dynamic) interpolator ->
                       inverse dynamics controller -> MultibodyPlant at 1 ms
 q (plant) --> ToolPose --X_WE--> VirtualFixtureForceLaw, FpsmEstimator, MasterDevice (finishing)
-loggers: q, tool position, VF violation, FPSM safety, alarm;  scene graph --> Meshcat (optional)
+(the supervisor evaluates its barrier at the desired pose it integrates)
+loggers: q, supervisor barrier, FPSM safety, alarm (the tool pose and the fixture's violation
+         follow from q offline);  scene graph --> Meshcat (optional)
 ```
 
 One diagram per case: the master motion is a parameter of the context
@@ -66,6 +69,8 @@ from implantplan.systems.fpsm_estimator import FpsmEstimator, ToolLines
 from implantplan.systems.frames import transform
 from implantplan.systems.master_device import IncrementalMapping, MasterDevice, MasterMotion
 from implantplan.systems.moprp import R_OE
+from implantplan.systems.safety_supervisor import Barrier, SafetySupervisor
+from implantplan.systems.tool_clearance import ToolGeometry
 from implantplan.systems.vf_system import VirtualFixtureForceLaw
 from implantplan.systems.virtual_fixture import VirtualFixture
 
@@ -101,6 +106,11 @@ class TeleopCase:
     implant_length: float = actuator.IMPLANT_LENGTH
     limits: str = "175"
     label: str = ""
+
+    @property
+    def tool(self) -> ToolGeometry:
+        """The tool body the supervisor bounds (rod, head, implant; systems.tool_clearance)."""
+        return ToolGeometry(rod_radius=self.rod_radius, implant_length=self.implant_length)
 
     @property
     def X_FE(self) -> np.ndarray:
@@ -164,6 +174,7 @@ class Teleop:
     mode: str
     master: MasterDevice
     vf: VirtualFixtureForceLaw
+    supervisor: SafetySupervisor
     estimator: FpsmEstimator
     diffik: DifferentialInverseKinematicsIntegrator
     tool_pose: ToolPose
@@ -186,8 +197,8 @@ class Teleop:
             self.interpolator.set_initial_position(
                 self.interpolator.GetMyMutableContextFromRoot(context), q0
             )
-        self.vf.set_desired_pose(
-            self.vf.GetMyMutableContextFromRoot(context), self.case.X_WE(q0)
+        self.supervisor.set_desired_pose(
+            self.supervisor.GetMyMutableContextFromRoot(context), self.case.X_WE(q0)
         )
 
 
@@ -231,6 +242,8 @@ def build_teleop(
     mode: str = "kinematic",
     mapping: IncrementalMapping | None = None,
     vf_enabled: bool = True,
+    supervisor_enabled: bool = True,
+    barrier: Barrier | None = None,
     finish: bool = True,
     period: float = 0.005,
     plant_step: float = 0.001,
@@ -253,6 +266,9 @@ def build_teleop(
         mode: "kinematic" or "dynamic" (see the module docstring).
         mapping: master -> slave incremental mapping (identity by default).
         vf_enabled: False lets the command through unfiltered (experiments without the fixture).
+        supervisor_enabled: False integrates the fixture's command without the barrier filter.
+        barrier: the supervisor's settings (margin, rate); the defaults of
+            :class:`systems.safety_supervisor.Barrier` if None.
         finish: the operator finishes by eye towards the feeding target after the script.
         period: control period of DiffIK, the fixture, the estimator and the loggers (s).
         plant_step: the plant's time step in dynamic mode (s).
@@ -276,14 +292,28 @@ def build_teleop(
         VirtualFixtureForceLaw(
             case.vf,
             case.X_WCenter,
-            case.X_WE(q0),
+            R_ET=X_ET[:3, :3],
             period=period,
             stiffness=stiffness,
             damping=damping,
             enabled=vf_enabled,
+            integrate=False,
         )
     )
     vf.set_name("virtual_fixture")
+    supervisor = builder.AddSystem(
+        SafetySupervisor(
+            case.fpsm,
+            case.X_WCenter,
+            case.X_WE(q0),
+            case.tool,
+            R_ET=X_ET[:3, :3],
+            barrier=barrier,
+            period=period,
+            enabled=supervisor_enabled,
+        )
+    )
+    supervisor.set_name("safety_supervisor")
     lines = ToolLines.contra_angle(case.rod_radius, case.implant_length).expressed_in(X_ET)
     estimator = builder.AddSystem(
         FpsmEstimator(
@@ -309,7 +339,8 @@ def build_teleop(
     tool_pose.set_name("tool_pose")
 
     builder.Connect(master.GetOutputPort("V_WE_command"), vf.GetInputPort("V_WE_command"))
-    builder.Connect(vf.GetOutputPort("X_WE_desired"), diffik.GetInputPort("X_AE_desired"))
+    builder.Connect(vf.GetOutputPort("V_WE_corrected"), supervisor.GetInputPort("V_WE_corrected"))
+    builder.Connect(supervisor.GetOutputPort("X_WE_desired"), diffik.GetInputPort("X_AE_desired"))
     builder.Connect(tool_pose.GetOutputPort("X_WE"), vf.GetInputPort("X_WE_measured"))
     builder.Connect(tool_pose.GetOutputPort("X_WE"), estimator.GetInputPort("X_WT"))
     if finish:
@@ -345,8 +376,7 @@ def build_teleop(
 
     loggers = {
         "q": LogVectorOutput(q_port, builder, period),
-        "p_WE": LogVectorOutput(tool_pose.GetOutputPort("p_WE"), builder, period),
-        "violation": LogVectorOutput(vf.GetOutputPort("violation"), builder, period),
+        "barrier": LogVectorOutput(supervisor.GetOutputPort("barrier"), builder, period),
         "safety": LogVectorOutput(estimator.GetOutputPort("safety"), builder, estimator_period),
         "alarm": LogVectorOutput(estimator.GetOutputPort("alarm"), builder, estimator_period),
     }
@@ -364,6 +394,7 @@ def build_teleop(
         mode=mode,
         master=master,
         vf=vf,
+        supervisor=supervisor,
         estimator=estimator,
         diffik=diffik,
         tool_pose=tool_pose,
@@ -383,7 +414,7 @@ class FeedRun:
     t: np.ndarray  # (n,) log times
     q: np.ndarray  # (n, 6)
     p_WE: np.ndarray  # (n, 3)
-    violation: np.ndarray  # (n,)
+    violation: np.ndarray  # (n,) the fixture's body violation at every logged pose (m)
     t_safety: np.ndarray  # (m,) times of the estimator's log
     f_safe_line1: np.ndarray
     f_safe_line2: np.ndarray
@@ -391,6 +422,9 @@ class FeedRun:
     alarm: np.ndarray  # (n,) bool
     sim_seconds: float
     wall_seconds: float
+    X_CT: np.ndarray | None = None  # (n, 4, 4) the measured Tool pose in Center
+    angle_violation: np.ndarray | None = None  # (n,) the fixture's orientation violation (rad)
+    barrier: np.ndarray | None = None  # (n, 3) the supervisor's [h, scale, active]
 
     @property
     def joint_travel(self) -> float:
@@ -426,11 +460,17 @@ def simulate(teleop: Teleop, duration: float, *, motion: MasterMotion | None = N
         teleop.visualizer.PublishRecording()
     logs = {k: v.FindLog(context) for k, v in teleop.loggers.items()}
     safety = logs["safety"].data().T
+    q = logs["q"].data().T[:, :6].copy()
+    # the fixture's violation at every logged pose, offline (one batched call, not in the loop)
+    case = teleop.case
+    X_WE = case.X_WE(q)  # the tool's poses from the logged joints (no pose logger in the loop)
+    X_CT = np.linalg.inv(case.X_WCenter) @ X_WE @ X_ET
+    violation, angle_violation = case.vf.body_violation(X_CT)
     return FeedRun(
         t=logs["q"].sample_times().copy(),
-        q=logs["q"].data().T[:, :6].copy(),
-        p_WE=logs["p_WE"].data().T.copy(),
-        violation=logs["violation"].data()[0].copy(),
+        q=q,
+        p_WE=X_WE[:, :3, 3].copy(),
+        violation=violation,
         t_safety=logs["safety"].sample_times().copy(),
         f_safe_line1=safety[:, 0].copy(),
         f_safe_line2=safety[:, 1].copy(),
@@ -438,4 +478,7 @@ def simulate(teleop: Teleop, duration: float, *, motion: MasterMotion | None = N
         alarm=logs["alarm"].data()[0] > 0.5,
         sim_seconds=float(context.get_time()),
         wall_seconds=wall,
+        X_CT=X_CT,
+        angle_violation=angle_violation,
+        barrier=logs["barrier"].data().T.copy(),
     )

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
@@ -32,7 +33,7 @@ from pydrake.systems.framework import BasicVector, LeafSystem, ValueProducer
 
 from implantplan.systems.actuator import IMPLANT_LENGTH, ROD_RADIUS
 from implantplan.systems.errors import InputError
-from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.fpsm import Fpsm, _line_kernel
 from implantplan.systems.frames import apply, invert
 
 
@@ -93,6 +94,54 @@ class ToolSafety:
     alarm: np.ndarray
 
 
+@numba.njit(cache=True)
+def _lines_at_poses(X, start_T, dir_T, radius, rho, slice_z, shrink, max_radius, lam_avg,
+                    lam_min, f, d):
+    """The tool's n lines (starts and unit directions in T as columns, (3, n)) at K poses X
+    (K, 4, 4) through the line kernel of systems.fpsm: f_safe and d_safe_min, (K, n) each."""
+    K, n = X.shape[0], radius.size
+    m = K * n
+    start = np.empty((m, 3))
+    u = np.empty((m, 3))
+    rad = np.empty(m)
+    for k in range(K):
+        for i in range(n):
+            row = k * n + i
+            rad[row] = radius[i]
+            for a in range(3):
+                sa = X[k, a, 3]
+                ua = 0.0
+                for b in range(3):
+                    sa += X[k, a, b] * start_T[b, i]
+                    ua += X[k, a, b] * dir_T[b, i]
+                start[row, a] = sa
+                u[row, a] = ua
+    _line_kernel(start, u, np.full(m, np.inf), rad, rho, slice_z, shrink, max_radius, lam_avg,
+                 lam_min, f.reshape(m), d.reshape(m), np.empty(m), np.empty(m, dtype=np.int64))
+
+
+class LinesAtPoses:
+    """The tool's lines against one model, prepared once (the compiled kernel's arguments):
+    ``(X (K, 4, 4)) -> (f_safe, d_safe_min)``, each (K, n_lines)."""
+
+    def __init__(self, fpsm: Fpsm, lines: ToolLines, *, lambda_avg: float = 0.5,
+                 lambda_min: float = 0.5):
+        self._start_T = np.ascontiguousarray(lines.start_T.T)
+        u = lines.direction_T / np.linalg.norm(lines.direction_T, axis=1, keepdims=True)
+        self._dir_T = np.ascontiguousarray(u.T)
+        self._radius = np.ascontiguousarray(lines.radius, dtype=float)
+        self._args = (np.ascontiguousarray(fpsm.rho), np.ascontiguousarray(fpsm.slice_z),
+                      float(fpsm.settings.get("shrink_m", 0.0)), fpsm.max_radius,
+                      float(lambda_avg), float(lambda_min))
+
+    def __call__(self, X_CenterT: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        X = np.ascontiguousarray(X_CenterT, dtype=float).reshape(-1, 4, 4)
+        f = np.empty((X.shape[0], self._radius.size))
+        d = np.empty_like(f)
+        _lines_at_poses(X, self._start_T, self._dir_T, self._radius, *self._args, f, d)
+        return f, d
+
+
 def tool_safety(
     fpsm: Fpsm,
     X_CenterT,
@@ -104,30 +153,17 @@ def tool_safety(
 ) -> ToolSafety:
     """Safety of the actuator at tool poses ``X_CenterT`` (K, 4, 4) or (4, 4) in Center (Eq. 13).
 
-    One batched :meth:`Fpsm.line_safety` call per line (the two lines use different radii).
+    Both lines of all poses in one compiled call (the lines' radii differ: one per line).
     """
     X = np.asarray(X_CenterT, dtype=float)
     if X.shape[-2:] != (4, 4):
         raise InputError("X_CenterT", f"expected (K, 4, 4) poses, got {X.shape}")
-    X = X.reshape(-1, 4, 4)
     if not np.isfinite(alarm_margin):
         raise InputError("alarm_margin", "expected a finite distance (m)")
-    f, d = [], []
-    for i in range(2):
-        start = apply(X, lines.start_T[i])
-        direction = np.einsum("kij,j->ki", X[:, :3, :3], lines.direction_T[i])
-        s = fpsm.line_safety(
-            start,
-            direction,
-            radius=float(lines.radius[i]),
-            lambda_avg=lambda_avg,
-            lambda_min=lambda_min,
-        )
-        f.append(s.f_safe)
-        d.append(s.d_safe_min)
-    d_min = np.minimum(d[0], d[1])
+    f, d = LinesAtPoses(fpsm, lines, lambda_avg=lambda_avg, lambda_min=lambda_min)(X)
+    d_min = np.minimum(d[:, 0], d[:, 1])
     return ToolSafety(
-        f_safe_line1=f[0], f_safe_line2=f[1], min_d_safe=d_min, alarm=d_min <= alarm_margin
+        f_safe_line1=f[:, 0], f_safe_line2=f[:, 1], min_d_safe=d_min, alarm=d_min <= alarm_margin
     )
 
 
@@ -171,6 +207,7 @@ class FpsmEstimator(LeafSystem):
         self._fpsm = fpsm
         self._X_CenterW = invert(np.asarray(X_WCenter, dtype=float))
         self._lines = lines or ToolLines.contra_angle()
+        self._at_poses = LinesAtPoses(fpsm, self._lines)
         self._margin = float(alarm_margin)
         self._X = self.DeclareAbstractInputPort("X_WT", AbstractValue.Make(RigidTransform()))
         if period is None:
@@ -200,9 +237,10 @@ class FpsmEstimator(LeafSystem):
     def estimate(self, context) -> np.ndarray:
         """[f_safe_line1, f_safe_line2, min_d_safe, alarm] for the input in ``context``."""
         X_WT = self._X.Eval(context).GetAsMatrix4()
-        s = tool_safety(self._fpsm, self._X_CenterW @ X_WT, self._lines, alarm_margin=self._margin)
-        out = np.array([s.f_safe_line1[0], s.f_safe_line2[0], s.min_d_safe[0], float(s.alarm[0])])
-        return np.nan_to_num(out, posinf=self.FAR, neginf=-self.FAR)
+        f, d = self._at_poses(self._X_CenterW @ X_WT)  # tool_safety, prepared once
+        d_min = min(d[0, 0], d[0, 1])
+        out = np.array([f[0, 0], f[0, 1], d_min, float(d_min <= self._margin)])
+        return np.clip(out, -self.FAR, self.FAR)
 
     def _update(self, context, discrete_state):
         discrete_state.get_mutable_vector(0).SetFromVector(self.estimate(context))

@@ -102,12 +102,20 @@ def test_bad_command_into_the_cheek(case):
     lateral = (guarded.p_WE - guarded.p_WE[0]) @ case.X_WCenter[:3, 0]
     assert lateral.max() < case.vf.cylinder_radius + 0.001
 
-    free = simulate(build_teleop(case, motion, finish=False, vf_enabled=False), duration)
+    free = simulate(build_teleop(case, motion, finish=False, vf_enabled=False,
+                                 supervisor_enabled=False), duration)
     contact = np.flatnonzero(free.min_d_safe <= 0.0)
-    assert contact.size, "without the fixture the push must reach the cheek"
+    assert contact.size, "without the fixture and the supervisor the push must reach the cheek"
     t_contact = free.t_safety[contact[0]]
     t_alarm = free.first_alarm_time()
     assert t_alarm is not None and t_alarm < t_contact
+
+    # the supervisor alone (no fixture) stops the push at its margin (1 mm of FPSM clearance)
+    barrier_only = simulate(build_teleop(case, motion, finish=False, vf_enabled=False), duration)
+    h = barrier_only.barrier[:, 0]
+    assert barrier_only.barrier[:, 2].any()  # it acted
+    assert h.min() > 0.001 - 1e-4
+    assert barrier_only.min_d_safe.min() > 0.0
 
 
 def test_dynamic_mode_tracks_the_kinematic_run(case):

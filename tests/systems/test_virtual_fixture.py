@@ -17,8 +17,9 @@ T15, T30 = np.tan(np.deg2rad(15)), np.tan(np.deg2rad(30))
 
 @pytest.fixture(scope="module")
 def vf():
-    # Axis +z through the origin; cylinder r = 6 mm up to the entry at 50 mm; a 30 mm cone of
-    # 15 deg, then a 50 mm cone of 30 deg; beyond, the last radius continues.
+    # Axis +z through the origin; an axis region of radius 6 mm (a wide lateral tolerance, to
+    # test the geometry) up to the entry at 50 mm; a 30 mm cone of 15 deg, then a 50 mm cone of
+    # 30 deg; beyond, the last radius continues.
     return VirtualFixture(
         origin=[0, 0, 0],
         direction=[0, 0, 2],
@@ -26,6 +27,7 @@ def vf():
         cylinder_radius=0.006,
         segment_lengths=[0.03, 0.05],
         half_angles=np.deg2rad([15, 30]),
+        lateral_tolerance=0.006,
     )
 
 

@@ -1,0 +1,108 @@
+"""The adversarial operator against the safety layer on the default case (issue 12): a few runs
+in the default suite, the 54-run study as a slow test. Exact clearance by FCL against the opened
+scan at every logged pose."""
+
+import numpy as np
+import pytest
+
+from implantplan.analyses import adversarial as A
+from implantplan.diagrams.teleop import build_teleop
+from implantplan.systems.adversarial_operator import Directions, adversarial_motion
+from implantplan.systems.master_device import feeding_runs
+from implantplan.systems.safety_supervisor import Barrier
+from implantplan.systems.tool_clearance import ToolGeometry
+
+MARGIN = Barrier().margin
+
+
+@pytest.fixture(scope="module")
+def site():
+    cases, mesh = A.default_case_sites()
+    tc = cases[0]
+    return tc, build_teleop(tc), A.exact_for(tc, mesh)
+
+
+def _check(r):
+    assert r["min_exact_clearance"] > 0.0
+    assert r["min_exact_clearance"] >= MARGIN - A.MARGIN_SLACK
+    assert r["max_vf_violation"] < A.MAX_VIOLATION
+
+
+@pytest.mark.parametrize("kind, seed", [("cheek_left", 0), ("cheek_right", 1), ("jaw", 2),
+                                        ("bursts", 3)])
+def test_adversarial_motion_stays_clear_of_the_exact_anatomy(site, kind, seed):
+    tc, teleop, exact = site
+    start, target = tc.X_WE(tc.q_start)[:3, 3], tc.X_WTarget[:3, 3]
+    motion = adversarial_motion(kind, start, target, Directions.of_case(tc.X_WTarget,
+                                                                        tc.X_WCenter), seed=seed)
+    _check(A.run_one(teleop, tc, motion, exact))
+
+
+def test_normal_feed_reaches_the_target_safely(site):
+    tc, teleop, exact = site
+    start, target = tc.X_WE(tc.q_start)[:3, 3], tc.X_WTarget[:3, 3]
+    r = A.run_one(teleop, tc, feeding_runs(start, target, runs=1, seed=5)[0], exact)
+    _check(r)
+    assert r["reached_target"]
+
+
+def test_without_the_safety_layer_the_push_enters_the_tissue(site):
+    """The check can fail: with neither fixture nor supervisor the cheek push goes into tissue
+    (the exact reference says so) and the estimator's alarm fires."""
+    tc, _, exact = site
+    start, target = tc.X_WE(tc.q_start)[:3, 3], tc.X_WTarget[:3, 3]
+    motion = adversarial_motion("cheek_left", start, target,
+                                Directions.of_case(tc.X_WTarget, tc.X_WCenter), seed=0)
+    free = build_teleop(tc, vf_enabled=False, supervisor_enabled=False)
+    r = A.run_one(free, tc, motion, exact)
+    assert r["min_exact_clearance"] < 0.0
+    assert r["alarm"]
+
+
+def test_the_supervisor_alone_keeps_the_margin_against_the_exact_anatomy(site):
+    """Fixture off: the barrier on the sound FPSM clearance stops the push at h = 1 mm, and the
+    exact clearance stays above margin - 0.2 mm."""
+    tc, _, exact = site
+    start, target = tc.X_WE(tc.q_start)[:3, 3], tc.X_WTarget[:3, 3]
+    motion = adversarial_motion("jaw", start, target,
+                                Directions.of_case(tc.X_WTarget, tc.X_WCenter), seed=2)
+    r = A.run_one(build_teleop(tc, vf_enabled=False), tc, motion, exact)
+    assert r["supervisor_active_share"] > 0.0
+    assert r["min_barrier"] >= MARGIN - 1e-6
+    assert r["min_exact_clearance"] >= MARGIN - A.MARGIN_SLACK
+
+
+def test_exact_reference_by_hand():
+    """FCL on a box room: the tool's rod (radius 6 mm) 10 mm from a wall has clearance 4 mm."""
+    import trimesh
+
+    box = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
+    ex = A.ExactClearance(box.vertices, box.faces,
+                          ToolGeometry(rod_radius=0.006, implant_length=0.031, rod_length=0.04))
+    X = np.eye(4)
+    X[:3, :3] = np.array([[0.0, 0, -1], [0, 1, 0], [1, 0, 0]])  # Tool x -> +z, Tool z -> -x
+    X[:3, 3] = [0.0, 0.034, 0.0]  # the rod's axis at y = 34 mm, the box's wall at y = 50 mm
+    d = ex(X[None])[0]
+    # the rod (radius 6) 10 mm from the wall y = 50; the implant axis from [r,0,0] to
+    # [r,0,-d12] in T runs to x = +31 mm (19 mm from x = 50); the head sphere: 10 mm; the rod's
+    # end cap reaches z = 6 + 40 + 6 = 52 mm: through the top face (z = 50) by 2 mm
+    assert d == pytest.approx(-0.002, abs=2e-4)
+    X[:3, 3] = [0.0, 0.034, -0.02]  # 20 mm lower: rod top at z = 32 mm: 12 mm below the top
+    assert ex(X[None])[0] == pytest.approx(0.010, abs=1e-6)  # the rod's side, 10 mm
+
+
+@pytest.mark.slow
+def test_the_54_run_study():
+    res = A.study(seeds=4, normal=3, progress=None)
+    s = res["summary"]["all"]
+    assert s["runs"] >= 50
+    assert s["below_zero"] == 0 and s["below_margin_slack"] == 0
+    assert s["violation_over"] == 0
+    normal = res["summary"]["normal"]
+    assert normal["reached"] == normal["runs"]
+
+
+@pytest.mark.slow
+def test_the_54_run_study_with_the_supervisor_alone():
+    s = A.study(seeds=4, normal=3, fixture=False, progress=None)["summary"]["all"]
+    assert s["below_zero"] == 0 and s["below_margin_slack"] == 0
