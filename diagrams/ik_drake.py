@@ -42,6 +42,7 @@ from pydrake.systems.framework import DiagramBuilder
 
 from implantplan import models
 from implantplan.systems.errors import InputError
+from implantplan.systems.frames import wrap_angle
 from implantplan.systems.kinematics import wrapped_distance
 
 AXIS_POINT = 0.1  # m, distance of the two axis points constraining the orientation
@@ -156,7 +157,7 @@ class DrakeIk:
         """Each revolute joint's copy (mod 2 pi) within its limits nearest 0; None if none fits."""
         q = q.copy()
         rev = self.revolute
-        q[rev] = np.mod(q[rev] + np.pi, 2.0 * np.pi) - np.pi  # [-pi, pi)
+        q[rev] = wrap_angle(q[rev])  # [-pi, pi)
         for shift in (2.0 * np.pi, -2.0 * np.pi):
             out = rev & ((q < self.lower) | (q > self.upper))
             q[out] += shift

@@ -54,7 +54,7 @@ from pydrake.systems.primitives import LogVectorOutput, StateInterpolatorWithDis
 from pydrake.systems.rendering import MultibodyPositionToGeometryPose
 
 from implantplan.diagrams import plant as scene
-from implantplan.diagrams import tools
+from implantplan.systems import actuator
 from implantplan.systems import kinematics as kin
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm import Fpsm
@@ -93,15 +93,15 @@ class TeleopCase:
     fpsm: Fpsm
     vf: VirtualFixture
     X_WTarget: np.ndarray
-    rod_radius: float = tools.ROD_RADIUS
-    implant_length: float = tools.IMPLANT_LENGTH
+    rod_radius: float = actuator.ROD_RADIUS
+    implant_length: float = actuator.IMPLANT_LENGTH
     limits: str = "175"
     label: str = ""
 
     @property
     def X_FE(self) -> np.ndarray:
         """The plant's TCP (End) in the flange frame."""
-        return tools.X_FT()
+        return actuator.X_FT()
 
     def X_WE(self, q) -> np.ndarray:
         """End pose(s) in World for configurations ``q`` (..., 6)."""

@@ -40,6 +40,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, LeafSystem
 
+from implantplan.systems import validate
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import write_text_atomic
 
@@ -101,11 +102,7 @@ class IncrementalMapping:
         scale = float(self.scale)
         if not np.isfinite(scale) or scale <= 0:
             raise InputError("scale", f"expected a motion scale > 0, got {self.scale}")
-        R = np.asarray(self.R_WM, dtype=float)
-        if R.shape != (3, 3) or not np.allclose(R.T @ R, np.eye(3), atol=1e-9) or (
-            np.linalg.det(R) < 0
-        ):
-            raise InputError("R_WM", "expected a 3x3 rotation matrix")
+        R = validate.rotation(self.R_WM, "R_WM")
         object.__setattr__(self, "scale", scale)
         object.__setattr__(self, "R_WM", R)
 

@@ -69,7 +69,15 @@ from scipy.optimize import brentq
 from implantplan.systems.capability_map import CapabilityMap, direction_of, golden_spiral, lookup
 from implantplan.systems.errors import InputError, PlanningFailure
 from implantplan.systems.files import read_yaml, write_atomic
-from implantplan.systems.frames import invert, rot_x, rot_y, rot_z, rpy_to_rotation, transform
+from implantplan.systems.frames import (
+    invert,
+    rot_x,
+    rot_y,
+    rot_z,
+    rpy_to_rotation,
+    transform,
+    wrap_angle,
+)
 
 SCHEMA_VERSION = 1
 STORE_VERSION = 1  # bump when the RASSCMAP algorithm changes (invalidates stored maps)
@@ -883,7 +891,7 @@ def setup_distance(problem: SetupProblem, a: np.ndarray, b: np.ndarray) -> np.nd
     dp = np.linalg.norm(Pa[:, None, :3, 3] - Pb[None, :, :3, 3], axis=-1)
     ya = np.arctan2(Pa[:, 1, 0], Pa[:, 0, 0])
     yb = np.arctan2(Pb[:, 1, 0], Pb[:, 0, 0])
-    dy = np.abs(np.angle(np.exp(1j * (ya[:, None] - yb[None, :]))))
+    dy = np.abs(wrap_angle(ya[:, None] - yb[None, :]))
     d = np.hypot(dp, YAW_LENGTH * dy)
     return np.where(aa[:, None] == ab[None, :], d, np.inf)
 

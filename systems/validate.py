@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numba
 import numpy as np
 
 from implantplan.systems.errors import InputError
@@ -88,6 +89,69 @@ def direction(value: Any, field: str) -> np.ndarray:
     if norm < 1e-12:
         raise InputError(field, "expected a non-zero direction")
     return v / norm
+
+
+ROTATION_TOL = 1e-6  # max |R^T R - I| and |det R - 1| of a pose read from input
+
+
+def pose(value: Any, field: str, *, batch: bool = False, tol: float = ROTATION_TOL) -> np.ndarray:
+    """A rigid transform (4x4), or with ``batch`` poses (..., 4, 4): finite numbers, a proper
+    rotation within ``tol`` (orthonormal, det +1) and the last row [0, 0, 0, 1] within ``tol``.
+    The one pose validator (kinematics, FPSM, plant, CLI and file inputs)."""
+    try:
+        X = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(field, "expected a 4x4 pose matrix of numbers") from None
+    if X.shape[-2:] != (4, 4) or X.ndim < 2 or (X.ndim != 2 and not batch):
+        what = "poses of shape (..., 4, 4)" if batch else "a 4x4 pose"
+        raise InputError(field, f"expected {what}, got shape {X.shape}")
+    flat = np.ascontiguousarray(X.reshape(-1, 4, 4))
+    err, finite = _rotation_error(flat)
+    if not finite:
+        raise InputError(field, "poses must be finite (found NaN or inf)")
+    if err > tol:
+        raise InputError(
+            field, f"rotation part is not a proper rotation (orthonormality error {err:.1e})"
+        )
+    if flat.size and np.abs(flat[:, 3] - [0.0, 0.0, 0.0, 1.0]).max() > tol:
+        raise InputError(field, "the last row of a pose must be [0, 0, 0, 1]")
+    return X
+
+
+def rotation(value: Any, field: str, *, tol: float = ROTATION_TOL) -> np.ndarray:
+    """A 3x3 proper rotation matrix (checked as :func:`pose` checks a pose's rotation part)."""
+    try:
+        R = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(field, "expected a 3x3 rotation matrix of numbers") from None
+    if R.shape != (3, 3):
+        raise InputError(field, f"expected a 3x3 rotation matrix, got shape {R.shape}")
+    X = np.eye(4)
+    X[:3, :3] = R
+    pose(X, field, tol=tol)
+    return R
+
+
+@numba.njit(cache=True)
+def _rotation_error(X):  # pragma: no cover - compiled
+    """max |R^T R - I| and |det R - 1| over a batch of poses, and whether all entries are finite."""
+    worst = 0.0
+    for n in range(X.shape[0]):
+        for i in range(4):
+            for j in range(4):
+                if not np.isfinite(X[n, i, j]):
+                    return np.inf, False
+        for i in range(3):
+            for j in range(i, 3):
+                d = X[n, 0, i] * X[n, 0, j] + X[n, 1, i] * X[n, 1, j] + X[n, 2, i] * X[n, 2, j]
+                worst = max(worst, abs(d - (1.0 if i == j else 0.0)))
+        det = (
+            X[n, 0, 0] * (X[n, 1, 1] * X[n, 2, 2] - X[n, 1, 2] * X[n, 2, 1])
+            - X[n, 0, 1] * (X[n, 1, 0] * X[n, 2, 2] - X[n, 1, 2] * X[n, 2, 0])
+            + X[n, 0, 2] * (X[n, 1, 0] * X[n, 2, 1] - X[n, 1, 1] * X[n, 2, 0])
+        )
+        worst = max(worst, abs(det - 1.0))
+    return worst, True
 
 
 def choice(value: Any, field: str, options: tuple) -> Any:

@@ -7,6 +7,7 @@ import pytest
 
 from implantplan.analyses import simulate as S
 from implantplan.analyses.cli import main
+from implantplan.diagrams.feeding import joint_error
 from implantplan.systems.fpsm import Fpsm
 
 
@@ -95,7 +96,7 @@ def test_rank_of_first_by_hand():
 def test_joint_error_model_is_seeded_and_sized():
     t = np.arange(200) * 0.01
     q = np.stack([np.sin(t)] * 6, axis=1)
-    a = S.joint_error(q, t, np.deg2rad(0.1), 4, seed=7)
-    b = S.joint_error(q, t, np.deg2rad(0.1), 4, seed=7)
+    a = joint_error(q, t, np.deg2rad(0.1), 4, seed=7)
+    b = joint_error(q, t, np.deg2rad(0.1), 4, seed=7)
     assert a.shape == (4, 200, 6) and np.array_equal(a, b)
     assert np.abs(a).max() < np.deg2rad(0.1) * 3
