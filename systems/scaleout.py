@@ -29,7 +29,9 @@ import importlib
 import logging
 import os
 import re
+import signal
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Executor, as_completed
@@ -74,16 +76,21 @@ class WarmUp(WorkerPlugin):
     """Dask worker plugin: import ``modules`` when a worker process starts (or joins).
 
     Importing the cores loads their numba kernels from the on-disk cache and initializes the
-    libraries a task uses, once per worker process rather than in the first task it runs.
+    libraries a task uses, once per worker process rather than in the first task it runs. With
+    ``ignore_sigint`` (our own LocalCluster's workers, which share the terminal's process group)
+    the worker ignores Ctrl-C: the client alone handles it and closes the cluster in order.
     """
 
     idempotent = True
 
-    def __init__(self, modules: Sequence[str]):
+    def __init__(self, modules: Sequence[str], *, ignore_sigint: bool = False):
         self.modules = tuple(modules)
+        self.ignore_sigint = bool(ignore_sigint)
         self.name = "implantplan-warmup-" + "-".join(self.modules)
 
     def setup(self, worker=None):
+        if self.ignore_sigint and threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
         for module in self.modules:
             importlib.import_module(module)
 
@@ -165,8 +172,8 @@ def engine(
                     ) from None
             n = len(client.scheduler_info(n_workers=-1)["workers"])
             description = f"cluster {scheduler}, {n} workers"
-        if warm_up:
-            client.register_plugin(WarmUp(warm_up))
+        if warm_up or kind == LOCAL:
+            client.register_plugin(WarmUp(warm_up, ignore_sigint=kind == LOCAL))
         yield Engine(kind, n, description, client.get_executor(retries=retries, pure=False), client)
     finally:
         if client is not None:
