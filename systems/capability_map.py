@@ -32,8 +32,11 @@ table over (polar angle, azimuth) cells (cell centre -> nearest spiral direction
 spacing even at K = 200, so only poses that close to a Voronoi border can get the neighbour.
 
 The map is built in independent voxel blocks through any ``concurrent.futures.Executor``
-(:func:`build`; a ``ProcessPoolExecutor`` by default): :func:`build_block` is a pure top-level
-function of picklable inputs, so the same blocks could go to a cluster executor unchanged.
+(:func:`build`; a ``ProcessPoolExecutor`` by default, a Dask client's from
+:mod:`systems.scaleout` for a cluster): :func:`build_block` is a pure top-level function of
+picklable inputs. A :class:`BlockStore` keeps finished blocks on disk as they arrive, so an
+interrupted build resumes with only the missing blocks; blocks are joined in block order, so the
+map does not depend on the engine, the completion order or the resumption.
 
 Storage: HDF5 (h5py) with the parameters and ``schema_version`` as attributes; only voxels with at
 least one reachable direction are stored (packed bits), with a dense int32 grid -> row table.

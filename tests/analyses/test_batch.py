@@ -80,11 +80,10 @@ def test_cohort_of_eight_with_one_broken_case(cohort):
     assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []
 
 
-@pytest.mark.parametrize("k", [0, 7])
-def test_batch_plans_equal_each_case_planned_alone(cohort, tmp_path, k):
-    files, out, _ = cohort
-    assert main(["plan", str(files[k]), "--out", str(tmp_path / "alone"), *FAST]) == 0
-    assert _plan_json(out / files[k].stem) == _plan_json(tmp_path / "alone")
+def test_a_batch_plan_equals_the_case_planned_alone(cohort, tmp_path):
+    files, out, _ = cohort  # one case here (all of them: the slow test below)
+    assert main(["plan", str(files[0]), "--out", str(tmp_path / "alone"), *FAST]) == 0
+    assert _plan_json(out / files[0].stem) == _plan_json(tmp_path / "alone")
 
 
 @pytest.mark.slow
