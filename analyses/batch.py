@@ -138,7 +138,7 @@ def run_batch(case_files, out_dir, *, scheduler: str | None = None, workers: int
         prog.say(f"{len(tasks)} cases on {eng.description}")
         eta = scaleout.Eta(len(tasks))
         done = 0
-        for i, rec in _unordered(eng, tasks):
+        for i, rec in scaleout.run_unordered(eng, plan_one, tasks, on_error=_lost(tasks)):
             records[i] = rec
             done += 1
             prog.say(
@@ -150,28 +150,15 @@ def run_batch(case_files, out_dir, *, scheduler: str | None = None, workers: int
     return records, code
 
 
-def _unordered(eng, tasks):
-    """Tasks as they finish; a task lost with its worker more often than its retries becomes an
-    internal-error record (the other cases go on)."""
-    if eng.executor is None:
-        yield from scaleout.run_unordered(eng, plan_one, tasks)
-        return
-    from concurrent.futures import as_completed
+def _lost(task: tuple):
+    """The record of a task that failed outside plan_one (its worker lost beyond the retries)."""
 
-    futures = {eng.executor.submit(plan_one, *t): i for i, t in enumerate(tasks)}
-    try:
-        for f in as_completed(futures):
-            i = futures[f]
-            try:
-                yield i, f.result()
-            except Exception as exc:
-                yield i, {"case": Path(tasks[i][0]).stem, "case_file": tasks[i][0],
-                          "folder": tasks[i][1], "status": ERROR, "checks": [],
-                          "reason": f"{type(exc).__name__}: {exc}",
-                          "plan_exit_code": PLAN_EXIT[ERROR], "seconds": float("nan")}  # fmt: skip
-    finally:
-        for f in futures:
-            f.cancel()
+    def record(i, exc) -> dict:
+        return {"case": Path(task[i][0]).stem, "case_file": task[i][0], "folder": task[i][1],
+                "status": ERROR, "checks": [], "reason": f"{type(exc).__name__}: {exc}",
+                "plan_exit_code": PLAN_EXIT[ERROR], "seconds": float("nan")}  # fmt: skip
+
+    return record
 
 
 def write_summary(out_dir: Path, records: list[dict]) -> None:
@@ -224,15 +211,8 @@ def register(subparsers) -> None:
     p.add_argument("cases", nargs="*", type=Path, help="case YAML files")
     p.add_argument("--cohort", type=Path, default=None, help="a cohort YAML listing case files")
     p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--scheduler", default=None,
-                   help="'local' (a LocalCluster on 127.0.0.1; the default when --workers > 1) "
-                        "or tcp://HOST:PORT of a running Dask cluster")  # fmt: skip
-    p.add_argument(
-        "--workers",
-        type=int,
-        default=None,
-        help="worker processes (default: all cores; 1 = this process)",
-    )
+    p.add_argument("--scheduler", default=None, help=scaleout.SCHEDULER_HELP)
+    p.add_argument("--workers", type=int, default=None, help=scaleout.WORKERS_HELP)
     p.add_argument(
         "--runs",
         type=int,

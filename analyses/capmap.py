@@ -356,15 +356,8 @@ def register(subparsers) -> None:
     b.add_argument("--limits", choices=("175", "360"), default="175", help="joint limits, deg")
     b.add_argument("--tool", choices=("actuator",), default=None, help="map the actuator's tip")
     b.add_argument("--rolls", type=int, default=None, help="roll samples (off-axis tools only)")
-    b.add_argument(
-        "--workers", type=int, default=None,
-        help="worker processes (default: all cores; 1 = this process, no cluster)",
-    )  # fmt: skip
-    b.add_argument(
-        "--scheduler", default=None,
-        help="'local' (a LocalCluster on 127.0.0.1; the default when --workers > 1) or "
-        "tcp://HOST:PORT of a running Dask cluster",
-    )  # fmt: skip
+    b.add_argument("--workers", type=int, default=None, help=scaleout.WORKERS_HELP)
+    b.add_argument("--scheduler", default=None, help=scaleout.SCHEDULER_HELP)
     b.add_argument(
         "--block-poses", type=int, default=BLOCK_POSES,
         help=f"IK poses per block, one task each (default {BLOCK_POSES:,}: >= ~100 ms of work)",

@@ -182,22 +182,49 @@ def engine(
             cluster.close()
 
 
-def run_unordered(eng: Engine, fn: Callable, args: Sequence[tuple]) -> Iterator[tuple[int, object]]:
+def run_unordered(
+    eng: Engine,
+    fn: Callable,
+    args: Sequence[tuple],
+    *,
+    on_error: Callable[[int, BaseException], object] | None = None,
+) -> Iterator[tuple[int, object]]:
     """``fn(*args[i])`` for every i on the engine; yields ``(i, result)`` in completion order.
 
-    A task that still fails after its retries raises here (remaining tasks are cancelled when the
-    engine closes)."""
+    A task that still fails after its retries (it raised, or its workers kept dying) raises here,
+    or, with ``on_error``, yields ``(i, on_error(i, exc))`` and the others go on. Tasks not
+    collected when the caller stops are cancelled."""
     if eng.executor is None:
         for i, a in enumerate(args):
-            yield i, fn(*a)
+            try:
+                result = fn(*a)
+            except Exception as exc:
+                if on_error is None:
+                    raise
+                result = on_error(i, exc)
+            yield i, result
         return
     futures = {eng.executor.submit(fn, *a): i for i, a in enumerate(args)}
     try:
         for f in as_completed(futures):
-            yield futures[f], f.result()
+            i = futures[f]
+            try:
+                result = f.result()
+            except Exception as exc:
+                if on_error is None:
+                    raise
+                result = on_error(i, exc)
+            yield i, result
     finally:
         for f in futures:
             f.cancel()
+
+
+SCHEDULER_HELP = (
+    "'local' (a LocalCluster on 127.0.0.1; the default when --workers > 1) or tcp://HOST:PORT "
+    "of a running Dask cluster"
+)
+WORKERS_HELP = "worker processes (default: all cores; 1 = this process, no cluster)"
 
 
 class Eta:

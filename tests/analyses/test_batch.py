@@ -20,10 +20,11 @@ BROKEN = 5  # this case's first site gets an axis into the bone: no collision-fr
 
 
 def _small_case(folder: Path) -> Path:
-    """The default case with a small robot search and map (seconds per plan, no feeds)."""
+    """The default case with a small FPSM, robot search and map (~1 s per plan, no feeds)."""
     data = yaml.safe_load(default_case_path().read_text())
     data["mesh"]["path"] = str(models.model_path("oral/oralCavityMesh.obj"))
-    data["robot"].update(pop=20, gen=5)
+    data["fpsm"].update(slices=10, control_points=10, samples=100)
+    data["robot"].update(pop=12, gen=2)
     data["capability"].update(directions=20)
     data["simulation"]["runs"] = 0
     path = folder / "small.yaml"

@@ -53,6 +53,12 @@ def test_two_worker_local_cluster_builds_the_single_process_map(reference, local
     assert store.written == len(store.blocks) and store.reused == 0
 
 
+def test_a_task_failing_after_its_retries_is_reported_not_fatal(local2):
+    got = dict(scaleout.run_unordered(local2, divmod, [(7, 2), (1, 0)],
+                                      on_error=lambda i, e: type(e).__name__))  # fmt: skip
+    assert got == {0: (3, 1), 1: "ZeroDivisionError"}
+
+
 def test_a_worker_killed_mid_build_costs_only_its_blocks(reference, local2):
     pids = local2.worker_pids()
     killed = []
@@ -119,5 +125,12 @@ def test_in_process_engine_runs_tasks_in_order():
     with scaleout.engine(None, 1) as eng:
         assert eng.executor is None and eng.worker_pids() == {"this process": os.getpid()}
         assert list(scaleout.run_unordered(eng, pow, [(2, 3), (3, 2)])) == [(0, 8), (1, 9)]
+        got = scaleout.run_unordered(eng, divmod, [(7, 2), (1, 0)], on_error=lambda i, e: repr(e))
+        assert list(got) == [
+            (0, (3, 1)),
+            (1, "ZeroDivisionError('integer division or modulo by zero')"),
+        ]
+        with pytest.raises(ZeroDivisionError):
+            list(scaleout.run_unordered(eng, divmod, [(1, 0)]))
     eta = scaleout.Eta(10, skipped=4)
     assert eta(4) is None and eta.text(4) == "ETA --"
