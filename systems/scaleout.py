@@ -44,6 +44,12 @@ from implantplan.systems.errors import InputError
 
 LOCAL = "local"
 RETRIES = 2
+# Environment of our LocalCluster's worker processes: one BLAS/OpenMP thread each (the worker is
+# the unit of parallelism), and *not* Dask's default MALLOC_TRIM_THRESHOLD_=65536: with it glibc
+# hands every large numpy temporary back to the OS and maps it again, which made a case's robot
+# stage 1.5-3.5x slower in a worker than in this process (measured here; the IK and collision
+# cores allocate many large temporaries). A variable set in the user's environment still wins.
+WORKER_ENV = {"OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1}
 _ADDRESS = re.compile(r"^(tcp|tls)://[A-Za-z0-9_.\-\[\]:]+:\d{1,5}$")
 
 
@@ -139,21 +145,14 @@ def engine(
             importlib.import_module(module)
         yield Engine("process", 1, "in this process")
         return
-    from distributed import Client, LocalCluster
+    import dask
+    from distributed import Client
 
     cluster = client = None
     try:
         if kind == LOCAL:
-            cluster = LocalCluster(
-                n_workers=n,
-                threads_per_worker=1,
-                processes=True,
-                host="127.0.0.1",
-                scheduler_port=0,
-                dashboard_address=None,
-                silence_logs=logging.ERROR,
-                local_directory=tempfile.gettempdir(),
-            )
+            with dask.config.set({"distributed.nanny.pre-spawn-environ": WORKER_ENV}):
+                cluster = _local_cluster(n)
             client = Client(cluster)
             description = f"LocalCluster on 127.0.0.1, {n} worker processes x 1 thread"
         else:
@@ -180,6 +179,21 @@ def engine(
             client.close()
         if cluster is not None:
             cluster.close()
+
+
+def _local_cluster(n: int):
+    from distributed import LocalCluster
+
+    return LocalCluster(
+        n_workers=n,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        scheduler_port=0,
+        dashboard_address=None,
+        silence_logs=logging.ERROR,
+        local_directory=tempfile.gettempdir(),
+    )
 
 
 def run_unordered(

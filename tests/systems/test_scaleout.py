@@ -53,6 +53,18 @@ def test_two_worker_local_cluster_builds_the_single_process_map(reference, local
     assert store.written == len(store.blocks) and store.reused == 0
 
 
+def test_a_running_cluster_by_its_address(reference, local2):
+    address = local2.client.scheduler.address  # tcp://127.0.0.1:<port>, as `dask scheduler`'s
+    with scaleout.engine(address, 2, warm_up=["implantplan.systems.capability_map"]) as eng:
+        assert eng.kind == "remote" and eng.workers == 2 and address in eng.description
+        _same(cm.build(PARAMS, executor=eng.executor, poses_per_block=PER_BLOCK), reference)
+    assert eng.client.status == "closed"
+    assert local2.client.status == "running"  # a cluster we did not start stays up
+    with pytest.raises(InputError, match="--workers: .* 3 did not join"):
+        with scaleout.engine(address, 3, join_timeout=0.5):
+            pass
+
+
 def test_a_task_failing_after_its_retries_is_reported_not_fatal(local2):
     got = dict(scaleout.run_unordered(local2, divmod, [(7, 2), (1, 0)],
                                       on_error=lambda i, e: type(e).__name__))  # fmt: skip
