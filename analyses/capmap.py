@@ -39,8 +39,10 @@ from implantplan.analyses.figures.capability import (
 )
 from implantplan.analyses.progress import Progress
 from implantplan.systems import capability_map as cm
-from implantplan.systems import rasscmap as rm
-from implantplan.systems import scaleout
+from implantplan.systems import map_store as ms
+from implantplan.systems import rasscmap_inputs as rin
+from implantplan.systems import scaleout, validate
+from implantplan.systems import setup_search as ss
 from implantplan.systems.actuator import actuator_map_frame
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import write_json
@@ -161,11 +163,9 @@ def _load_poses(path) -> np.ndarray:
         X = np.load(path, allow_pickle=False)
     except (ValueError, OSError) as exc:
         raise InputError("--poses", f"{path} is not a .npy array ({exc})") from None
-    if X.ndim != 3 or X.shape[1:] != (4, 4):
+    if X.ndim != 3:
         raise InputError("--poses", f"expected an N x 4 x 4 array, got shape {X.shape}")
-    if not np.all(np.isfinite(X)):
-        raise InputError("--poses", "poses must be finite")
-    return X.astype(float)
+    return validate.pose(X, "--poses", batch=True)
 
 
 def _cmd_query(args) -> int:
@@ -210,7 +210,7 @@ def _cmd_show(args) -> int:
 # ---------------------------------------------------------------------------------------------
 
 
-def resolve_map(robot: rm.Robot, override: str | None, *, quiet: bool = False) -> cm.CapabilityMap:
+def resolve_map(robot: rin.Robot, override: str | None, *, quiet: bool = False) -> cm.CapabilityMap:
     """Load the robot's CMAP (or ``override``); build and save it first if missing + buildable."""
     path = Path(override) if override else robot.map_path
     expect = {"limits": robot.limits} if robot.limits else None
@@ -253,18 +253,18 @@ def plan(
     quiet: bool = False,
 ) -> dict:
     """The ``capmap plan`` pipeline; returns the plan dict written to ``out_dir/plan.json``."""
-    patient = rm.load_patient(patient_path)
-    task = rm.load_task(task_path)
-    robot = rm.load_robot(robot_path)
+    patient = rin.load_patient(patient_path)
+    task = rin.load_task(task_path)
+    robot = rin.load_robot(robot_path)
     prog = Progress("capmap plan", quiet=quiet)
     cmap = resolve_map(robot, map_override, quiet=quiet)
     store_root = Path(store_dir) if store_dir else robot.store
     if store_root is None:
         store_root = Path(str(map_override or robot.map_path) + ".rasscmaps")
-    store = rm.RasscmapStore(store_root)
-    problem = rm.SetupProblem(cmap, patient, task, robot, store=store)
+    store = ms.RasscmapStore(store_root)
+    problem = ss.SetupProblem(cmap, patient, task, robot, store=store)
     prog.say(f"{problem.n} candidates ({len(problem.bases)} bases x {problem.n_access} access)")
-    res = rm.optimize(problem, method=method, seed=seed)
+    res = ss.optimize(problem, method=method, seed=seed)
     prog.say(f"{res.method}: best cost {res.cost:.4f} in {res.seconds:.3f} s")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -18,6 +18,8 @@ from implantplan.analyses.figures.fpsm import plot_fit
 from implantplan.analyses.progress import Progress
 from implantplan.systems.errors import InputError
 
+POINT, DIRECTION = ("X", "Y", "Z"), ("DX", "DY", "DZ")  # metavars of 3-vector options
+
 
 def register(subparsers) -> None:
     fpsm = subparsers.add_parser("fpsm", help="finite-parameter surrogate model of the oral cavity")
@@ -26,30 +28,12 @@ def register(subparsers) -> None:
     fit = sub.add_parser("fit", help="fit the FPSM to an oral mesh (stage 1)")
     fit.add_argument("mesh", metavar="MESH", help="mesh file (STL, OBJ, PLY, OFF, GLB, ...)")
     fit.add_argument("--units", choices=("mm", "m"), default="mm", help="units of the mesh file")
-    fit.add_argument(
-        "--center-origin-mm",
-        nargs=3,
-        type=float,
-        required=True,
-        metavar=("X", "Y", "Z"),
-        help="Center origin in the mesh frame (mm)",
-    )
-    fit.add_argument(
-        "--center-z",
-        nargs=3,
-        type=float,
-        required=True,
-        metavar=("DX", "DY", "DZ"),
-        help="Center Z axis (out of the mouth)",
-    )
-    fit.add_argument(
-        "--center-x-hint",
-        nargs=3,
-        type=float,
-        default=None,
-        metavar=("DX", "DY", "DZ"),
-        help="direction made orthogonal to Z for Center X",
-    )
+    fit.add_argument("--center-origin-mm", nargs=3, type=float, required=True, metavar=POINT,
+                     help="Center origin in the mesh frame (mm)")
+    fit.add_argument("--center-z", nargs=3, type=float, required=True, metavar=DIRECTION,
+                     help="Center Z axis (out of the mouth)")
+    fit.add_argument("--center-x-hint", nargs=3, type=float, default=None, metavar=DIRECTION,
+                     help="direction made orthogonal to Z for Center X")
     fit.add_argument("--slices", type=int, default=15, help="number of slices M")
     fit.add_argument("--control-points", type=int, default=15, help="control radii per slice N")
     fit.add_argument("--samples", type=int, default=150, help="sample angles per slice Z")

@@ -33,27 +33,18 @@ from implantplan.systems.placement import Placement, default_bounds, place_instr
 MM = 1e-3
 
 
+POINT, DIRECTION = ("X", "Y", "Z"), ("DX", "DY", "DZ")  # metavars of 3-vector options
+
+
 def register(subparsers) -> None:
     inst = subparsers.add_parser("instrument", help="instrument placement (feeding target + VF)")
     sub = inst.add_subparsers(dest="instrument_command", required=True, metavar="SUBCOMMAND")
     p = sub.add_parser("place", help="place the feeding target by PSO (seed 000, stage 2)")
     p.add_argument("--fpsm", type=Path, required=True, help="FPSM JSON (implantplan fpsm ...)")
-    p.add_argument(
-        "--hole-mm",
-        nargs=3,
-        type=float,
-        required=True,
-        metavar=("X", "Y", "Z"),
-        help="implant site in Center (mm)",
-    )
-    p.add_argument(
-        "--hole-axis",
-        nargs=3,
-        type=float,
-        required=True,
-        metavar=("DX", "DY", "DZ"),
-        help="hole axis in Center, from the bone into the cavity",
-    )
+    p.add_argument("--hole-mm", nargs=3, type=float, required=True, metavar=POINT,
+                   help="implant site in Center (mm)")
+    p.add_argument("--hole-axis", nargs=3, type=float, required=True, metavar=DIRECTION,
+                   help="hole axis in Center, from the bone into the cavity")
     p.add_argument("--rod-radius-mm", type=float, required=True, help="handle rod radius r (mm)")
     p.add_argument("--implant-length-mm", type=float, required=True, help="implant length d12")
     p.add_argument("--objective", choices=("eq14", "eq21", "eq22"), default="eq14")

@@ -5,7 +5,9 @@
          -> capability check of every feeding target -> teleop feeding per site
 
 Each stage takes what the previous one made and returns plain results; the ``plan`` command
-(analyses.plan) writes them out and builds the report.
+(analyses.plan) writes them out and builds the report. Stages call cores only (systems, diagrams,
+analyses.case), never a command module (tests/test_layers.py; the one listed exception,
+robot_place.initial_population, leaves with issue 11's single MOPRP search).
 """
 
 from __future__ import annotations
@@ -271,17 +273,11 @@ def capability_stage(case: Case, robot: RobotResult, *, progress=None) -> Capabi
     params = cm.make_params(case.voxel, case.directions, limits=sc.limits, X_FT=X_FA,
                             tool="actuator")
     grid = cm.make_grid(params)
-    ijk = np.floor((X_BA[:, :3, 3] - grid.origin) / grid.voxel).astype(int)
-    offsets = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
-    cells = (ijk[:, None, :] + offsets).reshape(-1, 3)
-    inside = np.all((cells >= 0) & (cells < np.asarray(grid.shape)), axis=1)
-    ids = np.unique(np.ravel_multi_index(cells[inside].T, grid.shape))
-    vox, reach, allr = cm.build_block(params, ids)
+    near = grid.neighbourhood(X_BA[:, :3, 3])
+    vox, reach, allr = cm.build_block(params, np.unique(near[near >= 0]))
     cmap = cm.CapabilityMap(params, grid, vox, reach, allr)
     map_reach, index = cmap.query(X_BA)
-    centres = grid.centres(np.ravel_multi_index(
-        np.clip(cells, 0, np.asarray(grid.shape) - 1).T, grid.shape))
-    neigh = cmap.voxel_index(centres).reshape(len(X_BA), -1).mean(axis=1)
+    neigh = cmap.neighbourhood_index(X_BA[:, :3, 3])
     branches = kin.ik(X_BE, limits=sc.limits, X_FT=actuator.X_FT()).valid.sum(axis=-1)
     if progress is not None:
         for site, r, i, b in zip(case.sites, map_reach, index, branches, strict=True):

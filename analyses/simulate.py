@@ -43,56 +43,27 @@ import numpy as np
 
 from implantplan.analyses.figures.simulation import plot_circle, plot_feeding, plot_layouts
 from implantplan.analyses.progress import Progress
-from implantplan.diagrams.feeding import (
-    FINISH_SECONDS,  # noqa: F401  (bench_teleop reads it here)
+from implantplan.diagrams.feeding import (  # the case and the runs (bench_teleop reads them here)
+    FINISH_SECONDS,  # noqa: F401
+    Instrument,
+    default_instrument,
+    knee_layout,
+    layout_configurations,
+    load_scenario,
+    make_case,
     run_circle,
     run_feeding,
 )
-from implantplan.diagrams.teleop import TeleopCase
-from implantplan.systems import actuator, moprp
-from implantplan.systems import kinematics as kin
+from implantplan.systems import actuator, moprp, validate
 from implantplan.systems.errors import InputError, PlanningFailure
 from implantplan.systems.files import read_json, write_json, write_text_atomic
 from implantplan.systems.fpsm import Fpsm
-from implantplan.systems.frames import invert
 from implantplan.systems.master_device import Operator
-from implantplan.systems.placement import place_instrument
 from implantplan.systems.virtual_fixture import VirtualFixture
 
 # --------------------------------------------------------------------------------------------
 # The case
 # --------------------------------------------------------------------------------------------
-
-
-@dataclasses.dataclass
-class Instrument:
-    """The instrument side of a case (Center frame, SI)."""
-
-    fpsm: Fpsm
-    X_CT: np.ndarray
-    vf: VirtualFixture
-    rod_radius: float
-    implant_length: float
-    source: str
-
-
-def default_instrument(seed: int = 0) -> Instrument:
-    """Seed 000's cylinder check placed on the fly (see the module docstring)."""
-    fpsm = Fpsm.cylinder(0.05, 0.0, 0.1, slices=11)
-    p = place_instrument(
-        fpsm,
-        [0.0, -0.05, 0.05],
-        [0.0, 1.0, 0.0],
-        rod_radius=actuator.ROD_RADIUS,
-        implant_length=actuator.IMPLANT_LENGTH,
-        seed=seed,
-        verify=False,
-    )
-    if not p.valid:
-        raise PlanningFailure(f"default instrument placement invalid: {p.reason}")
-    return Instrument(
-        fpsm, p.X_CT, p.vf, p.rod_radius, p.implant_length, "cylinder check (seed 000 Sec. 5.3)"
-    )
 
 
 def instrument_from_plan(path) -> Instrument:
@@ -112,9 +83,7 @@ def instrument_from_plan(path) -> Instrument:
         fpsm = Fpsm.load(fpsm_path, field="--plan fpsm")
     else:
         raise InputError("--plan", f"{path}: expected 'fpsm' or 'inputs.fpsm' (file or model)")
-    X_CT = np.asarray(data["X_CT"], dtype=float)
-    if X_CT.shape != (4, 4):
-        raise InputError("--plan", f"{path}: X_CT must be a 4x4 pose")
+    X_CT = validate.pose(data["X_CT"], f"--plan {path}: X_CT")
     return Instrument(
         fpsm,
         X_CT,
@@ -123,13 +92,6 @@ def instrument_from_plan(path) -> Instrument:
         float(data.get("implant_length", actuator.IMPLANT_LENGTH)),
         str(path),
     )
-
-
-def load_scenario(name: str):
-    """The MOPRP scenario (feasibility uses its own actuator model) and the same scenario with
-    the plant's TCP (systems.actuator.X_FT), used for every kinematic quantity of the runs."""
-    sc = moprp.load_scenario(name)
-    return sc, dataclasses.replace(sc, X_FT=actuator.X_FT())
 
 
 def select_layout(sc, *, seed: int = 0, robot_placement=None, candidates: int = 300):
@@ -141,49 +103,7 @@ def select_layout(sc, *, seed: int = 0, robot_placement=None, candidates: int = 
         if "base_xyz" not in sel or "branch" not in sel:
             raise InputError("--robot-placement", "expected selected.base_xyz and .branch")
         return np.asarray(sel["base_xyz"], dtype=float), int(sel["branch"]), str(robot_placement)
-    rng = np.random.default_rng(seed)
-    xyz, F = moprp.random_feasible(sc, candidates, rng)
-    if xyz.shape[0] == 0:
-        raise PlanningFailure("no feasible base found in the scenario's bounds")
-    dominated = np.array(
-        [np.any(np.all(F <= f, axis=1) & np.any(F < f, axis=1)) for f in F]
-    )
-    front = np.flatnonzero(~dominated)
-    k = front[moprp.knee_point(F[front])]
-    ev = moprp.evaluate_bases(xyz[k : k + 1], sc, rng)
-    return xyz[k], int(ev.branch[0]), f"knee of {xyz.shape[0]} random feasible bases"
-
-
-def layout_configurations(sc_plant, xyz, branch: int):
-    """(q_pre, q_target) on ``branch`` with the plant's TCP, or None if not reachable."""
-    X = moprp.feed_poses(xyz, sc_plant.feed_length, 2)
-    r = kin.ik(X, limits=sc_plant.limits, X_FT=sc_plant.X_FT)
-    if not np.all(r.valid[:, branch]):
-        return None
-    return r.q[0, branch], r.q[1, branch]
-
-
-def make_case(scenario: str, sc_plant, xyz, branch: int, inst: Instrument, label="") -> TeleopCase:
-    qs = layout_configurations(sc_plant, xyz, branch)
-    if qs is None:
-        raise PlanningFailure(
-            f"layout {np.round(np.asarray(xyz) * 1000).tolist()} mm: branch {branch} does not "
-            "reach the pre-feed and target poses with the actuator's TCP"
-        )
-    X_WO = sc_plant.X_WO
-    return TeleopCase(
-        scenario=scenario,
-        X_WBase=X_WO @ moprp.base_pose(xyz),
-        q_start=qs[0],
-        X_WCenter=X_WO @ invert(inst.X_CT),
-        fpsm=inst.fpsm,
-        vf=inst.vf,
-        X_WTarget=X_WO,
-        rod_radius=inst.rod_radius,
-        implant_length=inst.implant_length,
-        limits=sc_plant.limits,
-        label=label,
-    )
+    return knee_layout(sc, seed=seed, candidates=candidates)
 
 
 # --------------------------------------------------------------------------------------------
@@ -357,12 +277,18 @@ def _scene_name(sc) -> str:
     return sc.posture if sc.posture in ("lying", "sitting") else "arm"
 
 
-def cmd_feeding(args) -> int:
-    _check_count(args.runs, "--runs")
-    progress = Progress("simulate feeding", quiet=args.quiet)
+def _layout(args, progress):
+    """The case of ``args`` and its layout: (inst, sc, sc_plant, xyz, branch, source)."""
     inst, sc, sc_plant = _setup(args)
     xyz, branch, source = select_layout(sc, seed=args.seed, robot_placement=args.robot_placement)
     progress.say(f"layout {np.round(1000 * xyz).tolist()} mm branch {branch} ({source})")
+    return inst, sc, sc_plant, xyz, branch, source
+
+
+def cmd_feeding(args) -> int:
+    _check_count(args.runs, "--runs")
+    progress = Progress("simulate feeding", quiet=args.quiet)
+    inst, sc, sc_plant, xyz, branch, source = _layout(args, progress)
     case = make_case(_scene_name(sc), sc_plant, xyz, branch, inst, label="selected")
     meshcat = None
     if args.meshcat_html is not None:
@@ -420,9 +346,7 @@ def cmd_feeding(args) -> int:
 def cmd_circle(args) -> int:
     _check_count(args.realizations, "--realizations")
     progress = Progress("simulate circle", quiet=args.quiet)
-    _, sc, sc_plant = _setup(args)
-    xyz, branch, source = select_layout(sc, seed=args.seed, robot_placement=args.robot_placement)
-    progress.say(f"layout {np.round(1000 * xyz).tolist()} mm branch {branch} ({source})")
+    _, sc, sc_plant, xyz, branch, source = _layout(args, progress)
     result = run_circle(sc_plant, xyz, branch, realizations=args.realizations, seed=args.seed)
     if result is None:
         raise PlanningFailure(f"branch {branch} cannot follow the circle continuously")

@@ -27,13 +27,113 @@ kinematics of the perturbed joints; the diagram adds nothing but cost there.
 
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass
+
 import numpy as np
 
 from implantplan.diagrams.teleop import TeleopCase, build_teleop, simulate
+from implantplan.systems import actuator, moprp
 from implantplan.systems import kinematics as kin
-from implantplan.systems import moprp
+from implantplan.systems.errors import PlanningFailure
+from implantplan.systems.fpsm import Fpsm
 from implantplan.systems.frames import invert, transform
 from implantplan.systems.master_device import Operator, feeding_runs
+from implantplan.systems.nsga2 import non_dominated_sort
+from implantplan.systems.placement import place_instrument
+from implantplan.systems.virtual_fixture import VirtualFixture
+
+# -- the case ----------------------------------------------------------------------------------
+
+
+@dataclass
+class Instrument:
+    """The instrument side of a case (Center frame, SI)."""
+
+    fpsm: Fpsm
+    X_CT: np.ndarray
+    vf: VirtualFixture
+    rod_radius: float
+    implant_length: float
+    source: str
+
+
+def default_instrument(seed: int = 0) -> Instrument:
+    """Seed 000's cylinder check (Sec. 5.3) placed on the fly: a cylinder FPSM of radius 50 mm from
+    z = 0 to 100 mm, hole (0, -50, 50) mm, axis +y, rod radius 6 mm, d12 31 mm (systems.placement
+    finds d_T = 62.5 mm, theta_T = 0)."""
+    fpsm = Fpsm.cylinder(0.05, 0.0, 0.1, slices=11)
+    p = place_instrument(
+        fpsm,
+        [0.0, -0.05, 0.05],
+        [0.0, 1.0, 0.0],
+        rod_radius=actuator.ROD_RADIUS,
+        implant_length=actuator.IMPLANT_LENGTH,
+        seed=seed,
+        verify=False,
+    )
+    if not p.valid:
+        raise PlanningFailure(f"default instrument placement invalid: {p.reason}")
+    return Instrument(
+        fpsm, p.X_CT, p.vf, p.rod_radius, p.implant_length, "cylinder check (seed 000 Sec. 5.3)"
+    )
+
+
+def load_scenario(name: str):
+    """The MOPRP scenario (feasibility uses its own actuator model) and the same scenario with
+    the plant's TCP (systems.actuator.X_FT), used for every kinematic quantity of the runs."""
+    sc = moprp.load_scenario(name)
+    return sc, dataclasses.replace(sc, X_FT=actuator.X_FT())
+
+
+def layout_configurations(sc_plant, xyz, branch: int):
+    """(q_pre, q_target) on ``branch`` with the plant's TCP, or None if not reachable."""
+    X = moprp.feed_poses(xyz, sc_plant.feed_length, 2)
+    r = kin.ik(X, limits=sc_plant.limits, X_FT=sc_plant.X_FT)
+    if not np.all(r.valid[:, branch]):
+        return None
+    return r.q[0, branch], r.q[1, branch]
+
+
+def make_case(scenario: str, sc_plant, xyz, branch: int, inst: Instrument, label="") -> TeleopCase:
+    qs = layout_configurations(sc_plant, xyz, branch)
+    if qs is None:
+        raise PlanningFailure(
+            f"layout {np.round(np.asarray(xyz) * 1000).tolist()} mm: branch {branch} does not "
+            "reach the pre-feed and target poses with the actuator's TCP"
+        )
+    X_WO = sc_plant.X_WO
+    return TeleopCase(
+        scenario=scenario,
+        X_WBase=X_WO @ moprp.base_pose(xyz),
+        q_start=qs[0],
+        X_WCenter=X_WO @ invert(inst.X_CT),
+        fpsm=inst.fpsm,
+        vf=inst.vf,
+        X_WTarget=X_WO,
+        rod_radius=inst.rod_radius,
+        implant_length=inst.implant_length,
+        limits=sc_plant.limits,
+        label=label,
+    )
+
+
+def knee_layout(sc, *, seed: int = 0, candidates: int = 300):
+    """(base_xyz in Oral, branch, source): a stand-in for MOPRP's choice, the knee point
+    (systems.moprp.knee_point) of the non-dominated set of ``candidates`` random feasible
+    bases."""
+    rng = np.random.default_rng(seed)
+    xyz, F = moprp.random_feasible(sc, candidates, rng)
+    if xyz.shape[0] == 0:
+        raise PlanningFailure("no feasible base found in the scenario's bounds")
+    front = np.flatnonzero(non_dominated_sort(F) == 0)
+    k = front[moprp.knee_point(F[front])]
+    ev = moprp.evaluate_bases(xyz[k : k + 1], sc, rng)
+    return xyz[k], int(ev.branch[0]), f"knee of {xyz.shape[0]} random feasible bases"
+
+
+# -- the runs ------------------------------------------------------------------------------------
+
 
 FINISH_SECONDS = 2.0  # simulated time after the script for the operator to finish by eye
 TARGET_TOLERANCE = 0.001  # m: the feed "reaches the target" within this
@@ -50,17 +150,21 @@ def run_feeding(
     meshcat=None,
     progress=None,
 ) -> dict:
-    """K scripted feeds on one case; per-run figures and the overall realtime factor.
+    """K scripted feeds on one case; per-run figures and the overall realtime factor. The runs
+    share one diagram (a motion is a context parameter); with ``meshcat`` the first run is shown
+    and recorded on a second diagram that has the visualizer.
 
     ``progress``: anything with ``step(i, n, text)`` (analyses.progress.Progress), or None.
     """
     start = case.X_WE(case.q_start)[:3, 3]
     target = case.X_WTarget[:3, 3]
     motions = feeding_runs(start, target, runs=runs, seed=seed, operator=operator)
+    teleop = build_teleop(case, mode=mode)  # one diagram for every run; each sets its motion
+    shown = build_teleop(case, mode=mode, meshcat=meshcat) if meshcat is not None else teleop
     out = []
     for i, motion in enumerate(motions):
-        teleop = build_teleop(case, motion, mode=mode, meshcat=meshcat if i == 0 else None)
-        run = simulate(teleop, motion.duration + FINISH_SECONDS, recording=meshcat is not None)
+        run = simulate(shown if i == 0 else teleop, motion.duration + FINISH_SECONDS,
+                       motion=motion, recording=i == 0 and meshcat is not None)
         err = float(np.linalg.norm(run.p_WE[-1] - target))
         out.append(
             {

@@ -1,11 +1,21 @@
 """Validation of user input read from YAML/JSON/CLI: one place for "field: what was expected".
 
-Every function takes the value and the dotted name of the field it came from, and raises
+Every check takes the value and the dotted name of the field it came from, and raises
 ``InputError(field, ...)`` with what was expected; nothing is clamped or guessed.
+
+**Typed schemas.** Every YAML section is a frozen dataclass whose fields are declared with
+:func:`spec` (the check, the default, the YAML key and a unit scale); :func:`parse` builds it from
+a mapping, rejects unknown keys, names missing required ones and runs each value through its
+check with the field's dotted name. Sections nest with :func:`section`, lists of sections with
+:func:`sections`. The case file (analyses.case) and the RASSCMAP inputs
+(systems.rasscmap_inputs) are read this way; the MOPRP scenario uses the same checks.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import MISSING, field, fields
+from functools import partial
 from typing import Any
 
 import numba
@@ -165,3 +175,105 @@ def unknown_keys(d: dict, allowed: tuple[str, ...], where: str) -> None:
     extra = sorted(set(d) - set(allowed))
     if extra:
         raise InputError(f"{where}{extra[0]}", f"unknown key; expected one of {', '.join(allowed)}")
+
+
+# -- typed schemas -------------------------------------------------------------------------------
+
+REQUIRED = object()  # spec default: the key must be present (and not null)
+
+
+def spec(check: Callable[[Any, str], Any], default: Any = REQUIRED, *, key: str | None = None,
+         scale: float | None = None):
+    """A dataclass field read from YAML by :func:`parse`.
+
+    Args:
+        check: ``check(value, field) -> parsed`` (one of this module's checks, or a partial).
+        default: the raw value used when the key is missing or null (it goes through ``check``);
+            :data:`REQUIRED` makes the key mandatory; None leaves the field None.
+        key: the YAML key when it differs from the field name (``position_mm`` -> ``position``).
+        scale: multiply the checked value (file units -> SI, e.g. 1e-3 for mm).
+    """
+    return field(metadata={"check": check, "default": default, "key": key, "scale": scale})
+
+
+def parse(cls, data: Any, where: str):
+    """Build the :func:`spec` dataclass ``cls`` from the mapping ``data`` found at ``where``
+    (dotted; "" for the top of a file). An absent section is an empty mapping."""
+    prefix = f"{where}." if where else ""
+    d = mapping(data, where or "file")
+    specs = []
+    for f in fields(cls):
+        if "check" not in f.metadata:
+            if f.default is MISSING and f.default_factory is MISSING:
+                raise TypeError(f"{cls.__name__}.{f.name} is neither a spec nor defaulted")
+            continue
+        specs.append((f.metadata["key"] or f.name, f))
+    unknown_keys(d, tuple(k for k, _ in specs), prefix)
+    values = {}
+    for key, f in specs:
+        m = f.metadata
+        raw = d.get(key)
+        if raw is None:
+            if m["default"] is REQUIRED:
+                raise InputError(prefix + key, "missing (required)")
+            raw = m["default"]
+        if raw is None:
+            values[f.name] = None
+            continue
+        value = m["check"](raw, prefix + key)
+        values[f.name] = value if m["scale"] is None else value * m["scale"]
+    return cls(**values)
+
+
+def section(cls) -> Callable[[Any, str], Any]:
+    """A check that parses a nested mapping as the schema dataclass ``cls``."""
+    return lambda value, where: parse(cls, value, where)
+
+
+def sections(cls, *, min_items: int = 0) -> Callable[[Any, str], tuple]:
+    """A check for a list of mappings, each parsed as ``cls`` (``where[i]`` in errors)."""
+    def check(value, where):
+        if not isinstance(value, list) or len(value) < min_items:
+            raise InputError(where, f"expected a list of at least {min_items} mappings, got "
+                             f"{value!r}" if min_items else f"expected a list, got {value!r}")
+        return tuple(parse(cls, item, f"{where}[{i}]") for i, item in enumerate(value))
+    return check
+
+
+def one_of(*options) -> Callable[[Any, str], Any]:
+    """A check: the value is one of ``options``."""
+    return lambda value, where: choice(value, where, options)
+
+
+def boolean(value: Any, field: str) -> bool:
+    if not isinstance(value, bool):
+        raise InputError(field, f"expected true or false, got {value!r}")
+    return value
+
+
+def text(value: Any, field: str) -> str:
+    """A non-empty string."""
+    if not isinstance(value, str) or not value:
+        raise InputError(field, f"expected a non-empty text, got {value!r}")
+    return value
+
+
+def label(value: Any, field: str) -> str:
+    """A name (YAML may read ``36`` as a number: it is taken as the text "36")."""
+    if isinstance(value, (dict, list)) or str(value) == "":
+        raise InputError(field, f"expected a name, got {value!r}")
+    return str(value)
+
+
+def version(expected: int) -> Callable[[Any, str], int]:
+    """A check: ``schema_version`` equals ``expected``."""
+    def check(value, where):
+        if value != expected or isinstance(value, bool):
+            raise InputError(where, f"expected {expected}, got {value!r}")
+        return int(value)
+    return check
+
+
+positive = partial(number, positive=True)
+nonneg = partial(number, nonneg=True)
+vec3 = partial(vector, n=3)

@@ -8,3 +8,20 @@ report (DESIGN.md section 2: figures never import a command module).
 - ``simulation``: the teleop feeding, error-mapping and layout experiments (stage 5);
 - ``plan``: every figure of a case plan, by report section.
 """
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def save(fig, path, *, dpi: int, tight: bool = True) -> Path:
+    """Lay out (``tight``), write (its folder made) and close a matplotlib figure; the path."""
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if tight:
+        fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path

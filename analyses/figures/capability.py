@@ -8,6 +8,7 @@ import numpy as np
 
 from implantplan.systems import capability_map as cm
 from implantplan.systems import rasscmap as rm
+from implantplan.systems import setup_search as ss
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import write_text_atomic
 
@@ -65,7 +66,7 @@ def plot_map_slices(cmap: cm.CapabilityMap, path, *, n_slices: int = 6) -> None:
     plt.close(fig)
 
 
-def setup_points(problem: rm.SetupProblem, cand: int) -> tuple[np.ndarray, np.ndarray]:
+def setup_points(problem: ss.SetupProblem, cand: int) -> tuple[np.ndarray, np.ndarray]:
     b, a = problem.split(np.array([cand]))
     if problem.patient.access == "unconstrained":
         idx = rm.unconstrained_index(problem.cmap, problem.bases[b], problem.points_W)[0]
@@ -74,7 +75,7 @@ def setup_points(problem: rm.SetupProblem, cand: int) -> tuple[np.ndarray, np.nd
     return r.centres, r.index
 
 
-def plot_best_worst(problem: rm.SetupProblem, best: int, worst: int, path) -> None:
+def plot_best_worst(problem: ss.SetupProblem, best: int, worst: int, path) -> None:
     """PNG: best vs worst setup side by side (top and side views), RASSCMAP coloured by index."""
     import matplotlib
 

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from implantplan.analyses.figures import save
 from implantplan.systems.files import write_atomic
 
 MM = 1e-3
@@ -60,11 +61,7 @@ def plot_mouth_opening(
         ax.set_ylabel("mesh z (mm, up)")
         ax.set_title(f"sagittal section y = {y / MM:.1f} mm")
     axes[0][0].legend(loc="lower right", fontsize=8)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    path = save(fig, path, dpi=110)
     return path
 
 

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from implantplan.analyses.figures import save
 from implantplan.analyses.figures.fpsm import mesh_section
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm import Fpsm
@@ -103,9 +104,7 @@ def plot_placement(fpsm: Fpsm, p: Placement, out_dir) -> list[Path]:
             ax.set_ylabel("d_T (mm)")
             ax.set_title(title)
             ax.legend(loc="best", fontsize=8)
-            fig.tight_layout()
-            fig.savefig(out_dir / name, dpi=110)
-            plt.close(fig)
+            save(fig, out_dir / name, dpi=110)
             paths.append(out_dir / name)
 
     fig, ax = plt.subplots(figsize=(6, 3.6))
@@ -114,9 +113,7 @@ def plot_placement(fpsm: Fpsm, p: Placement, out_dir) -> list[Path]:
     ax.set_ylabel(f"global best F_safe ({p.objective})")
     ax.set_title(f"convergence: {p.iterations} iterations, stop: {p.stopped}")
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(out_dir / "convergence.png", dpi=110)
-    plt.close(fig)
+    save(fig, out_dir / "convergence.png", dpi=110)
     paths.append(out_dir / "convergence.png")
 
     # Scene in Center (mm).
@@ -178,9 +175,7 @@ def plot_placement(fpsm: Fpsm, p: Placement, out_dir) -> list[Path]:
         f"{'valid' if p.valid else 'INVALID: ' + p.reason}",
         fontsize=10,
     )
-    fig.tight_layout()
-    fig.savefig(out_dir / "views.png", dpi=110)
-    plt.close(fig)
+    save(fig, out_dir / "views.png", dpi=110)
     paths.append(out_dir / "views.png")
     return paths
 
@@ -281,9 +276,5 @@ def plot_placements(opened, X_WC, fpsm, placements, names, path) -> Path:
         ax.set_title(f"site {name}: safe distance along the lines to the mouth opening", fontsize=9)
         ax.grid(True, lw=0.3)
         ax.legend(fontsize=8)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    path = save(fig, path, dpi=100)
     return path

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from implantplan.analyses.figures import save
 from implantplan.systems import moprp
 
 
@@ -133,7 +134,5 @@ def _plot_layout(sc, xyz, q, path, title) -> Path:
         ax.set_xlabel("xyz"[i] + " (m)")
         ax.set_ylabel("xyz"[j] + " (m)")
     fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    path = save(fig, path, dpi=100)
     return Path(path)
