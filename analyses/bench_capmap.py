@@ -1,6 +1,7 @@
 """Benchmark of seed 004 for the AUBO-i10: capability maps and RASSCMAP setup planning.
 
-Run: ``python -m implantplan.analyses.bench_capmap [--workers W] [--skip-fine] [--samples N]``
+Run: ``python -m implantplan.analyses.bench_capmap [--workers W] [--skip-fine] [--samples N]
+[--scaleout-only | --skip-scaleout] [--scaleout-directions K]``
 
 Prints, side by side with the paper's figures (seed 004 Sec. 4-5, Table 1) and the public anchors
 for capability maps (~3,300 IK/s single-thread; a 5 cm x 200-direction map in ~25 min; 1.3-1.45 M
@@ -8,6 +9,10 @@ queries/s): IK samples/s, seconds per map (5 cm x 100, 5 cm x 200, 2.5 cm x 200 
 query throughput, accuracy (TP/FP/FN vs direct IK on random poses), RASSCMAP time per base pose
 (unconstrained, and constrained at 5 cm / 5 deg), exhaustive vs GA setup search, and the
 laparoscopy cases (fixed base / rail). Ratio = paper (or anchor) time / ours (> 1: we are faster).
+Scale-out (Dask, systems.scaleout): one map (5 cm x ``--scaleout-directions`` 450, >= 60 s of
+single-process work here) built in this process, on a 1-worker and on a 2-worker LocalCluster
+(ratios side by side; the maps are checked equal), and the engine's per-task overhead (no-op tasks:
+one round trip alone, and the cost per task when many are queued) against one block's work.
 Timings on a shared machine are noisy; the lead re-runs them.
 """
 
@@ -16,6 +21,7 @@ from __future__ import annotations
 import argparse
 import os
 import tempfile
+import time
 import timeit
 
 import numpy as np
@@ -23,6 +29,7 @@ import numpy as np
 from implantplan.systems import capability_map as cm
 from implantplan.systems import map_store as ms
 from implantplan.systems import rasscmap_inputs as rin
+from implantplan.systems import scaleout
 from implantplan.systems import setup_search as ss
 from implantplan.systems.kinematics import fk, ik
 
@@ -65,6 +72,67 @@ def bench_query(m: cm.CapabilityMap, n: int = 2_000_000) -> float:
     return n / min(timeit.repeat(lambda: m.query(X), number=1, repeat=3))
 
 
+def _noop(x):
+    """A task that does nothing (per-task overhead of the engine)."""
+    return x
+
+
+def bench_scaleout(directions: int, block_poses: int) -> None:
+    """Speedup of 2 Dask workers over 1 (and over no Dask) on one map; per-task overhead."""
+    from implantplan.analyses.capmap import BLOCK_POSES
+
+    block_poses = block_poses or BLOCK_POSES
+    params = cm.make_params(0.05, directions)
+    n_blocks = len(cm.blocks_of(params, block_poses))
+    _header(f"Scale-out on Dask: map 5 cm x {directions} dirs, {n_blocks} blocks of "
+            f"<= {block_poses:,} poses")  # fmt: skip
+    t0 = time.perf_counter()
+    ref = cm.build(params, workers=1, poses_per_block=block_poses)
+    t_proc = time.perf_counter() - t0
+    _row("build in this process (no Dask)", t_proc, None, "s")
+    import psutil
+
+    times, cpu, block_s = {}, {}, t_proc / n_blocks
+    for n in (1, 2):
+        t0 = time.perf_counter()
+        with scaleout.engine("local", n, warm_up=[cm.__name__]) as eng:
+            t_start = time.perf_counter() - t0
+            procs = [psutil.Process(pid) for pid in eng.worker_pids().values()]
+            cpu0 = sum(sum(p.cpu_times()[:2]) for p in procs)
+            t0 = time.perf_counter()
+            m = cm.build(params, executor=eng.executor, poses_per_block=block_poses)
+            times[n] = time.perf_counter() - t0
+            cpu[n] = sum(sum(p.cpu_times()[:2]) for p in procs) - cpu0
+            for name in ("voxel_ids", "reach_bits", "all_roll_bits"):
+                assert np.array_equal(getattr(m, name), getattr(ref, name)), name
+            if n == 2:
+                eng.executor.submit(_noop, 0).result()
+                rtt = []
+                for i in range(30):
+                    t0 = time.perf_counter()
+                    eng.executor.submit(_noop, i).result()
+                    rtt.append(time.perf_counter() - t0)
+                t0 = time.perf_counter()
+                futures = [eng.executor.submit(_noop, i) for i in range(1000)]
+                [f.result() for f in futures]
+                per_task = (time.perf_counter() - t0) / 1000
+        _row(f"  LocalCluster {n} worker(s): start (not in the build time)", t_start, None, "s")
+        _row(f"  LocalCluster {n} worker(s): build (maps equal: yes)", times[n], None, "s")
+        _row(f"  LocalCluster {n} worker(s): CPU time of the workers", cpu[n], None, "s")
+    print(f"  {'speedup 2 workers over 1 worker (target >= 1.6x)':<52s} "
+          f"{times[1] / times[2]:>12.2f} x")
+    print(f"  {'speedup 2 workers over this process, no Dask':<52s} {t_proc / times[2]:>12.2f} x")
+    print("    (equal worker CPU time for 1 and 2 workers = the same work: a speedup below 2x is")
+    print("     then CPU shared with other processes; the load average says how much)")
+    _row("per-task overhead: one round trip (median of 30)", float(np.median(rtt)) * 1e3,
+         None, "ms")  # fmt: skip
+    _row("per-task overhead: 1000 queued no-op tasks, per task", per_task * 1e3, None, "ms")
+    _row("one block's work (in this process, mean)", block_s * 1e3, None, "ms")
+    print(f"    overhead / block: {np.median(rtt) / block_s:.2%} (round trip), "
+          f"{per_task / block_s:.2%} (queued); load {os.getloadavg()[0]:.2f} "
+          f"on {os.cpu_count()} cores at the end")  # fmt: skip
+
+
 def _problem(cmap, patient, task, robot, store=None):
     return ss.SetupProblem(
         cmap,
@@ -80,7 +148,17 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     ap.add_argument("--skip-fine", action="store_true", help="skip the 2.5 cm x 200 map")
     ap.add_argument("--samples", type=int, default=100_000, help="accuracy samples")
+    ap.add_argument("--scaleout-only", action="store_true", help="only the Dask section")
+    ap.add_argument("--skip-scaleout", action="store_true", help="skip the Dask section")
+    ap.add_argument("--scaleout-directions", type=int, default=450,
+                    help="directions of the scale-out map (5 cm voxels; 450: >= 60 s of work)")
+    ap.add_argument("--block-poses", type=int, default=None,
+                    help="IK poses per block of the scale-out map (default: the CLI's)")
     args = ap.parse_args(argv)
+    print(f"load average at start: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
+    if args.scaleout_only:
+        bench_scaleout(args.scaleout_directions, args.block_poses)
+        return 0
 
     _header("Capability map (AUBO-i10 flange, +-175 deg; roll free about joint 6)")
     ik_rate = bench_ik()
@@ -176,6 +254,8 @@ def main(argv=None) -> int:
         print(f"    best: rail x = {rail.bases[b[0]][0, 3]:+.2f} m, "
               f"{rail.patient.access_points[a[0]][0]}, cost {rr.cost:.4f} (GA {rg.cost:.4f}); "
               f"fixed base best {ap_fixed} cost {rf.cost:.4f}")  # fmt: skip
+    if not args.skip_scaleout:
+        bench_scaleout(args.scaleout_directions, args.block_poses)
     return 0
 
 

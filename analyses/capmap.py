@@ -3,9 +3,13 @@
 Subcommands:
 
 - ``capmap build [--voxel-mm V] [--directions K] [--limits 175|360] [--tool actuator]
-  [--rolls R] [--self-collision] [--workers W] --out map.h5`` (without ``--tool`` the mapped
-  frame is the flange, wrist3_Link; with ``--tool actuator`` it is the actuator's implant tip,
-  z along the implant axis, the drilling direction). Progress on stderr; a summary on stdout.
+  [--rolls R] [--self-collision] [--workers W] [--scheduler local|tcp://HOST:PORT] [--resume]
+  --out map.h5`` (without ``--tool`` the mapped frame is the flange, wrist3_Link; with ``--tool
+  actuator`` it is the actuator's implant tip, z along the implant axis, the drilling
+  direction). Voxel blocks run on the engine of systems.scaleout (a LocalCluster by default
+  when W > 1); finished blocks go to ``map.h5.blocks-<key>/`` so ``--resume`` redoes only the
+  missing ones; the HDF5 is written once at the end (atomically) and the block folder removed.
+  Progress (blocks done / total, ETA) on stderr; a summary on stdout.
 - ``capmap query map.h5 --poses FILE.npy --out q.json``: poses N x 4 x 4 in base_link; JSON with
   ``reachable`` (bool) and ``index`` (float), one per pose.
 - ``capmap accuracy map.h5 [--samples N] [--seed S]``: TP/FP/FN against direct IK.
@@ -37,8 +41,8 @@ from implantplan.analyses.progress import Progress
 from implantplan.systems import capability_map as cm
 from implantplan.systems import map_store as ms
 from implantplan.systems import rasscmap_inputs as rin
+from implantplan.systems import scaleout, validate
 from implantplan.systems import setup_search as ss
-from implantplan.systems import validate
 from implantplan.systems.actuator import actuator_map_frame
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import write_json
@@ -53,6 +57,11 @@ def tool_frame(tool: str | None) -> tuple[np.ndarray, str]:
     raise InputError("tool", f"expected 'actuator' (or no --tool for the flange), got {tool!r}")
 
 
+# IK poses per block: >= ~100 ms of work per task at ~1 M poses/s (the Dask per-task overhead is a
+# few ms, analyses/bench_capmap.py), ~45 MB of poses per worker.
+BLOCK_POSES = 100_000
+
+
 def build_map(
     voxel_mm: float,
     directions: int,
@@ -63,12 +72,27 @@ def build_map(
     *,
     self_collision: bool = False,
     quiet: bool = False,
-) -> cm.CapabilityMap:
+    scheduler: str | None = None,
+    out: str | Path | None = None,
+    resume: bool = False,
+    poses_per_block: int = BLOCK_POSES,
+) -> tuple[cm.CapabilityMap, dict]:
+    """Build a map on the engine of ``scheduler`` / ``workers`` (systems.scaleout); returns the
+    map and what the build did (blocks, reused, computed, engine).
+
+    With ``out`` the finished blocks go to the build's block store beside it
+    (:class:`systems.capability_map.BlockStore`), the map is written to ``out`` once, atomically,
+    and the store is removed; ``resume`` reuses the blocks of an interrupted build (without it a
+    store holding blocks is an error, so a forgotten flag never throws hours of work away).
+    """
     X_FT, name = tool_frame(tool)
     params = cm.make_params(
         voxel_mm / 1000.0, directions, limits=limits, X_FT=X_FT, tool=name, rolls=rolls,
         self_collision=self_collision,
     )  # fmt: skip
+    scaleout.check_scheduler(scheduler, workers)
+    if int(poses_per_block) != poses_per_block or poses_per_block < 1:
+        raise InputError("--block-poses", f"expected an integer >= 1, got {poses_per_block!r}")
     grid = cm.make_grid(params)
     prog = Progress("capmap build", quiet=quiet)
     n_vox = len(cm.candidate_voxels(params, grid))
@@ -77,25 +101,55 @@ def build_map(
         f"limits +-{limits} deg: {n_vox} voxels x {directions * params.rolls} = "
         f"{n_vox * directions * params.rolls:,} IK poses"
     )
-    cmap = cm.build(params, workers=workers, progress=lambda i, n: prog.step(i - 1, n, "blocks"))
+    store = None
+    n_blocks = len(cm.blocks_of(params, poses_per_block))
+    have = 0
+    if out is not None:
+        store = cm.BlockStore.beside(out, params, poses_per_block=poses_per_block)
+        have = len(store.finished())
+        if have and not resume:
+            raise InputError(
+                "--resume",
+                f"{store.folder} holds {have} of {n_blocks} blocks of an interrupted build of "
+                "this map: pass --resume to reuse them, or delete the folder",
+            )
+    with scaleout.engine(scheduler, workers, warm_up=[cm.__name__]) as eng:
+        prog.say(
+            f"{eng.description}: {n_blocks} blocks of <= {poses_per_block:,} poses"
+            + (f", {have} done before (resumed)" if have else "")
+        )
+        eta = scaleout.Eta(n_blocks, skipped=have)
+        cmap = cm.build(
+            params,
+            executor=eng.executor,
+            workers=1,
+            poses_per_block=poses_per_block,
+            store=store,
+            progress=lambda i, n: prog.step(i - 1, n, f"blocks, {eta.text(i)}"),
+        )
     prog.say(f"done: {cmap.stats()['voxels_reachable']} reachable voxels")
-    return cmap
+    info = {"blocks": n_blocks, "blocks_reused": store.reused if store else 0,
+            "blocks_computed": store.written if store else n_blocks,
+            "engine": eng.description}  # fmt: skip
+    if out is not None:
+        cmap.save(out)
+        store.remove()
+    return cmap, info
 
 
 def _cmd_build(args) -> int:
-    if args.workers is not None and args.workers < 1:
-        raise InputError("--workers", f"expected >= 1, got {args.workers}")
     t0 = time.perf_counter()
-    cmap = build_map(
+    cmap, info = build_map(
         args.voxel_mm, args.directions, args.limits, args.tool, args.rolls, args.workers,
-        self_collision=args.self_collision,
+        self_collision=args.self_collision, scheduler=args.scheduler, out=args.out,
+        resume=args.resume, poses_per_block=args.block_poses,
     )  # fmt: skip
-    cmap.save(args.out)
     summary = {
         "out": str(args.out),
         "params": cmap.params.as_dict(),
         "seconds": round(time.perf_counter() - t0, 3),
         **cmap.stats(),
+        **info,
     }
     print(json.dumps(summary))
     return 0
@@ -171,7 +225,7 @@ def resolve_map(robot: rin.Robot, override: str | None, *, quiet: bool = False) 
         if key not in ("voxel_mm", "directions", "limits", "tool", "rolls", "workers",
                        "self_collision"):  # fmt: skip
             raise InputError(f"robot.build.{key}", "unknown key")
-    cmap = build_map(
+    cmap, _ = build_map(
         float(b.get("voxel_mm", 50)),
         int(b.get("directions", 100)),
         str(b.get("limits", robot.limits or "175")),
@@ -180,8 +234,8 @@ def resolve_map(robot: rin.Robot, override: str | None, *, quiet: bool = False) 
         b.get("workers"),
         self_collision=bool(b.get("self_collision", False)),
         quiet=quiet,
+        out=path,
     )
-    cmap.save(path)
     return cmap
 
 
@@ -302,7 +356,16 @@ def register(subparsers) -> None:
     b.add_argument("--limits", choices=("175", "360"), default="175", help="joint limits, deg")
     b.add_argument("--tool", choices=("actuator",), default=None, help="map the actuator's tip")
     b.add_argument("--rolls", type=int, default=None, help="roll samples (off-axis tools only)")
-    b.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    b.add_argument("--workers", type=int, default=None, help=scaleout.WORKERS_HELP)
+    b.add_argument("--scheduler", default=None, help=scaleout.SCHEDULER_HELP)
+    b.add_argument(
+        "--block-poses", type=int, default=BLOCK_POSES,
+        help=f"IK poses per block, one task each (default {BLOCK_POSES:,}: >= ~100 ms of work)",
+    )  # fmt: skip
+    b.add_argument(
+        "--resume", action="store_true",
+        help="reuse the finished blocks of an interrupted build of the same map (<out>.blocks-*)",
+    )  # fmt: skip
     b.add_argument(
         "--self-collision", action="store_true", help="also require self-collision-free IK"
     )

@@ -68,6 +68,9 @@ def _common(p: argparse.ArgumentParser, default_out: Path | None) -> None:
                    help="feeding simulations per site (default: the case's simulation.runs)")
     p.add_argument("--no-html-scene", action="store_true",
                    help="skip the Meshcat static HTML of the layout")
+    p.add_argument("--no-figures", action="store_true",
+                   help="skip the figures (and the 3D scene): plan.json, fpsm.json and a report "
+                        "of tables only (studies of many cases)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
@@ -84,7 +87,7 @@ def _run(case: Case, args) -> int:
         raise InputError("--runs", f"expected a number >= 0, got {args.runs}")
     t0 = time.perf_counter()
     plan = plan_case(case, args.out, runs=args.runs, html_scene=not args.no_html_scene,
-                     quiet=args.quiet)
+                     quiet=args.quiet, figures=not args.no_figures)
     failed = [c["name"] for c in plan["checks"] if not c["pass"]]
     print(f"plan: {args.out / 'plan.json'}")
     print(f"checks: {len(plan['checks']) - len(failed)} of {len(plan['checks'])} pass"
@@ -95,8 +98,9 @@ def _run(case: Case, args) -> int:
 
 
 def plan_case(case: Case, out_dir: Path, *, runs: int | None = None, html_scene: bool = True,
-              quiet: bool = False) -> dict:
-    """Run every stage on ``case`` and write the plan into ``out_dir`` (atomically)."""
+              quiet: bool = False, figures: bool = True) -> dict:
+    """Run every stage on ``case`` and write the plan into ``out_dir`` (atomically); without
+    ``figures`` no PNG or 3D scene is drawn (plan.json does not depend on them)."""
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError("--out", f"{out_dir} exists and is not a folder")
@@ -108,7 +112,8 @@ def plan_case(case: Case, out_dir: Path, *, runs: int | None = None, html_scene:
                          f"{exc.strerror or exc}") from None
     staging.chmod(0o777 & ~_umask())  # mkdtemp makes it 0700; a plan folder is for colleagues too
     try:
-        plan = _plan_into(case, staging, runs=runs, html_scene=html_scene, quiet=quiet)
+        plan = _plan_into(case, staging, runs=runs, html_scene=html_scene, quiet=quiet,
+                          figures=figures)
         _swap_in(staging, out_dir)
     finally:
         if staging.exists():
@@ -132,9 +137,9 @@ def _swap_in(staging: Path, out_dir: Path) -> None:
         shutil.rmtree(old)
 
 
-def _plan_into(case: Case, out: Path, *, runs, html_scene: bool, quiet: bool) -> dict:
-    figures = out / "figures"
-    figures.mkdir()
+def _plan_into(case: Case, out: Path, *, runs, html_scene: bool, quiet: bool,
+               figures: bool = True) -> dict:
+    fig_dir = out / "figures"
     timing = {}
 
     prog = Progress("1/5 fpsm", quiet=quiet)
@@ -172,13 +177,16 @@ def _plan_into(case: Case, out: Path, *, runs, html_scene: bool, quiet: bool) ->
     plan["timing"] = timing
     plan["provenance"] = provenance(case_file=case.source, meshes=[case.mesh_path],
                                     seed=case.seed)
-    figs = make_figures(case, fit, placements, robot, cap, sims, figures,
-                        html_scene=html_scene, out=out)
+    figs = {}
+    if figures:
+        fig_dir.mkdir()
+        figs = make_figures(case, fit, placements, robot, cap, sims, fig_dir,
+                            html_scene=html_scene, out=out)
     write_json(out / "plan.json", plan, kind="plan")
     from implantplan.analyses.report import write_report
 
     write_report(out / "report.html", plan, figs)
-    n_png = sum(1 for _ in (out / "figures").rglob("*.png"))
+    n_png = sum(1 for _ in fig_dir.rglob("*.png"))
     prog.say(f"wrote plan.json, report.html and {n_png} figures")
     return plan
 

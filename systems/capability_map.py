@@ -32,8 +32,11 @@ table over (polar angle, azimuth) cells (cell centre -> nearest spiral direction
 spacing even at K = 200, so only poses that close to a Voronoi border can get the neighbour.
 
 The map is built in independent voxel blocks through any ``concurrent.futures.Executor``
-(:func:`build`; a ``ProcessPoolExecutor`` by default): :func:`build_block` is a pure top-level
-function of picklable inputs, so the same blocks could go to a cluster executor unchanged.
+(:func:`build`; a ``ProcessPoolExecutor`` by default, a Dask client's from
+:mod:`systems.scaleout` for a cluster): :func:`build_block` is a pure top-level function of
+picklable inputs. A :class:`BlockStore` keeps finished blocks on disk as they arrive, so an
+interrupted build resumes with only the missing blocks; blocks are joined in block order, so the
+map does not depend on the engine, the completion order or the resumption.
 
 Storage: HDF5 (h5py) with the parameters and ``schema_version`` as attributes; only voxels with at
 least one reachable direction are stored (packed bits), with a dense int32 grid -> row table.
@@ -47,9 +50,11 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 from collections.abc import Callable, Sequence
-from concurrent.futures import Executor, ProcessPoolExecutor
+from concurrent.futures import Executor, ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import h5py
 import numba
@@ -57,7 +62,7 @@ import numpy as np
 
 from implantplan.systems import validate
 from implantplan.systems.errors import InputError
-from implantplan.systems.files import write_atomic
+from implantplan.systems.files import write_atomic, write_json
 from implantplan.systems.frames import invert
 from implantplan.systems.kinematics import (
     DH_A2,
@@ -376,6 +381,111 @@ def _blocks(ids: np.ndarray, per_block: int) -> list[np.ndarray]:
     return [ids[i : i + per_block] for i in range(0, len(ids), per_block)]
 
 
+class BlockStore:
+    """Finished blocks of one build on disk, so an interrupted build resumes where it stopped.
+
+    The folder (``<out>.blocks-<key>`` beside the map file, :meth:`beside`) is keyed by the map
+    parameters and the block size, so blocks of a different map never mix in. Each block is an
+    ``.npz`` (voxel ids and the two packed bit arrays of :func:`build_block`) written atomically;
+    a block file that does not read back as the block it names counts as missing. ``manifest.json``
+    records what the blocks are of. Counters: ``reused`` (read back), ``written`` (this run).
+    """
+
+    def __init__(
+        self,
+        folder: str | os.PathLike,
+        params: MapParams,
+        blocks: Sequence[np.ndarray],
+        *,
+        poses_per_block: int,
+    ):
+        self.folder = Path(folder)
+        self.params = params
+        self.blocks = blocks
+        self.poses_per_block = int(poses_per_block)
+        self.reused = 0
+        self.written = 0
+
+    @staticmethod
+    def key(params: MapParams, poses_per_block: int) -> str:
+        text = json.dumps(
+            {
+                "params": params.as_dict(),
+                "poses_per_block": int(poses_per_block),
+                "schema_version": SCHEMA_VERSION,
+            },
+            sort_keys=True,
+        )
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    @classmethod
+    def beside(
+        cls, out: str | os.PathLike, params: MapParams, *, poses_per_block: int = 60_000
+    ) -> BlockStore:
+        """The store of a build whose map goes to ``out``."""
+        out = Path(out)
+        folder = out.with_name(f"{out.name}.blocks-{cls.key(params, poses_per_block)}")
+        return cls(
+            folder, params, blocks_of(params, poses_per_block), poses_per_block=poses_per_block
+        )
+
+    def _path(self, i: int):
+        return self.folder / f"block-{i:06d}.npz"
+
+    def finished(self) -> list[int]:
+        """Indices of the blocks on disk (present files; validity is checked on :meth:`read`)."""
+        if not self.folder.is_dir():
+            return []
+        return [i for i in range(len(self.blocks)) if self._path(i).is_file()]
+
+    def open(self) -> None:
+        """Create the folder and its manifest (kept if already there)."""
+        self.folder.mkdir(parents=True, exist_ok=True)
+        manifest = self.folder / "manifest.json"
+        if not manifest.is_file():
+            write_json(
+                manifest,
+                {
+                    "params": self.params.as_dict(),
+                    "blocks": len(self.blocks),
+                    "poses_per_block": self.poses_per_block,
+                },
+                kind="capability_map_blocks",
+            )
+
+    def read(self, i: int):
+        """Block ``i`` as :func:`build_block` returned it, or None if missing or not that block."""
+        nbytes = (self.params.directions + 7) // 8
+        try:
+            with np.load(self._path(i), allow_pickle=False) as z:
+                vox, reach, allr = z["voxel_ids"], z["reach_bits"], z["all_roll_bits"]
+        except (OSError, KeyError, ValueError):
+            return None
+        if (
+            vox.ndim != 1
+            or reach.shape != (len(vox), nbytes)
+            or allr.shape != reach.shape
+            or not np.all(np.isin(vox, self.blocks[i]))
+        ):
+            return None
+        self.reused += 1
+        return vox.astype(np.int64), reach, allr
+
+    def write(self, i: int, result) -> None:
+        vox, reach, allr = result
+
+        def writer(tmp):
+            with open(tmp, "wb") as f:
+                np.savez(f, voxel_ids=vox, reach_bits=reach, all_roll_bits=allr)
+
+        write_atomic(self._path(i), writer)
+        self.written += 1
+
+    def remove(self) -> None:
+        """Delete the folder (after the map file is written)."""
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+
 def build(
     params: MapParams,
     *,
@@ -383,37 +493,61 @@ def build(
     workers: int | None = None,
     poses_per_block: int = 60_000,
     progress: Callable[[int, int], None] | None = None,
+    store: BlockStore | None = None,
 ) -> CapabilityMap:
     """Build the map in independent voxel blocks.
 
     Args:
         params: from :func:`make_params`.
-        executor: any ``concurrent.futures.Executor`` (a cluster one works unchanged); by default
-            a ``ProcessPoolExecutor(workers)``; ``workers=1`` runs in this process.
+        executor: any ``concurrent.futures.Executor`` (e.g. a Dask client's,
+            :mod:`systems.scaleout`); by default a ``ProcessPoolExecutor(workers)``;
+            ``workers=1`` runs in this process.
         workers: process count for the default executor (default: os.cpu_count()).
         poses_per_block: IK poses per block (memory ~ 450 B per pose).
-        progress: ``progress(done_blocks, n_blocks)`` callback.
+        progress: ``progress(done_blocks, n_blocks)`` callback, blocks read from ``store``
+            included (called once with them before any is computed).
+        store: a :class:`BlockStore` of these blocks: blocks already in it are read, not
+            computed; every computed block is written to it as soon as it arrives (in completion
+            order). The result does not depend on the order: blocks are joined in block order.
     """
     grid = make_grid(params)
     ids = candidate_voxels(params, grid)
     per = max(1, poses_per_block // (params.directions * params.rolls))
     blocks = _blocks(ids, per)
-    results = []
-    if executor is None and (workers == 1 or len(blocks) == 1):
-        for i, b in enumerate(blocks):
-            results.append(build_block(params, b))
-            if progress:
-                progress(i + 1, len(blocks))
+    results: list = [None] * len(blocks)
+    if store is not None:
+        if len(store.blocks) != len(blocks) or store.poses_per_block != poses_per_block:
+            raise InputError("store", f"{store.folder} holds blocks of another partition")
+        store.open()
+        for i in store.finished():
+            results[i] = store.read(i)
+    todo = [i for i, r in enumerate(results) if r is None]
+    done = len(blocks) - len(todo)
+    if progress and done:
+        progress(done, len(blocks))
+
+    def finish(i, r):
+        nonlocal done
+        results[i] = r
+        if store is not None:
+            store.write(i, r)
+        done += 1
+        if progress:
+            progress(done, len(blocks))
+
+    if executor is None and (workers == 1 or len(todo) <= 1):
+        for i in todo:
+            finish(i, build_block(params, blocks[i]))
     else:
         own = executor is None
         ex = executor or ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1)
+        futures = {ex.submit(build_block, params, blocks[i]): i for i in todo}
         try:
-            futures = [ex.submit(build_block, params, b) for b in blocks]
-            for i, f in enumerate(futures):
-                results.append(f.result())
-                if progress:
-                    progress(i + 1, len(blocks))
+            for f in as_completed(futures):
+                finish(futures[f], f.result())
         finally:
+            for f in futures:
+                f.cancel()
             if own:
                 ex.shutdown()
     vox = np.concatenate([r[0] for r in results]) if results else np.zeros(0, np.int64)

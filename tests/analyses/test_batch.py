@@ -1,0 +1,139 @@
+"""``implantplan batch``: a synthetic cohort of 8 cases (one broken) on a 2-worker LocalCluster:
+7 plans, 1 recorded failure, the documented exit code, and the same plans as each case planned
+alone; the bad-input path, the exit-code rule and the generator's determinism."""
+
+import csv
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+
+from implantplan import models
+from implantplan.analyses.batch import batch_exit_code
+from implantplan.analyses.case import default_case_path
+from implantplan.analyses.cli import main
+from implantplan.analyses.cohort import load_cohort
+
+FAST = ["--runs", "0", "--no-figures", "--quiet"]
+BROKEN = 5  # this case's first site gets an axis into the bone: no collision-free placement
+
+
+def _small_case(folder: Path) -> Path:
+    """The default case with a small FPSM, robot search and map (~1 s per plan, no feeds)."""
+    data = yaml.safe_load(default_case_path().read_text())
+    data["mesh"]["path"] = str(models.model_path("oral/oralCavityMesh.obj"))
+    data["fpsm"].update(slices=10, control_points=10, samples=100)
+    data["robot"].update(pop=12, gen=2)
+    data["capability"].update(directions=20)
+    data["simulation"]["runs"] = 0
+    path = folder / "small.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def _plan_json(folder: Path) -> dict:
+    plan = json.loads((folder / "plan.json").read_text())
+    plan.pop("timing")
+    for s in plan["sites"]:
+        s["placement"].pop("seconds")
+    return plan
+
+
+@pytest.fixture(scope="module")
+def cohort(tmp_path_factory):
+    root = tmp_path_factory.mktemp("cohort")
+    assert main(["batch", "--make-cohort", str(_small_case(root)), "--cases", "8", "--seed", "3",
+                 "--out", str(root / "cases")]) == 0  # fmt: skip
+    path = root / "cases" / "cohort.yaml"
+    files = load_cohort(path)[1]
+    broken = yaml.safe_load(files[BROKEN].read_text())
+    broken["sites"][0]["axis"] = [0.258819, -0.965926, 0.0]
+    files[BROKEN].write_text(yaml.safe_dump(broken))
+    out = root / "out"
+    code = main(["batch", "--cohort", str(path), "--out", str(out), "--workers", "2",
+                 "--scheduler", "local", *FAST])  # fmt: skip
+    return files, out, code
+
+
+def test_cohort_of_eight_with_one_broken_case(cohort):
+    files, out, code = cohort
+    assert code == 3  # a planning failure, no bad input
+    rows = list(csv.DictReader((out / "summary.csv").open()))
+    assert [r["case"] for r in rows] == [f"default-{i:02d}" for i in range(8)]
+    status = [r["status"] for r in rows]
+    assert status.count("passed") == 7 and status[BROKEN] == "planning failed"
+    bad = rows[BROKEN]
+    assert bad["plan_exit_code"] == "3" and "site 36" in bad["reason"]
+    assert "no collision-free instrument placement" in bad["reason"]
+    for i, r in enumerate(rows):
+        assert (out / r["folder"] / "plan.json").is_file() == (i != BROKEN)
+        if i != BROKEN:
+            assert r["checks_passed"] == r["checks_total"] != "0" and r["plan_exit_code"] == "0"
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["kind"] == "batch_summary" and summary["exit_code"] == 3
+    assert summary["counts"]["passed"] == 7 and summary["counts"]["planning failed"] == 1
+    checks = list(csv.DictReader((out / "checks.csv").open()))
+    assert {c["case"] for c in checks} == {r["case"] for i, r in enumerate(rows) if i != BROKEN}
+    page = (out / "summary.html").read_text()
+    assert "7 of 8 cases passed" in page and "summary.png" in page
+    assert (out / "summary.png").stat().st_size > 10_000
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []
+
+
+def test_a_batch_plan_equals_the_case_planned_alone(cohort, tmp_path):
+    files, out, _ = cohort  # one case here (all of them: the slow test below)
+    assert main(["plan", str(files[0]), "--out", str(tmp_path / "alone"), *FAST]) == 0
+    assert _plan_json(out / files[0].stem) == _plan_json(tmp_path / "alone")
+
+
+@pytest.mark.slow
+def test_every_batch_plan_equals_the_case_planned_alone(cohort, tmp_path):
+    files, out, _ = cohort
+    for k, f in enumerate(files):
+        if k != BROKEN:
+            assert main(["plan", str(f), "--out", str(tmp_path / f.stem), *FAST]) == 0
+            assert _plan_json(out / f.stem) == _plan_json(tmp_path / f.stem)
+
+
+def test_bad_input_is_recorded_and_exits_2(tmp_path, capsys):
+    out = tmp_path / "out"
+    code = main(["batch", str(tmp_path / "missing.yaml"), str(tmp_path / "missing.yaml"),
+                 "--out", str(out), "--workers", "1", *FAST])  # fmt: skip
+    assert code == 2
+    rows = list(csv.DictReader((out / "summary.csv").open()))
+    assert [r["folder"] for r in rows] == ["missing", "missing-2"]
+    assert all(r["status"] == "bad input" and r["plan_exit_code"] == "2" for r in rows)
+    assert "case: file" in rows[0]["reason"] and "does not exist" in rows[0]["reason"]
+    assert "Traceback" not in capsys.readouterr().err
+    # errors of the command itself exit 2 before planning anything
+    assert main(["batch", "--out", str(tmp_path / "x"), "--workers", "1"]) == 2
+    assert main(["batch", "a.yaml", "--make-cohort", "b.yaml", "--out", str(tmp_path)]) == 2
+    assert main(["batch", "a.yaml", "--out", str(tmp_path), "--scheduler", "nowhere"]) == 2
+    (tmp_path / "bad.yaml").write_text("schema_version: 1\ncases: []\n")
+    assert main(["batch", "--cohort", str(tmp_path / "bad.yaml"), "--out", str(out)]) == 2
+    assert "cases: expected a list" in capsys.readouterr().err
+
+
+def test_exit_code_rule():
+    assert batch_exit_code(["passed"] * 3) == 0
+    assert batch_exit_code(["passed", "checks failed"]) == 3
+    assert batch_exit_code(["planning failed", "passed"]) == 3
+    assert batch_exit_code(["planning failed", "bad input"]) == 2
+    assert batch_exit_code(["bad input", "internal error"]) == 1
+
+
+def test_make_cohort_same_seed_same_files(tmp_path):
+    case = _small_case(tmp_path)
+    for name in ("a", "b"):
+        assert main(["batch", "--make-cohort", str(case), "--cases", "2", "--seed", "3",
+                     "--out", str(tmp_path / name)]) == 0  # fmt: skip
+    a = sorted(p.name for p in (tmp_path / "a").iterdir())
+    assert a == ["cohort.yaml", "default-00.obj", "default-00.yaml", "default-01.obj",
+                 "default-01.yaml"]  # fmt: skip
+    for n in a:
+        assert (tmp_path / "a" / n).read_bytes() == (tmp_path / "b" / n).read_bytes(), n
+    c0 = yaml.safe_load((tmp_path / "a" / "default-00.yaml").read_text())
+    c1 = yaml.safe_load((tmp_path / "a" / "default-01.yaml").read_text())
+    assert c0["sites"][0]["position_mm"] != c1["sites"][0]["position_mm"]
+    assert c0["center"] == c1["center"]  # the planning frame stays; the anatomy moves in it
