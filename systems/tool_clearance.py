@@ -23,7 +23,8 @@ most d away). Values beyond ``cap`` are clamped (a lower bound stays one).
 
 **Between nodes** the trilinear interpolant I of the node bounds L_c satisfies, for a
 1-Lipschitz f, f(q) >= sum_c w_c (L_c - |q - c|) >= I(q) - g sqrt(sum_a t_a (1 - t_a)), by
-Jensen (sum_c w_c |q - c|^2 = g^2 sum_a t_a (1 - t_a) for the cell's fractional coordinates t_a).
+Jensen (sum_c w_c |q - c|^2 = g^2 sum_a t_a (1 - t_a) for the cell's fractional coordinates t_a);
+each corner's cone L_c - |q - c| is a bound too, and the largest of the nine is used.
 
 **Along the axis** two samples q_i, q_{i+1} at distance t with bounds b_i, b_{i+1} give
 min over the segment between them of f >= (b_i + b_{i+1} - t) / 2 (both cones of slope 1). The
@@ -440,7 +441,17 @@ def _grid_bound(V, ox, oy, oz, g, x, y, z):
     c1 = c01 + ty * (c11 - c01)
     val = c0 + tz * (c1 - c0)
     err = g * np.sqrt(tx * (1.0 - tx) + ty * (1.0 - ty) + tz * (1.0 - tz))
-    return val - err
+    best = val - err
+    # the cone bound of each corner, L_c - |q - c|, is valid too: keep the larger
+    for a in range(2):
+        dx2 = (tx - a) * (tx - a)
+        for b in range(2):
+            dxy2 = dx2 + (ty - b) * (ty - b)
+            for c in range(2):
+                cone = V[i + a, j + b, k + c] - g * np.sqrt(dxy2 + (tz - c) * (tz - c))
+                if cone > best:
+                    best = cone
+    return best
 
 
 @numba.njit(cache=True)
