@@ -16,12 +16,14 @@ from __future__ import annotations
 import argparse
 import os
 import tempfile
-import time
+import timeit
 
 import numpy as np
 
 from implantplan.systems import capability_map as cm
-from implantplan.systems import rasscmap as rm
+from implantplan.systems import map_store as ms
+from implantplan.systems import rasscmap_inputs as rin
+from implantplan.systems import setup_search as ss
 from implantplan.systems.kinematics import fk, ik
 
 CASES = os.path.join(
@@ -46,35 +48,29 @@ def bench_ik(n: int = 200_000) -> float:
     rng = np.random.default_rng(0)
     X = fk(rng.uniform(-3, 3, (n, 6)))
     ik(X[:100])
-    t0 = time.perf_counter()
-    ik(X, limits="175")
-    return n / (time.perf_counter() - t0)
+    return n / min(timeit.repeat(lambda: ik(X, limits="175"), number=1, repeat=3))
 
 
 def bench_map(voxel: float, k: int, workers: int) -> tuple[cm.CapabilityMap, float]:
     params = cm.make_params(voxel, k)
-    t0 = time.perf_counter()
-    m = cm.build(params, workers=workers)
-    return m, time.perf_counter() - t0
+    built = []
+    (t,) = timeit.repeat(lambda: built.append(cm.build(params, workers=workers)), number=1,
+                         repeat=1)
+    return built[0], t
 
 
 def bench_query(m: cm.CapabilityMap, n: int = 2_000_000) -> float:
     X = cm.random_poses(n, seed=7)
     m.query(X[:1000])
-    best = 0.0
-    for _ in range(3):
-        t0 = time.perf_counter()
-        m.query(X)
-        best = max(best, n / (time.perf_counter() - t0))
-    return best
+    return n / min(timeit.repeat(lambda: m.query(X), number=1, repeat=3))
 
 
 def _problem(cmap, patient, task, robot, store=None):
-    return rm.SetupProblem(
+    return ss.SetupProblem(
         cmap,
-        rm.load_patient(os.path.join(CASES, patient)),
-        rm.load_task(os.path.join(CASES, task)),
-        rm.load_robot(os.path.join(CASES, robot)),
+        rin.load_patient(os.path.join(CASES, patient)),
+        rin.load_task(os.path.join(CASES, task)),
+        rin.load_robot(os.path.join(CASES, robot)),
         store=store,
     )
 
@@ -123,7 +119,7 @@ def main(argv=None) -> int:
     pedi = _problem(m100, "pedicle_patient.yaml", "pedicle_task.yaml", "pedicle_robot.yaml")
     pedi.evaluate(np.arange(3))  # warm up
     pedi = _problem(m100, "pedicle_patient.yaml", "pedicle_task.yaml", "pedicle_robot.yaml")
-    ex = rm.exhaustive_search(pedi)
+    ex = ss.exhaustive_search(pedi)
     n_pts = len(pedi.points_W)
     _row(
         f"unconstrained RASSCMAP per base ({n_pts} pts, 800 bases)",
@@ -135,7 +131,7 @@ def main(argv=None) -> int:
     ga_times, ga_costs, ga_book = [], [], []
     for seed in range(5):
         p = _problem(m100, "pedicle_patient.yaml", "pedicle_task.yaml", "pedicle_robot.yaml")
-        r = rm.genetic_search(p, seed=seed)
+        r = ss.genetic_search(p, seed=seed)
         ga_times.append(r.seconds)
         ga_costs.append(r.cost)
         ga_book.append((r.seconds - p.eval_seconds) / max(r.generations, 1))
@@ -145,64 +141,33 @@ def main(argv=None) -> int:
     print(f"    best cost exhaustive {ex.cost:.4f}; GA over 5 seeds {ga_range}")
 
     with tempfile.TemporaryDirectory() as tmp:
-        store = rm.RasscmapStore(tmp)
-        lap = _problem(
-            m100,
-            "laparoscopy_patient.yaml",
-            "laparoscopy_task.yaml",
-            "laparoscopy_robot_rail.yaml",
-            store,
-        )
-        t0 = time.perf_counter()
-        lap.rasscmap(0, 0)
-        t_one = time.perf_counter() - t0
+        store = ms.RasscmapStore(tmp)
+
+        def lap_problem(robot_file):
+            return _problem(m100, "laparoscopy_patient.yaml", "laparoscopy_task.yaml", robot_file,
+                            store)
+
+        lap = lap_problem("laparoscopy_robot_rail.yaml")
+        t_one = timeit.timeit(lambda: lap.rasscmap(0, 0), number=1)
         r = lap.rasscmap(1, 0)
         _row("constrained RASSCMAP, 5 cm / 5 deg (build)", t_one, 8.7, "s")
         print(f"    ({r.timings['n_voxels']} voxels, {r.timings['n_pivots']} pivots; "
               f"Alg. 1 {r.timings['t_t']:.3f} s, Alg. 2 {r.timings['t_R']:.3f} s)")  # fmt: skip
-        fixed = _problem(
-            m100,
-            "laparoscopy_patient.yaml",
-            "laparoscopy_task.yaml",
-            "laparoscopy_robot_fixed.yaml",
-            store,
-        )
-        t0 = time.perf_counter()
-        fixed.evaluate(np.arange(fixed.n))
-        t_build_fixed = time.perf_counter() - t0
-        fixed = _problem(
-            m100,
-            "laparoscopy_patient.yaml",
-            "laparoscopy_task.yaml",
-            "laparoscopy_robot_fixed.yaml",
-            store,
-        )
-        rf = rm.exhaustive_search(fixed)
+        fixed = lap_problem("laparoscopy_robot_fixed.yaml")
+        t_build_fixed = timeit.timeit(lambda: fixed.evaluate(np.arange(fixed.n)), number=1)
+        fixed = lap_problem("laparoscopy_robot_fixed.yaml")
+        rf = ss.exhaustive_search(fixed)
         _row("laparoscopy fixed base, 5 APs, 200 tasks (stored maps)", rf.seconds, 0.33, "s")
         _row("  same + building its 5 maps [b]", t_build_fixed + rf.seconds, 5 * 8.7 + 0.33, "s")
-        t0 = time.perf_counter()
-        lap.evaluate(np.arange(lap.n))
-        t_build_rail = time.perf_counter() - t0
-        rail = _problem(
-            m100,
-            "laparoscopy_patient.yaml",
-            "laparoscopy_task.yaml",
-            "laparoscopy_robot_rail.yaml",
-            store,
-        )
-        rr = rm.exhaustive_search(rail)
+        t_build_rail = timeit.timeit(lambda: lap.evaluate(np.arange(lap.n)), number=1)
+        rail = lap_problem("laparoscopy_robot_rail.yaml")
+        rr = ss.exhaustive_search(rail)
         _row("laparoscopy rail 25 x 5 APs, 200 tasks (stored maps)", rr.seconds, 4.92, "s")
         _row("  same + building its 125 maps [b]", t_build_rail, 125 * 8.7 + 4.92, "s")
         print("    [b] paper: its maps come from the RASSCMAP database; building them would take")
         print("        8.7 s each (Table 1), so the reference is n_maps x 8.7 s + its search time")
-        rg = rm.genetic_search(
-            _problem(
-                m100,
-                "laparoscopy_patient.yaml",
-                "laparoscopy_task.yaml",
-                "laparoscopy_robot_rail.yaml",
-                store,
-            ),
+        rg = ss.genetic_search(
+            lap_problem("laparoscopy_robot_rail.yaml"),
             seed=0,
         )
         _row("laparoscopy rail, GA (stored maps)", rg.seconds, 4.92, "s")

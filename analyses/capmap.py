@@ -27,23 +27,22 @@ from pathlib import Path
 
 import numpy as np
 
+from implantplan.analyses.figures.capability import (
+    meshcat_html,
+    plot_best_worst,
+    plot_map_slices,
+    setup_points,
+)
 from implantplan.analyses.progress import Progress
 from implantplan.systems import capability_map as cm
-from implantplan.systems import rasscmap as rm
+from implantplan.systems import map_store as ms
+from implantplan.systems import rasscmap_inputs as rin
+from implantplan.systems import setup_search as ss
+from implantplan.systems import validate
+from implantplan.systems.actuator import actuator_map_frame
 from implantplan.systems.errors import InputError
-from implantplan.systems.files import write_json, write_text_atomic
-from implantplan.systems.frames import invert, rot_x, transform
-
-
-def actuator_map_frame() -> np.ndarray:
-    """X_FA: the implant tip of the actuator, z = drilling direction (flange -y), x = flange x.
-
-    The actuator is a contra-angle piece: its implant axis is the TCP's y axis, perpendicular to
-    the flange z, so roll about the approach axis is not free for this frame (it is sampled).
-    """
-    from implantplan.diagrams.tools import p_FTip
-
-    return transform(rot_x(np.pi / 2), p_FTip())
+from implantplan.systems.files import write_json
+from implantplan.systems.frames import invert
 
 
 def tool_frame(tool: str | None) -> tuple[np.ndarray, str]:
@@ -110,11 +109,9 @@ def _load_poses(path) -> np.ndarray:
         X = np.load(path, allow_pickle=False)
     except (ValueError, OSError) as exc:
         raise InputError("--poses", f"{path} is not a .npy array ({exc})") from None
-    if X.ndim != 3 or X.shape[1:] != (4, 4):
+    if X.ndim != 3:
         raise InputError("--poses", f"expected an N x 4 x 4 array, got shape {X.shape}")
-    if not np.all(np.isfinite(X)):
-        raise InputError("--poses", "poses must be finite")
-    return X.astype(float)
+    return validate.pose(X, "--poses", batch=True)
 
 
 def _cmd_query(args) -> int:
@@ -159,7 +156,7 @@ def _cmd_show(args) -> int:
 # ---------------------------------------------------------------------------------------------
 
 
-def resolve_map(robot: rm.Robot, override: str | None, *, quiet: bool = False) -> cm.CapabilityMap:
+def resolve_map(robot: rin.Robot, override: str | None, *, quiet: bool = False) -> cm.CapabilityMap:
     """Load the robot's CMAP (or ``override``); build and save it first if missing + buildable."""
     path = Path(override) if override else robot.map_path
     expect = {"limits": robot.limits} if robot.limits else None
@@ -188,133 +185,6 @@ def resolve_map(robot: rm.Robot, override: str | None, *, quiet: bool = False) -
     return cmap
 
 
-def hsv_index_cmap():
-    """Matplotlib colormap: HSV hue from red (index 0) to blue (index 1), Sec. 3."""
-    import matplotlib.colors as mcolors
-    import matplotlib.pyplot as plt
-
-    return mcolors.ListedColormap(plt.get_cmap("hsv")(np.linspace(0.0, 2.0 / 3.0, 256)))
-
-
-def plot_map_slices(cmap: cm.CapabilityMap, path, *, n_slices: int = 6) -> None:
-    """PNG: horizontal slices (xy) of the map at evenly spaced heights, voxels coloured by index."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    g = cmap.grid
-    dense = np.full(g.size, np.nan)
-    dense[cmap.voxel_ids] = cmap.index
-    dense = dense.reshape(g.shape)
-    ks = np.flatnonzero(np.any(np.isfinite(dense), axis=(0, 1)))
-    if len(ks) == 0:
-        raise InputError("map", "the map has no reachable voxel to draw")
-    pick = ks[np.linspace(0, len(ks) - 1, n_slices).round().astype(int)]
-    cols = 3
-    rows = int(np.ceil(len(pick) / cols))
-    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3.8 * rows), squeeze=False)
-    ext = [
-        g.origin[0],
-        g.origin[0] + g.shape[0] * g.voxel,
-        g.origin[1],
-        g.origin[1] + g.shape[1] * g.voxel,
-    ]
-    im = None
-    for ax, k in zip(axes.ravel(), pick, strict=False):
-        z = g.origin[2] + (k + 0.5) * g.voxel
-        im = ax.imshow(
-            dense[:, :, k].T, origin="lower", extent=ext, cmap=hsv_index_cmap(), vmin=0, vmax=1
-        )
-        ax.set_title(f"z = {z:.3f} m")
-        ax.set_xlabel("x (m)")
-        ax.set_ylabel("y (m)")
-        ax.set_aspect("equal")
-    for ax in axes.ravel()[len(pick) :]:
-        ax.axis("off")
-    fig.colorbar(im, ax=axes.ravel().tolist(), label="reachability index")
-    p = cmap.params
-    fig.suptitle(
-        f"capability map ({p.tool}, {p.voxel * 1000:g} mm, {p.directions} dirs, +-{p.limits} deg)"
-    )
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-
-
-def _map_points(problem: rm.SetupProblem, cand: int) -> tuple[np.ndarray, np.ndarray]:
-    b, a = problem.split(np.array([cand]))
-    if problem.patient.access == "unconstrained":
-        idx = rm.unconstrained_index(problem.cmap, problem.bases[b], problem.points_W)[0]
-        return problem.points_W, idx
-    r = problem.rasscmap(int(b[0]), int(a[0]))
-    return r.centres, r.index
-
-
-def plot_best_worst(problem: rm.SetupProblem, best: int, worst: int, path) -> None:
-    """PNG: best vs worst setup side by side (top and side views), RASSCMAP coloured by index."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(2, 2, figsize=(12, 10))
-    cmap = hsv_index_cmap()
-    for col, (label, cand) in enumerate((("best", best), ("worst", worst))):
-        pts, idx = _map_points(problem, cand)
-        b, a = problem.split(np.array([cand]))
-        X_WB = problem.bases[b[0]]
-        for row, (i, j, names) in enumerate(((0, 1, ("x", "y")), (0, 2, ("x", "z")))):
-            ax = axes[row, col]
-            ax.scatter(pts[:, i], pts[:, j], c=idx, cmap=cmap, vmin=0, vmax=1, s=12, alpha=0.7)
-            t = problem.task.poses[:, :3, 3]
-            ax.scatter(t[:, i], t[:, j], marker="x", c="k", s=30, label="task poses")
-            allb = problem.bases[:, :3, 3]
-            ax.scatter(allb[:, i], allb[:, j], c="0.8", s=4, label="base candidates")
-            ax.scatter([X_WB[i, 3]], [X_WB[j, 3]], marker="s", c="k", s=80, label="base")
-            ax.arrow(
-                X_WB[i, 3], X_WB[j, 3], 0.15 * X_WB[i, 0], 0.15 * X_WB[j, 0], width=0.008, color="k"
-            )
-            if problem.patient.access == "constrained":
-                X_WA = problem.patient.access_points[a[0]][1]
-                ax.scatter(
-                    [X_WA[i, 3]], [X_WA[j, 3]], marker="v", c="m", s=80, label="access point"
-                )
-            ax.set_xlabel(f"{names[0]} (m)")
-            ax.set_ylabel(f"{names[1]} (m)")
-            ax.set_aspect("equal")
-            if row == 0:
-                ax.set_title(f"{label}: cost {problem.cost[cand]:.3f}, c_s {problem.c_s[cand]:.3f}")
-        axes[0, col].legend(loc="best", fontsize=7)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-
-
-def meshcat_html(points: np.ndarray, index: np.ndarray, path, *, voxel: float) -> bool:
-    """Static Meshcat HTML of voxels coloured by index (headless, port chosen by Drake).
-
-    Returns False (and writes nothing) when Meshcat cannot start here.
-    """
-    try:
-        from pydrake.geometry import Meshcat, MeshcatParams
-        from pydrake.perception import BaseField, Fields, PointCloud
-    except ImportError:
-        return False
-    import matplotlib
-
-    matplotlib.use("Agg")
-    try:
-        meshcat = Meshcat(MeshcatParams(host="localhost"))
-    except RuntimeError:
-        return False
-    cloud = PointCloud(len(points), Fields(BaseField.kXYZs | BaseField.kRGBs))
-    cloud.mutable_xyzs()[:] = np.asarray(points, dtype=np.float32).T
-    rgb = (hsv_index_cmap()(np.asarray(index))[:, :3] * 255).astype(np.uint8)
-    cloud.mutable_rgbs()[:] = rgb.T
-    meshcat.SetObject("/rasscmap", cloud, point_size=voxel * 0.8)
-    write_text_atomic(path, meshcat.StaticHtml())
-    return True
-
-
 def plan(
     patient_path,
     task_path,
@@ -329,18 +199,18 @@ def plan(
     quiet: bool = False,
 ) -> dict:
     """The ``capmap plan`` pipeline; returns the plan dict written to ``out_dir/plan.json``."""
-    patient = rm.load_patient(patient_path)
-    task = rm.load_task(task_path)
-    robot = rm.load_robot(robot_path)
+    patient = rin.load_patient(patient_path)
+    task = rin.load_task(task_path)
+    robot = rin.load_robot(robot_path)
     prog = Progress("capmap plan", quiet=quiet)
     cmap = resolve_map(robot, map_override, quiet=quiet)
     store_root = Path(store_dir) if store_dir else robot.store
     if store_root is None:
         store_root = Path(str(map_override or robot.map_path) + ".rasscmaps")
-    store = rm.RasscmapStore(store_root)
-    problem = rm.SetupProblem(cmap, patient, task, robot, store=store)
+    store = ms.RasscmapStore(store_root)
+    problem = ss.SetupProblem(cmap, patient, task, robot, store=store)
     prog.say(f"{problem.n} candidates ({len(problem.bases)} bases x {problem.n_access} access)")
-    res = rm.optimize(problem, method=method, seed=seed)
+    res = ss.optimize(problem, method=method, seed=seed)
     prog.say(f"{res.method}: best cost {res.cost:.4f} in {res.seconds:.3f} s")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -391,7 +261,7 @@ def plan(
     plot_map_slices(cmap, out / "cmap_slices.png")
     files = ["plan.json", "best_vs_worst.png", "cmap_slices.png"]
     if meshcat:
-        pts, idx = _map_points(problem, res.best)
+        pts, idx = setup_points(problem, res.best)
         if meshcat_html(pts, idx, out / "rasscmap_best.html", voxel=patient.voxel):
             files.append("rasscmap_best.html")
         else:

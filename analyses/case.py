@@ -12,6 +12,7 @@ Unknown keys are errors, so a typo never falls back to a default silently.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -69,10 +70,6 @@ class Case:
     extra: dict = field(default_factory=dict)
 
 
-_TOP = ("schema_version", "name", "seed", "mesh", "center", "fpsm", "sites", "placement",
-        "patient", "robot", "capability", "simulation")
-
-
 def resolve_path(value: str, base_dir: Path, field_name: str) -> Path:
     """``package://implantplan/REL`` -> models/REL; a relative path is relative to the case file."""
     if not isinstance(value, str) or not value:
@@ -100,85 +97,130 @@ def load_case(path) -> Case:
     return case_from_dict(data, source=path)
 
 
+# -- the file's schema (systems.validate typed sections; lengths in mm in the file) --------------
+
+
+@dataclass(frozen=True)
+class MeshSection:
+    path: str = v.spec(v.text)
+    units: str = v.spec(v.one_of("mm", "m"), "mm")
+    close_open_cuts: bool = v.spec(v.boolean, False)
+    cap_radius: float | None = v.spec(v.positive, None, key="cap_radius_mm", scale=MM)
+    mouth_opening_deg: float = v.spec(partial(v.number, low=0.0, high=45.0), 0.0)
+    hinge_point: np.ndarray | None = v.spec(v.vec3, None, key="hinge_point_mm", scale=MM)
+    hinge_axis: np.ndarray | None = v.spec(v.direction, None)
+    occlusal_point: np.ndarray | None = v.spec(v.vec3, None, key="occlusal_point_mm", scale=MM)
+    occlusal_normal: np.ndarray | None = v.spec(v.direction, None)
+    blend: float = v.spec(v.positive, 20.0, key="opening_blend_mm", scale=MM)
+
+
+@dataclass(frozen=True)
+class CenterSection:
+    origin: np.ndarray = v.spec(v.vec3, key="origin_mm", scale=MM)
+    z_axis: np.ndarray = v.spec(v.direction)
+    x_hint: np.ndarray | None = v.spec(v.direction, None)
+
+
+@dataclass(frozen=True)
+class FpsmSection:
+    slices: int = v.spec(partial(v.integer, low=2), 15)
+    control_points: int = v.spec(partial(v.integer, low=3), 15)
+    samples: int = v.spec(partial(v.integer, low=8), 150)
+    method: str = v.spec(v.one_of("exact", "paper"), "exact")
+    margin: float = v.spec(v.nonneg, 0.0, key="margin_mm", scale=MM)
+    z_range: np.ndarray | None = v.spec(v.interval, None, key="z_range_mm", scale=MM)
+
+
+@dataclass(frozen=True)
+class SiteSection:
+    name: str | None = v.spec(v.label, None)
+    position: np.ndarray = v.spec(v.vec3, key="position_mm", scale=MM)
+    axis: np.ndarray = v.spec(v.direction)
+    implant_length: float = v.spec(v.positive, 31.0, key="implant_length_mm", scale=MM)
+    rod_radius: float = v.spec(v.nonneg, 6.0, key="rod_radius_mm", scale=MM)
+
+
+@dataclass(frozen=True)
+class PlacementSection:
+    objective: str = v.spec(v.one_of("eq14", "eq21", "eq22"), "eq14")
+
+
+@dataclass(frozen=True)
+class PatientSection:
+    posture: str = v.spec(v.one_of("lying", "sitting"), "lying")
+
+
+@dataclass(frozen=True)
+class RobotSection:
+    scenario: str | None = v.spec(v.text, None)
+    pop: int = v.spec(partial(v.integer, low=4), 100)
+    gen: int = v.spec(partial(v.integer, low=1), 60)
+
+
+@dataclass(frozen=True)
+class CapabilitySection:
+    voxel: float = v.spec(partial(v.number, low=10.0), 50.0, key="voxel_mm", scale=MM)
+    directions: int = v.spec(partial(v.integer, low=4), 100)
+
+
+@dataclass(frozen=True)
+class SimulationSection:
+    runs: int = v.spec(partial(v.integer, low=0), 1)
+    mode: str = v.spec(v.one_of("kinematic", "dynamic"), "kinematic")
+
+
+def _sites(value, where: str) -> tuple:
+    if not isinstance(value, list) or not value:
+        raise InputError(where, "expected a list of at least one implant site")
+    return v.sections(SiteSection)(value, where)
+
+
+@dataclass(frozen=True)
+class CaseFile:
+    """The case file as written (mm), section by section; :func:`case_from_dict` turns it into
+    a :class:`Case` (SI, paths resolved, cross-field rules checked)."""
+
+    schema_version: int = v.spec(v.version(1))
+    name: str | None = v.spec(v.label, None)
+    seed: int = v.spec(partial(v.integer, low=0), 0)
+    mesh: MeshSection = v.spec(v.section(MeshSection))
+    center: CenterSection = v.spec(v.section(CenterSection))
+    fpsm: FpsmSection = v.spec(v.section(FpsmSection), {})
+    sites: tuple = v.spec(_sites, [])
+    placement: PlacementSection = v.spec(v.section(PlacementSection), {})
+    patient: PatientSection = v.spec(v.section(PatientSection), {})
+    robot: RobotSection = v.spec(v.section(RobotSection), {})
+    capability: CapabilitySection = v.spec(v.section(CapabilitySection), {})
+    simulation: SimulationSection = v.spec(v.section(SimulationSection), {})
+
+
 def case_from_dict(data: dict, *, source: Path) -> Case:
-    v.unknown_keys(data, _TOP, "")
-    version = data.get("schema_version")
-    if version != 1:
-        raise InputError("schema_version", f"expected 1, got {version!r}")
+    """Validate a case mapping (:class:`CaseFile`) and resolve it into a :class:`Case`."""
+    f = v.parse(CaseFile, data, "")
     base_dir = source.resolve().parent
-
-    mesh = v.mapping(v.require(data, "mesh"), "mesh")
-    v.unknown_keys(mesh, ("path", "units", "close_open_cuts", "cap_radius_mm",
-                          "mouth_opening_deg", "hinge_point_mm", "hinge_axis",
-                          "occlusal_point_mm", "occlusal_normal", "opening_blend_mm"), "mesh.")
-    units = v.choice(mesh.get("units", "mm"), "mesh.units", ("mm", "m"))
-    close = mesh.get("close_open_cuts", False)
-    if not isinstance(close, bool):
-        raise InputError("mesh.close_open_cuts", f"expected true or false, got {close!r}")
-    cap = mesh.get("cap_radius_mm")
-    opening = v.number(mesh.get("mouth_opening_deg", 0.0), "mesh.mouth_opening_deg",
-                       low=0.0, high=45.0)
+    mesh = f.mesh
     opening_args = {}
-    if opening > 0:
-        opening_args = {
-            "hinge_point": v.vector(v.require(mesh, "hinge_point_mm", "mesh."),
-                                    "mesh.hinge_point_mm", 3) * MM,
-            "hinge_axis": v.direction(v.require(mesh, "hinge_axis", "mesh."), "mesh.hinge_axis"),
-            "occlusal_point": v.vector(v.require(mesh, "occlusal_point_mm", "mesh."),
-                                       "mesh.occlusal_point_mm", 3) * MM,
-            "occlusal_normal": v.direction(v.require(mesh, "occlusal_normal", "mesh."),
-                                           "mesh.occlusal_normal"),
-            "blend": v.number(mesh.get("opening_blend_mm", 20.0), "mesh.opening_blend_mm",
-                              positive=True) * MM,
-        }
+    if mesh.mouth_opening_deg > 0:
+        for key, value in (("hinge_point_mm", mesh.hinge_point), ("hinge_axis", mesh.hinge_axis),
+                           ("occlusal_point_mm", mesh.occlusal_point),
+                           ("occlusal_normal", mesh.occlusal_normal)):
+            if value is None:
+                raise InputError(f"mesh.{key}", "missing (required)")
+        opening_args = {"hinge_point": mesh.hinge_point, "hinge_axis": mesh.hinge_axis,
+                        "occlusal_point": mesh.occlusal_point,
+                        "occlusal_normal": mesh.occlusal_normal, "blend": mesh.blend}
 
-    center = v.mapping(v.require(data, "center"), "center")
-    v.unknown_keys(center, ("origin_mm", "z_axis", "x_hint"), "center.")
-    x_hint = center.get("x_hint")
-
-    fp = v.mapping(data.get("fpsm"), "fpsm")
-    v.unknown_keys(fp, ("slices", "control_points", "samples", "method", "margin_mm",
-                        "z_range_mm"), "fpsm.")
-    z_range = fp.get("z_range_mm")
-    if z_range is not None:
-        z_range = tuple(v.interval(z_range, "fpsm.z_range_mm") * MM)
-
-    raw_sites = data.get("sites")
-    if not isinstance(raw_sites, list) or not raw_sites:
-        raise InputError("sites", "expected a list of at least one implant site")
     sites, names = [], set()
-    for k, s in enumerate(raw_sites):
-        where = f"sites[{k}]."
-        s = v.mapping(s, where[:-1])
-        v.unknown_keys(s, ("name", "position_mm", "axis", "implant_length_mm", "rod_radius_mm"),
-                       where)
-        name = str(s.get("name", f"site{k + 1}"))
+    for k, s in enumerate(f.sites):
+        name = f"site{k + 1}" if s.name is None else s.name
         if name in names:
-            raise InputError(where + "name", f"site name {name!r} is used twice")
+            raise InputError(f"sites[{k}].name", f"site name {name!r} is used twice")
         names.add(name)
-        sites.append(Site(
-            name=name,
-            position=v.vector(v.require(s, "position_mm", where), where + "position_mm", 3) * MM,
-            axis=v.direction(v.require(s, "axis", where), where + "axis"),
-            implant_length=v.number(s.get("implant_length_mm", 31.0), where + "implant_length_mm",
-                                    positive=True) * MM,
-            rod_radius=v.number(s.get("rod_radius_mm", 6.0), where + "rod_radius_mm",
-                                nonneg=True) * MM,
-        ))
+        sites.append(Site(name=name, position=s.position, axis=s.axis,
+                          implant_length=s.implant_length, rod_radius=s.rod_radius))
 
-    placement = v.mapping(data.get("placement"), "placement")
-    v.unknown_keys(placement, ("objective",), "placement.")
-    patient = v.mapping(data.get("patient"), "patient")
-    v.unknown_keys(patient, ("posture",), "patient.")
-    robot = v.mapping(data.get("robot"), "robot")
-    v.unknown_keys(robot, ("scenario", "pop", "gen"), "robot.")
-    cap_map = v.mapping(data.get("capability"), "capability")
-    v.unknown_keys(cap_map, ("voxel_mm", "directions"), "capability.")
-    sim = v.mapping(data.get("simulation"), "simulation")
-    v.unknown_keys(sim, ("runs", "mode"), "simulation.")
-
-    posture = v.choice(patient.get("posture", "lying"), "patient.posture", ("lying", "sitting"))
-    scenario = robot.get("scenario", posture)
+    posture = f.patient.posture
+    scenario = f.robot.scenario or posture
     if scenario not in ("lying", "sitting"):
         scenario = str(resolve_path(scenario, base_dir, "robot.scenario"))
     elif scenario != posture:
@@ -186,37 +228,34 @@ def case_from_dict(data: dict, *, source: Path) -> Case:
             "robot.scenario",
             f"the bundled scenario {scenario!r} contradicts patient.posture {posture!r}",
         )
-
+    fp = f.fpsm
     return Case(
-        name=str(data.get("name", source.stem)),
+        name=source.stem if f.name is None else f.name,
         source=source,
-        seed=v.integer(data.get("seed", 0), "seed", low=0),
-        mesh_path=resolve_path(v.require(mesh, "path", "mesh."), base_dir, "mesh.path"),
-        units=units,
-        close_open_cuts=close,
-        cap_radius=None if cap is None else v.number(cap, "mesh.cap_radius_mm", positive=True) * MM,
-        mouth_opening_deg=opening,
+        seed=f.seed,
+        mesh_path=resolve_path(mesh.path, base_dir, "mesh.path"),
+        units=mesh.units,
+        close_open_cuts=mesh.close_open_cuts,
+        cap_radius=mesh.cap_radius,
+        mouth_opening_deg=mesh.mouth_opening_deg,
         opening=opening_args,
-        center_origin=v.vector(v.require(center, "origin_mm", "center."), "center.origin_mm", 3)
-        * MM,
-        center_z=v.direction(v.require(center, "z_axis", "center."), "center.z_axis"),
-        center_x_hint=None if x_hint is None else v.direction(x_hint, "center.x_hint"),
-        slices=v.integer(fp.get("slices", 15), "fpsm.slices", low=2),
-        control_points=v.integer(fp.get("control_points", 15), "fpsm.control_points", low=3),
-        samples=v.integer(fp.get("samples", 150), "fpsm.samples", low=8),
-        fit_method=v.choice(fp.get("method", "exact"), "fpsm.method", ("exact", "paper")),
-        margin=v.number(fp.get("margin_mm", 0.0), "fpsm.margin_mm", nonneg=True) * MM,
-        z_range=z_range,
+        center_origin=f.center.origin,
+        center_z=f.center.z_axis,
+        center_x_hint=f.center.x_hint,
+        slices=fp.slices,
+        control_points=fp.control_points,
+        samples=fp.samples,
+        fit_method=fp.method,
+        margin=fp.margin,
+        z_range=None if fp.z_range is None else tuple(fp.z_range),
         sites=tuple(sites),
-        objective=v.choice(placement.get("objective", "eq14"), "placement.objective",
-                           ("eq14", "eq21", "eq22")),
+        objective=f.placement.objective,
         posture=posture,
         scenario=scenario,
-        pop=v.integer(robot.get("pop", 100), "robot.pop", low=4),
-        gen=v.integer(robot.get("gen", 60), "robot.gen", low=1),
-        voxel=v.number(cap_map.get("voxel_mm", 50.0), "capability.voxel_mm", low=10.0) * MM,
-        directions=v.integer(cap_map.get("directions", 100), "capability.directions", low=4),
-        sim_runs=v.integer(sim.get("runs", 1), "simulation.runs", low=0),
-        sim_mode=v.choice(sim.get("mode", "kinematic"), "simulation.mode",
-                          ("kinematic", "dynamic")),
+        pop=f.robot.pop,
+        gen=f.robot.gen,
+        voxel=f.capability.voxel,
+        directions=f.capability.directions,
+        sim_runs=f.simulation.runs,
+        sim_mode=f.simulation.mode,
     )

@@ -14,9 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
+from implantplan.analyses.figures.fpsm import plot_fit
 from implantplan.analyses.progress import Progress
 from implantplan.systems.errors import InputError
-from implantplan.systems.files import write_atomic
+
+POINT, DIRECTION = ("X", "Y", "Z"), ("DX", "DY", "DZ")  # metavars of 3-vector options
 
 
 def register(subparsers) -> None:
@@ -26,30 +28,12 @@ def register(subparsers) -> None:
     fit = sub.add_parser("fit", help="fit the FPSM to an oral mesh (stage 1)")
     fit.add_argument("mesh", metavar="MESH", help="mesh file (STL, OBJ, PLY, OFF, GLB, ...)")
     fit.add_argument("--units", choices=("mm", "m"), default="mm", help="units of the mesh file")
-    fit.add_argument(
-        "--center-origin-mm",
-        nargs=3,
-        type=float,
-        required=True,
-        metavar=("X", "Y", "Z"),
-        help="Center origin in the mesh frame (mm)",
-    )
-    fit.add_argument(
-        "--center-z",
-        nargs=3,
-        type=float,
-        required=True,
-        metavar=("DX", "DY", "DZ"),
-        help="Center Z axis (out of the mouth)",
-    )
-    fit.add_argument(
-        "--center-x-hint",
-        nargs=3,
-        type=float,
-        default=None,
-        metavar=("DX", "DY", "DZ"),
-        help="direction made orthogonal to Z for Center X",
-    )
+    fit.add_argument("--center-origin-mm", nargs=3, type=float, required=True, metavar=POINT,
+                     help="Center origin in the mesh frame (mm)")
+    fit.add_argument("--center-z", nargs=3, type=float, required=True, metavar=DIRECTION,
+                     help="Center Z axis (out of the mouth)")
+    fit.add_argument("--center-x-hint", nargs=3, type=float, default=None, metavar=DIRECTION,
+                     help="direction made orthogonal to Z for Center X")
     fit.add_argument("--slices", type=int, default=15, help="number of slices M")
     fit.add_argument("--control-points", type=int, default=15, help="control radii per slice N")
     fit.add_argument("--samples", type=int, default=150, help="sample angles per slice Z")
@@ -180,76 +164,3 @@ def summary_table(fpsm) -> str:
     return "\n".join(rows)
 
 
-def plot_fit(fpsm, mesh, out_dir) -> list[Path]:
-    """Slice curves over the mesh sections (Center XY) and coverage/penetration per slice."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.collections import LineCollection
-    from trimesh.intersections import mesh_plane
-
-    from implantplan.systems.fpsm import evaluate
-    from implantplan.systems.frames import apply, invert
-
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    X_CW = invert(fpsm.X_WC)
-    M = fpsm.slices
-    cols = int(np.ceil(np.sqrt(M)))
-    rows = int(np.ceil(M / cols))
-    fig, axes = plt.subplots(rows, cols, figsize=(3 * cols, 3 * rows), squeeze=False)
-    theta = np.linspace(0, 2 * np.pi, 721)
-    for j, ax in enumerate(axes.flat):
-        if j >= M:
-            ax.axis("off")
-            continue
-        z = fpsm.slice_z[j]
-        origin = apply(fpsm.X_WC, np.array([0.0, 0.0, z]))
-        segments = mesh_plane(mesh, fpsm.X_WC[:3, 2], origin)
-        if len(segments):
-            seg_C = apply(X_CW, segments.reshape(-1, 3)).reshape(-1, 2, 3)[:, :, :2] * 1e3
-            ax.add_collection(LineCollection(seg_C, colors="0.4", linewidths=0.8))
-        r = evaluate(fpsm.rho[j][None, :], theta) * 1e3
-        ax.plot(r * np.cos(theta), r * np.sin(theta), "C0-", lw=1.2)
-        ax.plot(0, 0, "k+")
-        ax.set_aspect("equal")
-        ax.autoscale()
-        ax.set_title(f"slice {j}: z = {z * 1e3:.1f} mm", fontsize=8)
-        ax.tick_params(labelsize=6)
-    fig.suptitle("FPSM slices (blue) over the mesh sections (grey), Center XY, mm")
-    fig.tight_layout()
-    curves = out_dir / "fpsm_slices.png"
-    write_atomic(curves, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
-    plt.close(fig)
-
-    d = fpsm.diagnostics
-    fig, ax = plt.subplots(figsize=(7, 3.5))
-    idx = np.arange(M)
-    ax.bar(idx - 0.2, 100 * np.asarray(d["coverage"]), 0.4, label="coverage (own section)")
-    ax.bar(
-        idx + 0.2,
-        100 * np.asarray(d["coverage_of_allowed"]),
-        0.4,
-        label="coverage of the allowed region",
-    )
-    ax.set_xlabel("slice")
-    ax.set_ylabel("%")
-    ax.set_ylim(0, 105)
-    if "dense_penetration_rate" in d:
-        ax2 = ax.twinx()
-        ax2.plot(
-            idx,
-            100 * np.asarray(d["dense_penetration_rate"]),
-            "C3o-",
-            ms=3,
-            label="dense-check penetration",
-        )
-        ax2.set_ylabel("penetration (%)", color="C3")
-    ax.legend(loc="lower left", fontsize=7)
-    ax.set_title(f"FPSM fit ({d['method']}): coverage and penetration per slice")
-    fig.tight_layout()
-    coverage = out_dir / "fpsm_coverage.png"
-    write_atomic(coverage, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
-    plt.close(fig)
-    return [curves, coverage]

@@ -5,7 +5,9 @@
          -> capability check of every feeding target -> teleop feeding per site
 
 Each stage takes what the previous one made and returns plain results; the ``plan`` command
-(analyses.plan) writes them out and builds the report.
+(analyses.plan) writes them out and builds the report. Stages call cores only (systems, diagrams,
+analyses.case), never a command module (tests/test_layers.py; the one listed exception,
+robot_place.initial_population, leaves with issue 11's single MOPRP search).
 """
 
 from __future__ import annotations
@@ -18,11 +20,15 @@ import numpy as np
 import trimesh
 
 from implantplan.analyses.case import Case
-from implantplan.systems import moprp
+from implantplan.diagrams.feeding import run_feeding
+from implantplan.diagrams.teleop import TeleopCase
+from implantplan.systems import actuator, moprp
+from implantplan.systems import capability_map as cm
+from implantplan.systems import kinematics as kin
 from implantplan.systems.errors import InputError, PlanningFailure
 from implantplan.systems.fpsm import Fpsm
 from implantplan.systems.fpsm_fit import fit_fpsm
-from implantplan.systems.frames import transform
+from implantplan.systems.frames import invert, transform
 from implantplan.systems.nsga2 import non_dominated_sort, nsga2
 from implantplan.systems.oral_mesh import center_frame, load_oral_mesh, open_mouth
 from implantplan.systems.placement import Placement, place_instrument
@@ -160,11 +166,11 @@ def robot_stage(case: Case, placements: list[Placement], *, progress=None) -> Ro
 
     Departure from seed 001 for several sites: the objectives are the worst index over the sites
     and a base is feasible only if every site has a surviving branch."""
+    # TODO(issue 11): initial_population moves out of the robot command with the one MOPRP search
     from implantplan.analyses.robot_place import initial_population
-    from implantplan.diagrams import tools
 
     t0 = time.perf_counter()
-    sc = moprp.load_scenario(case.scenario, X_FT=tools.X_FT())
+    sc = moprp.load_scenario(case.scenario, X_FT=actuator.X_FT())
     sc = dataclasses.replace(sc, pop=case.pop, gen=case.gen, seed=case.seed)
     X_OC = center_in_oral(case.posture, placements)
     targets = np.array([X_OC @ p.X_CT for p in placements])
@@ -259,32 +265,20 @@ def capability_stage(case: Case, robot: RobotResult, *, progress=None) -> Capabi
     base: the voxels of the 3x3x3 neighbourhood of every target, all approach directions and
     sampled rolls (the contra-angle's roll is not free). Only these voxels are built: the check
     needs the map where the tasks are, not the whole workspace (a full 5 cm map takes minutes)."""
-    from implantplan.analyses.capmap import actuator_map_frame
-    from implantplan.diagrams import tools
-    from implantplan.systems import capability_map as cm
-    from implantplan.systems import kinematics as kin
-    from implantplan.systems.frames import invert
-
     t0 = time.perf_counter()
     sc = robot.scenario
-    X_FA = actuator_map_frame()
+    X_FA = actuator.actuator_map_frame()
     X_BE = moprp.target_pose(robot.base_xyz, robot.X_OT)
-    X_BA = X_BE @ invert(tools.X_FT()) @ X_FA
+    X_BA = X_BE @ invert(actuator.X_FT()) @ X_FA
     params = cm.make_params(case.voxel, case.directions, limits=sc.limits, X_FT=X_FA,
                             tool="actuator")
     grid = cm.make_grid(params)
-    ijk = np.floor((X_BA[:, :3, 3] - grid.origin) / grid.voxel).astype(int)
-    offsets = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
-    cells = (ijk[:, None, :] + offsets).reshape(-1, 3)
-    inside = np.all((cells >= 0) & (cells < np.asarray(grid.shape)), axis=1)
-    ids = np.unique(np.ravel_multi_index(cells[inside].T, grid.shape))
-    vox, reach, allr = cm.build_block(params, ids)
+    near = grid.neighbourhood(X_BA[:, :3, 3])
+    vox, reach, allr = cm.build_block(params, np.unique(near[near >= 0]))
     cmap = cm.CapabilityMap(params, grid, vox, reach, allr)
     map_reach, index = cmap.query(X_BA)
-    centres = grid.centres(np.ravel_multi_index(
-        np.clip(cells, 0, np.asarray(grid.shape) - 1).T, grid.shape))
-    neigh = cmap.voxel_index(centres).reshape(len(X_BA), -1).mean(axis=1)
-    branches = kin.ik(X_BE, limits=sc.limits, X_FT=tools.X_FT()).valid.sum(axis=-1)
+    neigh = cmap.neighbourhood_index(X_BA[:, :3, 3])
+    branches = kin.ik(X_BE, limits=sc.limits, X_FT=actuator.X_FT()).valid.sum(axis=-1)
     if progress is not None:
         for site, r, i, b in zip(case.sites, map_reach, index, branches, strict=True):
             progress.say(f"site {site.name}: map says {'reachable' if r else 'NOT reachable'}, "
@@ -301,9 +295,6 @@ def simulation_stage(case: Case, fit: FitResult, placements: list[Placement],
     """A short teleop feeding simulation per site (seed 001's feeding test on the Drake diagram):
     scripted operator feeds from the pre-feed configuration to the feeding target, VF active,
     FPSM estimator watching."""
-    from implantplan.analyses.simulate import run_feeding
-    from implantplan.diagrams.teleop import TeleopCase
-
     runs = case.sim_runs if runs is None else runs
     if runs == 0:
         if progress is not None:

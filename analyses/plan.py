@@ -28,9 +28,11 @@ import numpy as np
 
 from implantplan.analyses import pipeline
 from implantplan.analyses.case import Case, default_case_path, load_case
+from implantplan.analyses.figures.plan import make_figures
 from implantplan.analyses.progress import Progress
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import write_json
+from implantplan.systems.frames import wrap_angle
 
 DEMO_OUT = "implantplan-demo"
 # Pass/fail limits of the checks (DESIGN.md section 4 and issue 6 acceptance figures).
@@ -175,8 +177,7 @@ def _check(name: str, value: float, limit: float, *, unit: str, upper: bool, sit
 
 
 def plan_dict(case: Case, fit, placements, robot, cap, sims) -> dict:
-    from implantplan.diagrams import tools
-    from implantplan.systems import moprp
+    from implantplan.systems import actuator, moprp
 
     sc = robot.scenario
     X_WC = sc.X_WO @ robot.X_OC
@@ -218,7 +219,7 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims) -> dict:
                              unit="m", upper=False, site=n))
         if "x" in grid:
             dd = abs(p.d_T - float(grid["x"][0]))
-            dth = abs(np.angle(np.exp(1j * (p.theta_T - float(grid["x"][1])))))
+            dth = abs(wrap_angle(p.theta_T - float(grid["x"][1])))
             checks.append(_check("PSO vs grid optimum, d_T", dd, GRID_TOL_D, unit="m",
                                  upper=True, site=n))
             checks.append(_check("PSO vs grid optimum, theta_T", dth, GRID_TOL_THETA,
@@ -253,7 +254,7 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims) -> dict:
             "mouth_opening_deg": case.mouth_opening_deg,
         },
         "frames": {"X_WO": sc.X_WO, "X_OC": robot.X_OC, "X_WCenter": X_WC,
-                   "X_FT": tools.X_FT(), "posture": case.posture, "scenario": sc.name},
+                   "X_FT": actuator.X_FT(), "posture": case.posture, "scenario": sc.name},
         "sites": sites,
         "base": {
             "xyz_in_oral": robot.base_xyz,
@@ -278,52 +279,3 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims) -> dict:
 # -- figures --------------------------------------------------------------------------------------
 
 
-def make_figures(case, fit, placements, robot, cap, sims, fig_dir: Path, *, html_scene: bool,
-                 out: Path) -> dict:
-    """Every figure of the report, by section; paths relative to the output folder."""
-    from implantplan.analyses.capmap import plot_map_slices
-    from implantplan.analyses.case_figures import plot_mouth_opening
-    from implantplan.analyses.fpsm_commands import plot_fit
-    from implantplan.analyses.instrument import plot_placement
-    from implantplan.analyses.robot_place import plot_placement as plot_robot
-    from implantplan.analyses.robot_place import write_layout_html
-    from implantplan.analyses.simulate import plot_feeding
-    from implantplan.systems import moprp
-
-    def rel(paths):
-        return [str(Path(p).relative_to(out)) for p in paths]
-
-    figs = {}
-    fpsm_dir = fig_dir / "fpsm"
-    figs["fpsm"] = rel(plot_fit(fit.fpsm, fit.opened, fpsm_dir))
-    if case.mouth_opening_deg > 0:
-        o = case.opening
-        figs["fpsm"] = rel([plot_mouth_opening(
-            fit.scanned, fit.opened, fpsm_dir / "mouth_opening.png",
-            planes_y=(0.0,), hinge_point=o["hinge_point"], occlusal_point=o["occlusal_point"],
-            occlusal_normal=o["occlusal_normal"])]) + figs["fpsm"]
-    figs["sites"] = {}
-    for site, p in zip(case.sites, placements, strict=True):
-        figs["sites"][site.name] = rel(plot_placement(fit.fpsm, p, fig_dir / f"site_{site.name}"))
-    sel = {"base_xyz": robot.base_xyz, "branch": int(robot.branch[0]), "q": robot.q[0],
-           "q_pre": robot.q_pre[0],
-           "indices": dict(zip(moprp.INDEX_NAMES, robot.indices.tolist(), strict=True))}
-    out_robot = {"pareto": [{"base_xyz": x, "indices": dict(zip(moprp.INDEX_NAMES, f.tolist(),
-                                                                strict=True))}
-                            for x, f in zip(robot.pareto_xyz, robot.pareto_F, strict=True)],
-                 "selected": sel}
-    figs["robot"] = rel(plot_robot(robot.scenario, out_robot, fig_dir / "robot", html=False))
-    if html_scene:
-        scene = write_layout_html(robot.scenario, robot.base_xyz, int(robot.branch[0]),
-                                  out / "layout.html")
-        figs["scene"] = str(Path(scene).relative_to(out))
-    cap_png = fig_dir / "capability" / "map_slices.png"
-    cap_png.parent.mkdir(parents=True, exist_ok=True)
-    plot_map_slices(cap.cmap, cap_png, n_slices=3)
-    figs["capability"] = rel([cap_png])
-    figs["simulation"] = {}
-    for s in sims:
-        d = fig_dir / f"sim_{s['site']}"
-        d.mkdir(parents=True, exist_ok=True)
-        figs["simulation"][s["site"]] = rel([plot_feeding(s, d)])
-    return figs

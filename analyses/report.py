@@ -39,15 +39,28 @@ def _fmt(value, unit: str) -> str:
     return f"{value:.3f}"
 
 
+class Markup(str):
+    """Markup this module wrote itself (a pass/fail badge): the one cell kind not escaped."""
+
+
+def _cell(value) -> str:
+    """A table cell's HTML: every value is escaped (html.escape) unless it is :class:`Markup`,
+    so a site or case name from the user's YAML cannot inject markup into the page."""
+    return value if isinstance(value, Markup) else html.escape(str(value))
+
+
+def _badge(passed: bool) -> Markup:
+    return Markup(f"<span class='{'pass' if passed else 'fail'}'>"
+                  f"{'pass' if passed else 'FAIL'}</span>")
+
+
 def _table(header: list[str], rows: list[list], left: int = 1) -> str:
     th = "".join(f"<th class='{'l' if i < left else ''}'>{html.escape(h)}</th>"
                  for i, h in enumerate(header))
     body = []
     for r in rows:
-        cells = "".join(
-            f"<td class='{'l' if i < left else ''}'>{c if str(c).startswith('<') else html.escape(str(c))}</td>"  # noqa: E501
-            for i, c in enumerate(r)
-        )
+        cells = "".join(f"<td class='{'l' if i < left else ''}'>{_cell(c)}</td>"
+                        for i, c in enumerate(r))
         body.append(f"<tr>{cells}</tr>")
     return f"<table><tr>{th}</tr>{''.join(body)}</table>"
 
@@ -67,14 +80,12 @@ def render(plan: dict, figs: dict) -> str:
         f"<style>{_CSS}</style></head><body>",
         f"<h1>Implant plan: {html.escape(plan['case']['name'])}</h1>",
         f"<p class='muted'>case {html.escape(plan['case']['source'])}, seed "
-        f"{plan['case']['seed']}; all checks: <span class='{'pass' if ok else 'fail'}'>"
-        f"{'PASS' if ok else 'FAIL'}</span></p>",
+        f"{html.escape(str(plan['case']['seed']))}; all checks: "
+        f"<span class='{'pass' if ok else 'fail'}'>{'PASS' if ok else 'FAIL'}</span></p>",
         "<h2>Checks</h2>",
         _table(["check", "site", "value", "limit", "margin", "result"], [
             [c["name"], c["site"] or "", _fmt(c["value"], c["unit"]),
-             _fmt(c["limit"], c["unit"]), _fmt(c["margin"], c["unit"]),
-             f"<span class='{'pass' if c['pass'] else 'fail'}'>"
-             f"{'pass' if c['pass'] else 'FAIL'}</span>"]
+             _fmt(c["limit"], c["unit"]), _fmt(c["margin"], c["unit"]), _badge(c["pass"])]
             for c in plan["checks"]], left=2),
     ]
 

@@ -48,10 +48,12 @@ from pathlib import Path
 
 import numpy as np
 
+from implantplan.analyses.figures.robot import plot_placement
 from implantplan.analyses.progress import Progress
-from implantplan.systems import moprp
+from implantplan.systems import moprp, validate
 from implantplan.systems.errors import InputError, PlanningFailure
 from implantplan.systems.files import read_json, write_json
+from implantplan.systems.frames import wrap_angle
 from implantplan.systems.nsga2 import non_dominated_sort, nsga2
 
 
@@ -87,16 +89,7 @@ def register(subparsers) -> None:
 
 
 def _matrix(value, field: str) -> np.ndarray:
-    try:
-        X = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(field, "expected a 4x4 matrix of numbers") from None
-    if X.shape != (4, 4) or not np.all(np.isfinite(X)):
-        raise InputError(field, f"expected a finite 4x4 matrix, got shape {X.shape}")
-    R = X[:3, :3]
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-6 or abs(np.linalg.det(R) - 1) > 1e-6:
-        raise InputError(field, "rotation part is not a proper rotation")
-    return X
+    return validate.pose(value, field)
 
 
 def oral_pose_from_plan(path: Path) -> tuple[np.ndarray, str]:
@@ -115,11 +108,9 @@ def oral_pose_from_plan(path: Path) -> tuple[np.ndarray, str]:
 
 
 def _tool_pose(sc: moprp.Scenario) -> np.ndarray:
-    """TCP in the flange frame from the modelled actuator (diagrams.tools), one place for it."""
-    try:
-        from implantplan.diagrams.tools import X_FT
-    except ImportError:  # the diagrams package needs pydrake only for other modules
-        return sc.actuator.X_FT()
+    """TCP in the flange frame from the modelled actuator (systems.actuator), one place for it."""
+    from implantplan.systems.actuator import X_FT
+
     return X_FT(sc.actuator.rod_length)
 
 
@@ -181,8 +172,8 @@ def drake_ik_solver(*, starts: int, seed: int, limits: str, X_FT):
                 else:
                     slots = np.flatnonzero(prev[1])
                     if len(sols) and slots.size:
-                        d = np.abs(np.mod(prev[0][slots, None, :] - sols[None, :, :] + np.pi,
-                                          2 * np.pi) - np.pi).sum(-1)
+                        d = np.abs(wrap_angle(prev[0][slots, None, :]
+                                              - sols[None, :, :])).sum(-1)
                         r, c = linear_sum_assignment(d)
                         q[p, k, slots[r]] = sols[c]
                         ok[p, k, slots[r]] = True
@@ -191,8 +182,7 @@ def drake_ik_solver(*, starts: int, seed: int, limits: str, X_FT):
         stats["seconds"] += time.perf_counter() - t0
         # relabel slots by the nearest closed-form branch at the target
         cf_q, cf_ok = moprp.ik_closed_form(X_BT[:, -1], limits=limits, X_FT=X_FT)
-        d = np.abs(np.mod(q[:, -1, :, None, :] - cf_q[:, None, :, :] + np.pi, 2 * np.pi)
-                   - np.pi).sum(-1)
+        d = np.abs(wrap_angle(q[:, -1, :, None, :] - cf_q[:, None, :, :])).sum(-1)
         d = np.where(cf_ok[:, None, :], d, np.inf)
         q_out = np.zeros_like(q)
         ok_out = np.zeros_like(ok)
@@ -387,128 +377,3 @@ def summary_table(out: dict) -> str:
 # --------------------------------------------------------------------------------------------
 
 
-def plot_placement(sc: moprp.Scenario, out: dict, out_dir: Path, *, html: bool = True
-                   ) -> list[Path]:
-    """Pareto front in design and objective space, and the selected layout before/after feed
-    (PNGs; and the Meshcat static HTML of the layout when ``html``)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths = []
-    P = np.array([e["base_xyz"] for e in out["pareto"]])
-    F = np.array([[e["indices"][n] for n in moprp.INDEX_NAMES] for e in out["pareto"]])
-    s = out["selected"]
-    ps = np.asarray(s["base_xyz"])
-    fs = np.array([s["indices"][n] for n in moprp.INDEX_NAMES])
-
-    fig = plt.figure(figsize=(6.5, 5.5))
-    ax = fig.add_subplot(projection="3d")
-    sc_ = ax.scatter(*(1000 * P.T), c=F[:, 0], cmap="viridis", s=8)
-    ax.scatter(*(1000 * ps), c="red", s=60, marker="*", label="selected")
-    ax.set_xlabel("x (mm)")
-    ax.set_ylabel("y (mm)")
-    ax.set_zlabel("z (mm)")
-    ax.set_title(f"{sc.name}: Pareto set in design space (base in Oral)")
-    fig.colorbar(sc_, ax=ax, shrink=0.6, label="dexterity I_d")
-    ax.legend()
-    paths.append(out_dir / "pareto_design.png")
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
-
-    fig = plt.figure(figsize=(6.5, 5.5))
-    ax = fig.add_subplot(projection="3d")
-    ax.scatter(F[:, 0], 1000 * F[:, 1], np.degrees(F[:, 2]), s=8, c="tab:blue")
-    ax.scatter(fs[0], 1000 * fs[1], np.degrees(fs[2]), c="red", s=60, marker="*",
-               label="selected")
-    ax.set_xlabel("dexterity I_d")
-    ax.set_ylabel("error range I_e (mm)")
-    ax.set_zlabel("joint variation I_j (deg)")
-    ax.set_title(f"{sc.name}: Pareto front in objective space")
-    ax.legend()
-    paths.append(out_dir / "pareto_objectives.png")
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
-
-    for label, key in (("after", "q"), ("before", "q_pre")):
-        paths.append(_plot_layout(sc, ps, np.asarray(s[key]), out_dir / f"layout_{label}.png",
-                                  f"{sc.name}: selected layout {label} feeding"))
-    if html:
-        paths.append(write_layout_html(sc, ps, int(s["branch"]), out_dir / "layout.html"))
-    return paths
-
-
-def write_layout_html(sc: moprp.Scenario, xyz, branch: int, path: Path) -> Path:
-    """Meshcat static HTML of the selected layout: the Drake plant of the scenario (arm +
-    actuator at the base pose, the scenario's cart, patient and chair from
-    diagrams.plant.add_scenario_geometry), and the feed animated from the pre-feed pose (t = 0)
-    to the target (t = 1 s) on the selected branch. Headless Meshcat on an ephemeral port."""
-    from pydrake.geometry import Meshcat, MeshcatParams
-
-    from implantplan.diagrams.plant import build_plant
-    from implantplan.systems import kinematics as kin
-    from implantplan.systems.files import write_text_atomic
-
-    meshcat = Meshcat(MeshcatParams(port=0))
-    X_WB = sc.X_WO @ moprp.base_pose(xyz)
-    diagram, plant, _, handles = build_plant(scenario=sc, tool=True, X_WBase=X_WB,
-                                             limits=sc.limits, meshcat=meshcat)
-    feed = moprp.feed_poses(xyz, sc.feed_length, sc.feed_samples)
-    q_path = kin.ik(feed, limits=sc.limits, X_FT=sc.X_FT).q[:, branch]
-    context = diagram.CreateDefaultContext()
-    pc = plant.GetMyMutableContextFromRoot(context)
-    vis = handles.visualizer
-    vis.StartRecording(set_transforms_while_recording=False)
-    for k, q in enumerate(q_path):
-        context.SetTime(k / (len(q_path) - 1))
-        plant.SetPositions(pc, handles.arm, q)
-        diagram.ForcedPublish(context)
-    vis.StopRecording()
-    vis.PublishRecording()
-    write_text_atomic(path, meshcat.StaticHtml())
-    return Path(path)
-
-
-def _plot_layout(sc, xyz, q, path, title) -> Path:
-    import matplotlib.pyplot as plt
-
-    from implantplan.systems import collision_primitives as cp
-
-    model = moprp.CollisionModel.for_scenario(sc)
-    seg_B, rad = cp.arm_capsules(q, model.capsules)
-    X_WB = sc.X_WO @ moprp.base_pose(xyz)
-    seg = seg_B @ X_WB[:3, :3].T + X_WB[:3, 3]
-    corners = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)], float)
-    boxes = [(X_WB @ sc.X_BC, sc.cabinet_half, "tab:gray")]
-    boxes += [(o.X_WB, o.half_size, "tan") for o in sc.obstacles if o.kind == "box"]
-    caps = [(np.array([o.p0, o.p1]), o.radius) for o in sc.obstacles if o.kind == "capsule"]
-    edges = [(a, b) for a in range(8) for b in range(a + 1, 8)
-             if np.sum(corners[a] != corners[b]) == 1]
-    fig, axes = plt.subplots(1, 3, figsize=(13, 4.6))
-    views = ((0, 1, "top (World x-y)"), (0, 2, "front (World x-z)"), (1, 2, "side (World y-z)"))
-    for ax, (i, j, name) in zip(axes, views, strict=True):
-        for X, half, color in boxes:
-            pts = (corners * half) @ X[:3, :3].T + X[:3, 3]
-            pts[:, 2] = np.maximum(pts[:, 2], 0.0)  # drawn down to the floor only
-            for a, b in edges:
-                ax.plot(pts[[a, b], i], pts[[a, b], j], color=color, lw=1)
-        for c, r in caps:
-            ax.plot(c[:, i], c[:, j], color="peachpuff", lw=max(2.0, 300 * r), alpha=0.7,
-                    solid_capstyle="round")
-        for k in range(seg.shape[0]):
-            ax.plot(seg[k, :, i], seg[k, :, j], color="tab:blue", lw=max(1.5, 300 * rad[k]),
-                    alpha=0.6, solid_capstyle="round")
-        o = sc.X_WO[:3, 3]
-        ax.plot(o[i], o[j], "r+", ms=12, mew=2)
-        ax.set_aspect("equal")
-        ax.set_title(name)
-        ax.set_xlabel("xyz"[i] + " (m)")
-        ax.set_ylabel("xyz"[j] + " (m)")
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return Path(path)

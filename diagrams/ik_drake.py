@@ -41,7 +41,9 @@ from pydrake.solvers import IpoptSolver, SnoptSolver
 from pydrake.systems.framework import DiagramBuilder
 
 from implantplan import models
+from implantplan.systems import validate
 from implantplan.systems.errors import InputError
+from implantplan.systems.frames import wrap_angle
 from implantplan.systems.kinematics import wrapped_distance
 
 AXIS_POINT = 0.1  # m, distance of the two axis points constraining the orientation
@@ -134,9 +136,7 @@ class DrakeIk:
         self.plant_context = plant.GetMyMutableContextFromRoot(self.context)
         self.base = plant.GetFrameByName(base_frame)
         self.tool = plant.GetFrameByName(tool_frame)
-        X = np.eye(4) if X_FT is None else np.asarray(X_FT, dtype=float)
-        if X.shape != (4, 4) or not np.all(np.isfinite(X)):
-            raise InputError("X_FT", "expected a finite 4x4 pose")
+        X = np.eye(4) if X_FT is None else validate.pose(X_FT, "X_FT")
         self.X_FT = RigidTransform(RotationMatrix.ProjectToRotationMatrix(X[:3, :3]), X[:3, 3])
         self.lower = plant.GetPositionLowerLimits()
         self.upper = plant.GetPositionUpperLimits()
@@ -156,7 +156,7 @@ class DrakeIk:
         """Each revolute joint's copy (mod 2 pi) within its limits nearest 0; None if none fits."""
         q = q.copy()
         rev = self.revolute
-        q[rev] = np.mod(q[rev] + np.pi, 2.0 * np.pi) - np.pi  # [-pi, pi)
+        q[rev] = wrap_angle(q[rev])  # [-pi, pi)
         for shift in (2.0 * np.pi, -2.0 * np.pi):
             out = rev & ((q < self.lower) | (q > self.upper))
             q[out] += shift
@@ -228,14 +228,8 @@ class DrakeIk:
             why), sorted lexicographically; info an :class:`IkDrakeInfo`.
         """
         t0 = time.perf_counter()
-        X = np.asarray(X_BT, dtype=float)
-        if X.shape != (4, 4):
-            raise InputError("X_BT", f"expected a 4x4 pose, got shape {X.shape}")
-        if not np.all(np.isfinite(X)):
-            raise InputError("X_BT", "pose must be finite (found NaN or inf)")
+        X = validate.pose(X_BT, "X_BT")
         R_target, p_target = X[:3, :3], X[:3, 3]
-        if np.abs(R_target.T @ R_target - np.eye(3)).max() > 1e-6:
-            raise InputError("X_BT", "rotation part is not a proper rotation matrix")
         if not (isinstance(starts, int | np.integer) and starts >= 1):
             raise InputError("starts", f"expected a positive integer, got {starts!r}")
         rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)

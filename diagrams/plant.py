@@ -60,7 +60,7 @@ from pydrake.multibody.tree import (
 from pydrake.systems.framework import Diagram, DiagramBuilder
 
 from implantplan import models
-from implantplan.systems import moprp
+from implantplan.systems import moprp, validate
 from implantplan.systems.errors import InputError
 from implantplan.systems.frames import frame_from_z
 
@@ -162,18 +162,9 @@ def as_rigid_transform(X, field_name: str = "X_WBase") -> RigidTransform:
     """A RigidTransform from a 4x4 array (checked: finite, proper rotation) or a RigidTransform."""
     if isinstance(X, RigidTransform):
         return X
-    X = np.asarray(X, dtype=float)
-    if X.shape != (4, 4):
-        raise InputError(field_name, f"expected a 4x4 pose, got shape {X.shape}")
-    if not np.all(np.isfinite(X)):
-        raise InputError(field_name, "pose must be finite (found NaN or inf)")
-    R = X[:3, :3]
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-9 or abs(np.linalg.det(R) - 1.0) > 1e-9:
-        raise InputError(field_name, "rotation part is not a proper rotation matrix")
-    if np.abs(X[3] - [0.0, 0.0, 0.0, 1.0]).max() > 0:
-        raise InputError(field_name, "last row must be [0, 0, 0, 1]")
-    # Re-orthonormalize below 1e-9 so Drake's strict rotation check accepts it.
-    return RigidTransform(RotationMatrix.ProjectToRotationMatrix(R), X[:3, 3])
+    X = validate.pose(X, field_name)
+    # Re-orthonormalize (within validate's tolerance) so Drake's strict rotation check accepts it.
+    return RigidTransform(RotationMatrix.ProjectToRotationMatrix(X[:3, :3]), X[:3, 3])
 
 
 def scene_directives(scenario, X_WBase, limits: str, tool: bool):

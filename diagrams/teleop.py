@@ -8,6 +8,10 @@ q (plant) --> ToolPose --X_WE--> VirtualFixtureForceLaw, FpsmEstimator, MasterDe
 loggers: q, tool position, VF violation, FPSM safety, alarm;  scene graph --> Meshcat (optional)
 ```
 
+One diagram per case: the master motion is a parameter of the context
+(systems.master_device.MasterDevice.set_motion), so ``simulate(teleop, T, motion=m)`` replays any
+run on the same diagram (diagrams.feeding runs K feeds this way).
+
 Two modes:
 
 - ``kinematic`` (default for the experiments): Drake's DifferentialInverseKinematicsIntegrator
@@ -54,7 +58,7 @@ from pydrake.systems.primitives import LogVectorOutput, StateInterpolatorWithDis
 from pydrake.systems.rendering import MultibodyPositionToGeometryPose
 
 from implantplan.diagrams import plant as scene
-from implantplan.diagrams import tools
+from implantplan.systems import actuator
 from implantplan.systems import kinematics as kin
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm import Fpsm
@@ -93,15 +97,15 @@ class TeleopCase:
     fpsm: Fpsm
     vf: VirtualFixture
     X_WTarget: np.ndarray
-    rod_radius: float = tools.ROD_RADIUS
-    implant_length: float = tools.IMPLANT_LENGTH
+    rod_radius: float = actuator.ROD_RADIUS
+    implant_length: float = actuator.IMPLANT_LENGTH
     limits: str = "175"
     label: str = ""
 
     @property
     def X_FE(self) -> np.ndarray:
         """The plant's TCP (End) in the flange frame."""
-        return tools.X_FT()
+        return actuator.X_FT()
 
     def X_WE(self, q) -> np.ndarray:
         """End pose(s) in World for configurations ``q`` (..., 6)."""
@@ -222,7 +226,7 @@ def diffik_parameters(plant: MultibodyPlant, q0, period: float):
 
 def build_teleop(
     case: TeleopCase,
-    motion: MasterMotion,
+    motion: MasterMotion | None = None,
     *,
     mode: str = "kinematic",
     mapping: IncrementalMapping | None = None,
@@ -237,11 +241,15 @@ def build_teleop(
     gains: tuple[float, float, float] = (900.0, 1.0, 60.0),
     meshcat=None,
 ) -> Teleop:
-    """Wire the feeding diagram for one master motion.
+    """Wire the feeding diagram of one case; it replays any master motion.
+
+    The motion is a parameter of the context (MasterDevice.set_motion): ``simulate(teleop, T,
+    motion=m)`` runs ``m`` in a fresh context, so all the runs of a case share this diagram.
 
     Args:
         case: the scene, layout, FPSM, fixture and start configuration.
-        motion: the operator's master handle motion (scripted or recorded).
+        motion: the default context's master handle motion (scripted or recorded); None: the
+            hand at rest until a run sets one.
         mode: "kinematic" or "dynamic" (see the module docstring).
         mapping: master -> slave incremental mapping (identity by default).
         vf_enabled: False lets the command through unfiltered (experiments without the fixture).
@@ -394,12 +402,16 @@ class FeedRun:
         return float(self.t_safety[hit[0]]) if hit.size else None
 
 
-def simulate(teleop: Teleop, duration: float, *, recording: bool = False) -> FeedRun:
-    """Run the diagram from the case's start for ``duration`` seconds of simulated time."""
+def simulate(teleop: Teleop, duration: float, *, motion: MasterMotion | None = None,
+             recording: bool = False) -> FeedRun:
+    """Run the diagram from the case's start for ``duration`` seconds of simulated time, in a
+    fresh context replaying ``motion`` (None: the motion the diagram was built with)."""
     if not np.isfinite(duration) or duration <= 0:
         raise InputError("duration", f"expected a duration > 0 s, got {duration}")
     simulator = Simulator(teleop.diagram)
     context = simulator.get_mutable_context()
+    if motion is not None:
+        teleop.master.set_motion(context, motion)
     diffik_context = teleop.diffik.GetMyMutableContextFromRoot(context)
     teleop.diffik.GetInputPort("use_robot_state").FixValue(diffik_context, False)
     teleop.initialize(context)

@@ -15,7 +15,8 @@ head and End y along the implant axis from the tip to the head, which is what se
 head, z along the implant axis) the implant tip is T_ct [0, 0, -d12] and line2 runs through it
 parallel to the rod, as Eq. 19 uses. The frame ``implant_tip`` sits at the tip.
 
-X_FT = translation (0, 0, rod_length): see :func:`X_FT`. Departure from the paper: the paper gives
+The dimensions, X_FT and p_FTip are systems.actuator's (one definition for every layer; they are
+re-exported here). X_FT = translation (0, 0, rod_length). Departure from the paper: the paper gives
 no rod length; 0.16 m (a contra-angle handpiece with its motor) is our default, a parameter.
 Masses: rod 0.35 kg (handle and motor), head 0.03 kg, implant 0.005 kg, lumped into one body
 whose inertia is that of the rod as a solid cylinder plus the head and implant as point masses.
@@ -25,39 +26,25 @@ from __future__ import annotations
 
 import numpy as np
 
+from implantplan.systems.actuator import (  # noqa: F401  (re-exported: one definition)
+    HEAD_HEIGHT,
+    HEAD_MASS,
+    HEAD_RADIUS,
+    IMPLANT_LENGTH,
+    IMPLANT_MASS,
+    IMPLANT_RADIUS,
+    ROD_LENGTH,
+    ROD_MASS,
+    ROD_RADIUS,
+    X_FT,
+    p_FTip,
+)
+from implantplan.systems.actuator import check_positive as _check_positive
 from implantplan.systems.errors import InputError
-
-ROD_RADIUS = 0.006  # m, seed 000 Sec. 5.2
-IMPLANT_LENGTH = 0.031  # m, d12 in seed 000 Sec. 5.2
-ROD_LENGTH = 0.16  # m, flange face to the TCP (our choice, see module docstring)
-HEAD_RADIUS = 0.008  # m
-HEAD_HEIGHT = 0.014  # m, along the implant axis
-IMPLANT_RADIUS = 0.002  # m
-ROD_MASS, HEAD_MASS, IMPLANT_MASS = 0.35, 0.03, 0.005  # kg
-
-
-def _check_positive(**values: float) -> None:
-    for name, v in values.items():
-        if not (np.isfinite(v) and v > 0):
-            raise InputError(name, f"expected a positive length in m, got {v!r}")
 
 
 def _f(v) -> str:
     return repr(float(v))
-
-
-def X_FT(rod_length: float = ROD_LENGTH) -> np.ndarray:
-    """Pose of the TCP frame in the flange frame (4x4): translation (0, 0, rod_length)."""
-    _check_positive(rod_length=rod_length)
-    X = np.eye(4)
-    X[2, 3] = rod_length
-    return X
-
-
-def p_FTip(rod_length: float = ROD_LENGTH, implant_length: float = IMPLANT_LENGTH) -> np.ndarray:
-    """Position of the implant tip in the flange frame: (0, -implant_length, rod_length)."""
-    _check_positive(rod_length=rod_length, implant_length=implant_length)
-    return np.array([0.0, -implant_length, rod_length])
 
 
 def actuator_inertia(

@@ -55,6 +55,7 @@ import h5py
 import numba
 import numpy as np
 
+from implantplan.systems import validate
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import write_atomic
 from implantplan.systems.frames import invert
@@ -198,9 +199,7 @@ def make_params(
         raise InputError("directions", f"expected an integer in [1, 32000], got {directions!r}")
     if limits not in ("175", "360"):
         raise InputError("limits", f"expected '175' or '360', got {limits!r}")
-    X = np.eye(4) if X_FT is None else np.asarray(X_FT, dtype=float)
-    if X.shape != (4, 4) or not np.all(np.isfinite(X)):
-        raise InputError("X_FT", "expected a finite 4x4 pose")
+    X = np.eye(4) if X_FT is None else validate.pose(X_FT, "X_FT")
     free = roll_is_free(X)
     if rolls is None:
         rolls = 1 if free else 12
@@ -219,6 +218,10 @@ def make_params(
     )
 
 
+NEIGHBOURS = np.stack(np.meshgrid(*[[-1, 0, 1]] * 3, indexing="ij"), -1).reshape(-1, 3)
+"""(27, 3) cell offsets of a voxel's 3x3x3 neighbourhood (itself included), in C order."""
+
+
 @dataclass(frozen=True)
 class Grid:
     """Axis-aligned voxel grid in base_link: voxel (i, j, k) has centre origin + (ijk + 0.5) v."""
@@ -234,6 +237,19 @@ class Grid:
     def centres(self, ids: np.ndarray) -> np.ndarray:
         ijk = np.stack(np.unravel_index(ids, self.shape), axis=-1)
         return self.origin + (ijk + 0.5) * self.voxel
+
+    def cells(self, p: np.ndarray) -> np.ndarray:
+        """Integer cells (..., 3) holding positions p (..., 3); may lie outside the grid."""
+        return np.floor((np.asarray(p, dtype=float) - self.origin) / self.voxel).astype(np.int64)
+
+    def neighbourhood(self, p: np.ndarray) -> np.ndarray:
+        """Linear ids (..., 27) of the 3x3x3 voxels around each position p (..., 3) (the
+        voxel holding p and its 26 neighbours, :data:`NEIGHBOURS` order); -1 outside the grid."""
+        c = self.cells(p)[..., None, :] + NEIGHBOURS
+        shape = np.asarray(self.shape)
+        inside = np.all((c >= 0) & (c < shape), axis=-1)
+        ids = np.ravel_multi_index(np.moveaxis(np.clip(c, 0, shape - 1), -1, 0), self.shape)
+        return np.where(inside, ids, -1)
 
 
 def reach_radius(params: MapParams) -> float:
@@ -561,6 +577,15 @@ class CapabilityMap:
         origin, voxel, shape, row_of = self.kernel_args()[:4]
         _index_kernel(p, np.ascontiguousarray(X), origin, voxel, shape, row_of, self.index, out)
         return out[0] if X_BW is None else out
+
+    def neighbourhood_index(self, p: np.ndarray) -> np.ndarray:
+        """Mean reachability index (...,) of the 27 voxels around each position p (..., 3) in
+        base_link (:meth:`Grid.neighbourhood`; voxels outside the grid or the map count 0): how
+        well the map tolerates the position moved by a voxel. The one neighbourhood query (the
+        plan's capability check, RASSCMAP's tie-break)."""
+        ids = self.grid.neighbourhood(p)
+        rows = np.where(ids >= 0, self._row_of[np.maximum(ids, 0)], -1)
+        return np.where(rows >= 0, self.index[np.maximum(rows, 0)], 0.0).mean(axis=-1)
 
     def centres(self) -> np.ndarray:
         """Centres (m, 3) of the stored voxels."""

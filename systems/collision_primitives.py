@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from implantplan.systems.actuator import IMPLANT_LENGTH, IMPLANT_RADIUS
 from implantplan.systems.errors import InputError
 from implantplan.systems.kinematics import joint_frames
 
@@ -68,8 +69,8 @@ def actuator_capsules(
     rod_length: float,
     rod_radius: float,
     head_radius: float,
-    implant_length: float = 0.031,
-    implant_radius: float = 0.002,
+    implant_length: float = IMPLANT_LENGTH,
+    implant_radius: float = IMPLANT_RADIUS,
     body_length: float = 0.0,
     body_radius: float = 0.0,
 ) -> tuple[Capsule, ...]:

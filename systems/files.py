@@ -81,27 +81,27 @@ def write_json(path: str | os.PathLike, data: dict, *, kind: str | None = None) 
 def read_json(path: str | os.PathLike, *, kind: str | None = None, field: str = "file") -> dict:
     """Load a project JSON file, checking it exists, parses, and has a known schema_version."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(field, f"file {str(path)!r} does not exist")
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as exc:
-        raise InputError(field, f"{path} is not valid JSON ({exc})") from None
+    data = _parsed(path, field, json.loads, json.JSONDecodeError, "JSON")
     return _check_header(data, path, kind, field)
 
 
 def read_yaml(path: str | os.PathLike, *, field: str = "file") -> dict:
     """Load a YAML mapping with a clear error for a missing file or malformed YAML."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(field, f"file {str(path)!r} does not exist")
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        raise InputError(field, f"{path} is not valid YAML ({exc})") from None
+    data = _parsed(path, field, yaml.safe_load, yaml.YAMLError, "YAML")
     if not isinstance(data, dict):
         raise InputError(field, f"{path} must hold a YAML mapping at the top level")
     return data
+
+
+def _parsed(path: Path, field: str, loads, error, what: str) -> Any:
+    """``loads`` of the file's text; a missing file or a parse ``error`` is an InputError."""
+    if not path.is_file():
+        raise InputError(field, f"file {str(path)!r} does not exist")
+    try:
+        return loads(path.read_text(encoding="utf-8"))
+    except error as exc:
+        raise InputError(field, f"{path} is not valid {what} ({exc})") from None
 
 
 def _check_header(data: Any, path: Path, kind: str | None, field: str) -> dict:

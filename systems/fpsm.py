@@ -25,6 +25,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
+from implantplan.systems import validate
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import read_json, write_json
 
@@ -376,15 +377,7 @@ class Fpsm:
             raise InputError("settings.shrink_m", "expected a finite shrink >= 0 m")
         if np.any(rho + shrink <= 0):
             raise InputError("rho", "expected positive control radii (m)")
-        if X.shape != (4, 4) or not np.all(np.isfinite(X)):
-            raise InputError("X_WC", f"expected a finite 4x4 pose, got shape {X.shape}")
-        R = X[:3, :3]
-        if (
-            not np.allclose(R.T @ R, np.eye(3), atol=1e-6)
-            or np.linalg.det(R) < 0
-            or not np.allclose(X[3], [0, 0, 0, 1])
-        ):
-            raise InputError("X_WC", "expected a rigid transform (orthonormal, det +1)")
+        validate.pose(X, "X_WC")
         self.slice_z, self.rho, self.X_WC = z, rho, X
         self.slice_z.setflags(write=False)
         self.rho.setflags(write=False)

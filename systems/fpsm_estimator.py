@@ -30,6 +30,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, LeafSystem, ValueProducer
 
+from implantplan.systems.actuator import IMPLANT_LENGTH, ROD_RADIUS
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm import Fpsm
 from implantplan.systems.frames import apply, invert
@@ -50,7 +51,8 @@ class ToolLines:
     radius: np.ndarray
 
     @classmethod
-    def contra_angle(cls, rod_radius: float = 0.006, implant_length: float = 0.031) -> ToolLines:
+    def contra_angle(cls, rod_radius: float = ROD_RADIUS,
+                     implant_length: float = IMPLANT_LENGTH) -> ToolLines:
         """Eq. 19 in the Tool frame: P1 = [r, 0, 0], P2 = [r, 0, -d12], both along +x."""
         r, d12 = float(rod_radius), float(implant_length)
         if not np.isfinite(r) or r < 0:

@@ -61,6 +61,7 @@ import numpy as np
 import trimesh
 from scipy.optimize import linprog
 
+from implantplan.systems import validate
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm import TWO_PI, area, area_matrix, basis_matrix
 from implantplan.systems.frames import apply
@@ -447,9 +448,7 @@ def fit_fpsm(
             raise InputError(
                 "cap_radius", f"expected a finite radius > margin (m), got {cap_radius}"
             )
-    X_WC = np.asarray(X_WC, float)
-    if X_WC.shape != (4, 4) or not np.all(np.isfinite(X_WC)):
-        raise InputError("X_WC", "expected a finite 4x4 pose")
+    X_WC = validate.pose(X_WC, "X_WC")
     if len(mesh.faces) == 0:
         raise InputError("mesh", "the mesh is empty (no triangles)")
 

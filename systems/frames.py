@@ -76,6 +76,19 @@ def rotation_angle(R: np.ndarray) -> np.ndarray:
     return np.arctan2(sin, cos)
 
 
+def wrap_angle(a) -> np.ndarray:
+    """Angles (any shape, rad) wrapped into [-pi, pi): the one angle wrap of the project (joint
+    differences, rod directions theta_T, yaw differences).
+
+    a - 2 pi floor((a + pi) / 2 pi), and an angle already in [-pi, pi) comes back bit for bit (no
+    rounding through a + pi or exp/atan2). The compiled IK kernel (systems.kinematics) uses the
+    same formula inside numba, then moves -pi to pi (its solutions are in (-pi, pi])."""
+    a = np.asarray(a, dtype=float)
+    r = a - 2.0 * np.pi * np.floor((a + np.pi) / (2.0 * np.pi))
+    r = np.where(r >= np.pi, r - 2.0 * np.pi, np.where(r < -np.pi, r + 2.0 * np.pi, r))
+    return np.where((a >= -np.pi) & (a < np.pi), a, r)
+
+
 def unit(v, *, field: str = "vector") -> np.ndarray:
     """Normalize vectors (..., 3); a zero or non-finite vector is an InputError naming ``field``."""
     v = np.asarray(v, dtype=float)

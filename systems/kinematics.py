@@ -37,8 +37,9 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from implantplan.systems import validate
 from implantplan.systems.errors import InputError
-from implantplan.systems.frames import invert, rpy_to_rotation, transform
+from implantplan.systems.frames import invert, rpy_to_rotation, transform, wrap_angle
 
 PI = np.pi
 JOINT_NAMES = (
@@ -128,39 +129,8 @@ def _check_q(q) -> np.ndarray:
 
 
 def _check_pose(X, field: str) -> np.ndarray:
-    X = np.asarray(X, dtype=float)
-    if X.ndim < 2 or X.shape[-2:] != (4, 4):
-        raise InputError(field, f"expected poses of shape (..., 4, 4), got {X.shape}")
-    err, finite = _rotation_error(np.ascontiguousarray(X.reshape(-1, 4, 4)))
-    if not finite:
-        raise InputError(field, "poses must be finite (found NaN or inf)")
-    if err > 1e-6:
-        raise InputError(
-            field, f"rotation part is not a proper rotation (orthonormality error {err:.1e})"
-        )
-    return X
-
-
-@numba.njit(cache=True)
-def _rotation_error(X):  # pragma: no cover - compiled
-    """max |R^T R - I| and |det R - 1| over a batch of poses, and whether all entries are finite."""
-    worst = 0.0
-    for n in range(X.shape[0]):
-        for i in range(4):
-            for j in range(4):
-                if not np.isfinite(X[n, i, j]):
-                    return np.inf, False
-        for i in range(3):
-            for j in range(i, 3):
-                d = X[n, 0, i] * X[n, 0, j] + X[n, 1, i] * X[n, 1, j] + X[n, 2, i] * X[n, 2, j]
-                worst = max(worst, abs(d - (1.0 if i == j else 0.0)))
-        det = (
-            X[n, 0, 0] * (X[n, 1, 1] * X[n, 2, 2] - X[n, 1, 2] * X[n, 2, 1])
-            - X[n, 0, 1] * (X[n, 1, 0] * X[n, 2, 2] - X[n, 1, 2] * X[n, 2, 0])
-            + X[n, 0, 2] * (X[n, 1, 0] * X[n, 2, 1] - X[n, 1, 1] * X[n, 2, 0])
-        )
-        worst = max(worst, abs(det - 1.0))
-    return worst, True
+    """Poses (..., 4, 4) checked by systems.validate.pose (the one pose validator)."""
+    return validate.pose(X, field, batch=True)
 
 
 def _tool(X_FT) -> np.ndarray | None:
@@ -464,9 +434,8 @@ def joint_copies(q, *, limits: str | np.ndarray = "360") -> tuple[np.ndarray, np
 
 
 def wrapped_distance(qa, qb) -> np.ndarray:
-    """Joint-space distance with each joint difference wrapped into (-pi, pi]."""
-    d = np.asarray(qa, dtype=float) - np.asarray(qb, dtype=float)
-    d = np.mod(d + PI, 2 * PI) - PI
+    """Joint-space distance with each joint difference wrapped (systems.frames.wrap_angle)."""
+    d = wrap_angle(np.asarray(qa, dtype=float) - np.asarray(qb, dtype=float))
     return np.linalg.norm(d, axis=-1)
 
 

@@ -26,7 +26,9 @@ Recorded motions are CSV files with a header ``t_s,x_m,y_m,z_m`` (master handle 
 frame, uniform sampling).
 
 The :class:`MasterDevice` LeafSystem replays a :class:`MasterMotion` as a zero-order hold: its
-output at time t is the sample at floor(t / dt) (zero velocity after the end).
+output at time t is the sample at floor(t / dt) (zero velocity after the end). The motion is an
+abstract *parameter* of the system's context (:meth:`MasterDevice.set_motion`), not of the system:
+one diagram serves every run of a case, each run setting its motion in a fresh context.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, LeafSystem
 
+from implantplan.systems import validate
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import write_text_atomic
 
@@ -101,11 +104,7 @@ class IncrementalMapping:
         scale = float(self.scale)
         if not np.isfinite(scale) or scale <= 0:
             raise InputError("scale", f"expected a motion scale > 0, got {self.scale}")
-        R = np.asarray(self.R_WM, dtype=float)
-        if R.shape != (3, 3) or not np.allclose(R.T @ R, np.eye(3), atol=1e-9) or (
-            np.linalg.det(R) < 0
-        ):
-            raise InputError("R_WM", "expected a 3x3 rotation matrix")
+        R = validate.rotation(self.R_WM, "R_WM")
         object.__setattr__(self, "scale", scale)
         object.__setattr__(self, "R_WM", R)
 
@@ -289,6 +288,25 @@ def load_csv(path, *, field: str = "csv") -> MasterMotion:
     return MasterMotion(dt=float(dts[0]), p_M=data[:, 1:])
 
 
+@dataclass(frozen=True)
+class _Playback:
+    """A motion and its slave-side tables under one mapping (the context parameter's value)."""
+
+    motion: MasterMotion
+    v_W: np.ndarray  # (n, 3) commanded velocity per sample
+    d_W: np.ndarray  # (n, 3) commanded displacement from the start per sample
+
+    @classmethod
+    def of(cls, motion: MasterMotion, mapping: IncrementalMapping) -> _Playback:
+        if not isinstance(motion, MasterMotion):
+            raise InputError("motion", f"expected a MasterMotion, got {type(motion).__name__}")
+        return cls(motion, mapping.to_world(motion.velocity_M()),
+                   mapping.to_world(motion.p_M - motion.p_M[0]))
+
+
+STILL = MasterMotion(dt=1.0, p_M=np.zeros((2, 3)))  # the hand at rest: the default motion
+
+
 class MasterDevice(LeafSystem):
     """Replays a master handle motion as the operator's commanded tool motion.
 
@@ -304,6 +322,10 @@ class MasterDevice(LeafSystem):
     scale R_WM pdot_M). ``p_WE_offset`` (3): the commanded tool displacement from the start,
     scale R_WM (p_M(t) - p_M(0)). ``p_M`` (3): the handle position. All three are zero-order
     holds of the samples (the value at floor(t/dt)).
+
+    The motion is a context parameter: ``motion`` (default: the hand at rest) goes into the
+    default context, :meth:`set_motion` replaces it in a given context, so one diagram replays
+    any number of runs.
 
     After the motion ends the hand is still (zero command) unless ``target_W`` is given: then the
     system has the optional input ``X_WE_measured`` (abstract RigidTransform) and the operator
@@ -324,7 +346,7 @@ class MasterDevice(LeafSystem):
 
     def __init__(
         self,
-        motion: MasterMotion,
+        motion: MasterMotion | None = None,
         mapping: IncrementalMapping | None = None,
         *,
         target_W=None,
@@ -332,10 +354,9 @@ class MasterDevice(LeafSystem):
         finish_speed: float = 0.005,
     ):
         super().__init__()
-        self._motion = motion
         self._mapping = mapping or IncrementalMapping()
-        self._v_W = self._mapping.to_world(motion.velocity_M())
-        self._d_W = self._mapping.to_world(motion.p_M - motion.p_M[0])
+        self._default = _Playback.of(STILL if motion is None else motion, self._mapping)
+        self._play = self.DeclareAbstractParameter(AbstractValue.Make(self._default))
         self._target = None
         if target_W is not None:
             target = np.asarray(target_W, dtype=float).reshape(-1)
@@ -354,29 +375,47 @@ class MasterDevice(LeafSystem):
 
     @property
     def motion(self) -> MasterMotion:
-        return self._motion
+        """The motion of the default context."""
+        return self._default.motion
 
     @property
     def duration(self) -> float:
-        return self._motion.duration
+        """Duration of the default context's motion (s)."""
+        return self._default.motion.duration
 
-    def _index(self, context) -> int:
-        k = int(np.floor(context.get_time() / self._motion.dt + 1e-9))
-        return min(max(k, 0), self._motion.p_M.shape[0] - 1)
+    def set_motion(self, context, motion: MasterMotion) -> None:
+        """Replay ``motion`` in ``context`` (this system's context or a diagram's root one)."""
+        own = self.GetMyMutableContextFromRoot(context)
+        own.get_mutable_abstract_parameter(self._play).set_value(
+            _Playback.of(motion, self._mapping))
+
+    def motion_in(self, context) -> MasterMotion:
+        """The motion ``context`` replays."""
+        return self._playback(self.GetMyContextFromRoot(context)).motion
+
+    def _playback(self, context) -> _Playback:
+        return context.get_abstract_parameter(self._play).get_value()
+
+    def _index(self, context, play: _Playback) -> int:
+        k = int(np.floor(context.get_time() / play.motion.dt + 1e-9))
+        return min(max(k, 0), play.motion.p_M.shape[0] - 1)
 
     def _calc_velocity(self, context, output: BasicVector):
+        play = self._playback(context)
         out = np.zeros(6)
-        if self._target is not None and context.get_time() > self._motion.duration:
+        if self._target is not None and context.get_time() > play.motion.duration:
             v = self._gain * (self._target - self._X_meas.Eval(context).translation())
             norm = float(np.linalg.norm(v))
             out[3:] = v if norm <= self._speed else v * (self._speed / norm)
         else:
-            out[3:] = self._v_W[self._index(context)]
+            out[3:] = play.v_W[self._index(context, play)]
         output.SetFromVector(out)
 
     def _calc_offset(self, context, output: BasicVector):
-        output.SetFromVector(self._d_W[self._index(context)])
+        play = self._playback(context)
+        output.SetFromVector(play.d_W[self._index(context, play)])
 
     def _calc_handle(self, context, output: BasicVector):
-        output.SetFromVector(self._motion.p_M[self._index(context)])
+        play = self._playback(context)
+        output.SetFromVector(play.motion.p_M[self._index(context, play)])
 

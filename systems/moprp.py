@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from implantplan import models
+from implantplan.systems import actuator as act
 from implantplan.systems import collision_primitives as cp
 from implantplan.systems import kinematics as kin
 from implantplan.systems import validate
@@ -94,21 +95,21 @@ class Obstacle:
 
 @dataclass(frozen=True)
 class Actuator:
-    """Implanting actuator geometry (m), defaults = diagrams/tools.py's modelled actuator: the rod
+    """Implanting actuator geometry (m), defaults = systems.actuator's modelled actuator: the rod
     along the flange +z to the TCP (End) at ``rod_length`` with the flange's axes, the head at the
     TCP; an optional motor body (``body_length`` > 0) from the flange face."""
 
-    rod_length: float = 0.16
-    rod_radius: float = 0.006
-    head_radius: float = 0.008
-    implant_length: float = 0.031
-    implant_radius: float = 0.002
+    rod_length: float = act.ROD_LENGTH
+    rod_radius: float = act.ROD_RADIUS
+    head_radius: float = act.HEAD_RADIUS
+    implant_length: float = act.IMPLANT_LENGTH
+    implant_radius: float = act.IMPLANT_RADIUS
     body_length: float = 0.0
     body_radius: float = 0.0
 
     def X_FT(self) -> np.ndarray:
-        """TCP in the flange frame, translation (0, 0, rod_length) as diagrams.tools.X_FT."""
-        return transform(np.eye(3), [0.0, 0.0, self.rod_length])
+        """TCP in the flange frame, translation (0, 0, rod_length) (systems.actuator.X_FT)."""
+        return act.X_FT(self.rod_length)
 
     def capsules(self) -> tuple[cp.Capsule, ...]:
         return cp.actuator_capsules(

@@ -52,7 +52,7 @@ import numpy as np
 
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm import Fpsm
-from implantplan.systems.frames import rot_z, transform, unit
+from implantplan.systems.frames import rot_z, transform, unit, wrap_angle
 
 OBJECTIVES = ("eq14", "eq21", "eq22")
 
@@ -559,7 +559,7 @@ def place_instrument(
             "theta_T": float(g["x"][1]),
             "distance_d_T": float(abs(g["x"][0] - res.x[0])),
             # angles wrap: -pi and pi are the same rod direction
-            "distance_theta_T": float(abs(np.angle(np.exp(1j * (g["x"][1] - res.x[1]))))),
+            "distance_theta_T": float(abs(wrap_angle(g["x"][1] - res.x[1]))),
             "F_pso_minus_grid": float(res.F - g["F"]),
         }
     placement = Placement(

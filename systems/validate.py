@@ -1,13 +1,24 @@
 """Validation of user input read from YAML/JSON/CLI: one place for "field: what was expected".
 
-Every function takes the value and the dotted name of the field it came from, and raises
+Every check takes the value and the dotted name of the field it came from, and raises
 ``InputError(field, ...)`` with what was expected; nothing is clamped or guessed.
+
+**Typed schemas.** Every YAML section is a frozen dataclass whose fields are declared with
+:func:`spec` (the check, the default, the YAML key and a unit scale); :func:`parse` builds it from
+a mapping, rejects unknown keys, names missing required ones and runs each value through its
+check with the field's dotted name. Sections nest with :func:`section`, lists of sections with
+:func:`sections`. The case file (analyses.case) and the RASSCMAP inputs
+(systems.rasscmap_inputs) are read this way; the MOPRP scenario uses the same checks.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import MISSING, field, fields
+from functools import partial
 from typing import Any
 
+import numba
 import numpy as np
 
 from implantplan.systems.errors import InputError
@@ -90,6 +101,69 @@ def direction(value: Any, field: str) -> np.ndarray:
     return v / norm
 
 
+ROTATION_TOL = 1e-6  # max |R^T R - I| and |det R - 1| of a pose read from input
+
+
+def pose(value: Any, field: str, *, batch: bool = False, tol: float = ROTATION_TOL) -> np.ndarray:
+    """A rigid transform (4x4), or with ``batch`` poses (..., 4, 4): finite numbers, a proper
+    rotation within ``tol`` (orthonormal, det +1) and the last row [0, 0, 0, 1] within ``tol``.
+    The one pose validator (kinematics, FPSM, plant, CLI and file inputs)."""
+    try:
+        X = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(field, "expected a 4x4 pose matrix of numbers") from None
+    if X.shape[-2:] != (4, 4) or X.ndim < 2 or (X.ndim != 2 and not batch):
+        what = "poses of shape (..., 4, 4)" if batch else "a 4x4 pose"
+        raise InputError(field, f"expected {what}, got shape {X.shape}")
+    flat = np.ascontiguousarray(X.reshape(-1, 4, 4))
+    err, finite = _rotation_error(flat)
+    if not finite:
+        raise InputError(field, "poses must be finite (found NaN or inf)")
+    if err > tol:
+        raise InputError(
+            field, f"rotation part is not a proper rotation (orthonormality error {err:.1e})"
+        )
+    if flat.size and np.abs(flat[:, 3] - [0.0, 0.0, 0.0, 1.0]).max() > tol:
+        raise InputError(field, "the last row of a pose must be [0, 0, 0, 1]")
+    return X
+
+
+def rotation(value: Any, field: str, *, tol: float = ROTATION_TOL) -> np.ndarray:
+    """A 3x3 proper rotation matrix (checked as :func:`pose` checks a pose's rotation part)."""
+    try:
+        R = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(field, "expected a 3x3 rotation matrix of numbers") from None
+    if R.shape != (3, 3):
+        raise InputError(field, f"expected a 3x3 rotation matrix, got shape {R.shape}")
+    X = np.eye(4)
+    X[:3, :3] = R
+    pose(X, field, tol=tol)
+    return R
+
+
+@numba.njit(cache=True)
+def _rotation_error(X):  # pragma: no cover - compiled
+    """max |R^T R - I| and |det R - 1| over a batch of poses, and whether all entries are finite."""
+    worst = 0.0
+    for n in range(X.shape[0]):
+        for i in range(4):
+            for j in range(4):
+                if not np.isfinite(X[n, i, j]):
+                    return np.inf, False
+        for i in range(3):
+            for j in range(i, 3):
+                d = X[n, 0, i] * X[n, 0, j] + X[n, 1, i] * X[n, 1, j] + X[n, 2, i] * X[n, 2, j]
+                worst = max(worst, abs(d - (1.0 if i == j else 0.0)))
+        det = (
+            X[n, 0, 0] * (X[n, 1, 1] * X[n, 2, 2] - X[n, 1, 2] * X[n, 2, 1])
+            - X[n, 0, 1] * (X[n, 1, 0] * X[n, 2, 2] - X[n, 1, 2] * X[n, 2, 0])
+            + X[n, 0, 2] * (X[n, 1, 0] * X[n, 2, 1] - X[n, 1, 1] * X[n, 2, 0])
+        )
+        worst = max(worst, abs(det - 1.0))
+    return worst, True
+
+
 def choice(value: Any, field: str, options: tuple) -> Any:
     if value not in options:
         raise InputError(field, f"expected one of {', '.join(map(str, options))}, got {value!r}")
@@ -101,3 +175,105 @@ def unknown_keys(d: dict, allowed: tuple[str, ...], where: str) -> None:
     extra = sorted(set(d) - set(allowed))
     if extra:
         raise InputError(f"{where}{extra[0]}", f"unknown key; expected one of {', '.join(allowed)}")
+
+
+# -- typed schemas -------------------------------------------------------------------------------
+
+REQUIRED = object()  # spec default: the key must be present (and not null)
+
+
+def spec(check: Callable[[Any, str], Any], default: Any = REQUIRED, *, key: str | None = None,
+         scale: float | None = None):
+    """A dataclass field read from YAML by :func:`parse`.
+
+    Args:
+        check: ``check(value, field) -> parsed`` (one of this module's checks, or a partial).
+        default: the raw value used when the key is missing or null (it goes through ``check``);
+            :data:`REQUIRED` makes the key mandatory; None leaves the field None.
+        key: the YAML key when it differs from the field name (``position_mm`` -> ``position``).
+        scale: multiply the checked value (file units -> SI, e.g. 1e-3 for mm).
+    """
+    return field(metadata={"check": check, "default": default, "key": key, "scale": scale})
+
+
+def parse(cls, data: Any, where: str):
+    """Build the :func:`spec` dataclass ``cls`` from the mapping ``data`` found at ``where``
+    (dotted; "" for the top of a file). An absent section is an empty mapping."""
+    prefix = f"{where}." if where else ""
+    d = mapping(data, where or "file")
+    specs = []
+    for f in fields(cls):
+        if "check" not in f.metadata:
+            if f.default is MISSING and f.default_factory is MISSING:
+                raise TypeError(f"{cls.__name__}.{f.name} is neither a spec nor defaulted")
+            continue
+        specs.append((f.metadata["key"] or f.name, f))
+    unknown_keys(d, tuple(k for k, _ in specs), prefix)
+    values = {}
+    for key, f in specs:
+        m = f.metadata
+        raw = d.get(key)
+        if raw is None:
+            if m["default"] is REQUIRED:
+                raise InputError(prefix + key, "missing (required)")
+            raw = m["default"]
+        if raw is None:
+            values[f.name] = None
+            continue
+        value = m["check"](raw, prefix + key)
+        values[f.name] = value if m["scale"] is None else value * m["scale"]
+    return cls(**values)
+
+
+def section(cls) -> Callable[[Any, str], Any]:
+    """A check that parses a nested mapping as the schema dataclass ``cls``."""
+    return lambda value, where: parse(cls, value, where)
+
+
+def sections(cls, *, min_items: int = 0) -> Callable[[Any, str], tuple]:
+    """A check for a list of mappings, each parsed as ``cls`` (``where[i]`` in errors)."""
+    def check(value, where):
+        if not isinstance(value, list) or len(value) < min_items:
+            raise InputError(where, f"expected a list of at least {min_items} mappings, got "
+                             f"{value!r}" if min_items else f"expected a list, got {value!r}")
+        return tuple(parse(cls, item, f"{where}[{i}]") for i, item in enumerate(value))
+    return check
+
+
+def one_of(*options) -> Callable[[Any, str], Any]:
+    """A check: the value is one of ``options``."""
+    return lambda value, where: choice(value, where, options)
+
+
+def boolean(value: Any, field: str) -> bool:
+    if not isinstance(value, bool):
+        raise InputError(field, f"expected true or false, got {value!r}")
+    return value
+
+
+def text(value: Any, field: str) -> str:
+    """A non-empty string."""
+    if not isinstance(value, str) or not value:
+        raise InputError(field, f"expected a non-empty text, got {value!r}")
+    return value
+
+
+def label(value: Any, field: str) -> str:
+    """A name (YAML may read ``36`` as a number: it is taken as the text "36")."""
+    if isinstance(value, (dict, list)) or str(value) == "":
+        raise InputError(field, f"expected a name, got {value!r}")
+    return str(value)
+
+
+def version(expected: int) -> Callable[[Any, str], int]:
+    """A check: ``schema_version`` equals ``expected``."""
+    def check(value, where):
+        if value != expected or isinstance(value, bool):
+            raise InputError(where, f"expected {expected}, got {value!r}")
+        return int(value)
+    return check
+
+
+positive = partial(number, positive=True)
+nonneg = partial(number, nonneg=True)
+vec3 = partial(vector, n=3)

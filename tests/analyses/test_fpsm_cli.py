@@ -202,19 +202,8 @@ def test_real_mesh_open_cut_is_exit_2_naming_the_fix(tmp_path, capsys):
 )
 def test_bad_fit_arguments_are_exit_2(tmp_path, cavity_stl_mm, capsys, extra, needle):
     code = main(
-        [
-            "fpsm",
-            "fit",
-            str(cavity_stl_mm),
-            "--center-origin-mm",
-            "0",
-            "0",
-            "40",
-            *extra,
-            "--quiet",
-            "--out",
-            str(tmp_path / "x.json"),
-        ]
+        ["fpsm", "fit", str(cavity_stl_mm), *"--center-origin-mm 0 0 40".split(), *extra,
+         "--quiet", "--out", str(tmp_path / "x.json")]
     )
     assert code == 2
     assert needle in capsys.readouterr().err
@@ -225,23 +214,7 @@ def test_bad_mesh_files_are_exit_2(tmp_path, capsys):
     nan = tmp_path / "nan.obj"
     nan.write_text("v 0 0 0\nv 1 0 0\nv nan 1 0\nf 1 2 3\n")
     for path, needle in ((missing, "does not exist"), (nan, "NaN")):
-        code = main(
-            [
-                "fpsm",
-                "fit",
-                str(path),
-                "--center-origin-mm",
-                "0",
-                "0",
-                "0",
-                "--center-z",
-                "0",
-                "0",
-                "1",
-                "--quiet",
-                "--out",
-                str(tmp_path / "x.json"),
-            ]
-        )
+        code = main(["fpsm", "fit", str(path), *"--center-origin-mm 0 0 0 --center-z 0 0 1".split(),
+                     "--quiet", "--out", str(tmp_path / "x.json")])
         assert code == 2
         assert needle in capsys.readouterr().err

@@ -146,7 +146,7 @@ def test_real_oral_mesh_end_to_end(tmp_path):
     s = np.linspace(0, (fpsm.z_range[1] - start[2]) / u[2], 400)
     assert np.all(fpsm.d_safe(start + s[:, None] * u, radius=0.002) > -1e-4)
     # the plots find the fit's mesh and put it in Center, whatever units the settings claim
-    from implantplan.analyses.instrument import _mesh_in_center
+    from implantplan.analyses.figures.placement import _mesh_in_center
 
     v, _ = _mesh_in_center(fpsm)
     d = fpsm.to_dict()

@@ -2,7 +2,6 @@
 
 import json
 
-import numpy as np
 import pytest
 
 from implantplan.analyses import simulate as S
@@ -90,12 +89,3 @@ def test_rank_of_first_by_hand():
     assert S.rank_of_first([2.0, 1.0, 3.0]) == 2
     assert S.rank_of_first([2.0, 1.0, 3.0], higher_is_better=True) == 2
     assert S.rank_of_first([1.0, 1.0, 0.5]) == 2  # ties count in its favour
-
-
-def test_joint_error_model_is_seeded_and_sized():
-    t = np.arange(200) * 0.01
-    q = np.stack([np.sin(t)] * 6, axis=1)
-    a = S.joint_error(q, t, np.deg2rad(0.1), 4, seed=7)
-    b = S.joint_error(q, t, np.deg2rad(0.1), 4, seed=7)
-    assert a.shape == (4, 200, 6) and np.array_equal(a, b)
-    assert np.abs(a).max() < np.deg2rad(0.1) * 3

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from implantplan.analyses import simulate as S
+from implantplan.diagrams import feeding as S
 from implantplan.diagrams.teleop import X_ET, ToolPose, build_teleop, simulate
 from implantplan.systems.master_device import MasterMotion, feeding_runs
 
@@ -11,7 +11,7 @@ from implantplan.systems.master_device import MasterMotion, feeding_runs
 @pytest.fixture(scope="module")
 def case():
     sc, sc_plant = S.load_scenario("lying")
-    xyz, branch, _ = S.select_layout(sc, seed=0, candidates=100)
+    xyz, branch, _ = S.knee_layout(sc, seed=0, candidates=100)
     return S.make_case("lying", sc_plant, xyz, branch, S.default_instrument())
 
 
@@ -53,6 +53,28 @@ def test_full_feed_reaches_the_target_inside_the_fixture_without_alarm(case):
     # bit-for-bit repeatable
     again = simulate(build_teleop(case, motion), motion.duration + S.FINISH_SECONDS)
     assert np.array_equal(again.q, run.q)
+
+
+def test_one_diagram_serves_every_run_of_a_case(case):
+    """The motion is a context parameter: two runs on one diagram, in either order, give the
+    same logs bit for bit as a diagram built for each motion (the pre-change behaviour)."""
+    start = case.X_WE(case.q_start)[:3, 3]
+    target = case.X_WTarget[:3, 3]
+    m0, m1 = feeding_runs(start, target, runs=2, seed=7)
+    assert m0.p_M.shape != m1.p_M.shape or not np.array_equal(m0.p_M, m1.p_M)
+    shared = build_teleop(case)
+    T = max(m0.duration, m1.duration) + S.FINISH_SECONDS
+    on_shared = [simulate(shared, T, motion=m) for m in (m1, m0, m1)]
+    own = [simulate(build_teleop(case, m), T) for m in (m1, m0)]
+    for a, b in ((on_shared[0], own[0]), (on_shared[1], own[1]), (on_shared[2], own[0])):
+        assert np.array_equal(a.q, b.q)
+        assert np.array_equal(a.min_d_safe, b.min_d_safe)
+    assert not np.array_equal(on_shared[0].q, on_shared[1].q)  # the runs really differ
+    # the default context keeps the built motion; a run's context holds its own
+    assert shared.master.motion.duration == 1.0  # systems.master_device.STILL
+    context = shared.diagram.CreateDefaultContext()
+    shared.master.set_motion(context, m0)
+    assert shared.master.motion_in(context) is m0
 
 
 def cheek_push(case, *, depth=0.03, lateral=0.06, speed=0.02, dt=0.005):

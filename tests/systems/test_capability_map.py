@@ -186,3 +186,46 @@ def test_bad_params_are_input_errors():
         cm.make_params(0.1, 10, limits="180")
     with pytest.raises(InputError, match="poses"):
         cm.build(cm.make_params(0.3, 4), workers=1).query(np.zeros((3, 3)))
+
+
+def _hand_map():
+    """A 4x4x4 grid of 0.1 m voxels at the origin with two stored voxels: (1, 1, 1) reaching 8
+    of 8 directions (index 1) and (1, 1, 2) reaching 2 of 8 (index 0.25)."""
+    params = cm.make_params(0.1, 8)
+    grid = cm.Grid(origin=np.zeros(3), voxel=0.1, shape=(4, 4, 4))
+    ids = np.ravel_multi_index(np.array([[1, 1], [1, 1], [1, 2]]), grid.shape)
+    bits = np.array([[0xFF], [0b11000000]], dtype=np.uint8)
+    return cm.CapabilityMap(params, grid, ids, bits, bits.copy())
+
+
+def test_neighbourhood_ids_hand_derived():
+    g = _hand_map().grid
+    near = g.neighbourhood(np.array([[0.15, 0.15, 0.15], [0.05, 0.05, 0.05], [-1.0, 0.0, 0.0]]))
+    assert near.shape == (3, 27)
+    # interior voxel (1,1,1): all 27 inside, offsets in C order, the centre is entry 13
+    expect = [np.ravel_multi_index((1 + i, 1 + j, 1 + k), g.shape)
+              for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)]
+    assert near[0].tolist() == expect and near[0, 13] == np.ravel_multi_index((1, 1, 1), g.shape)
+    # corner voxel (0,0,0): only the 2x2x2 cells with non-negative indices are inside
+    assert int(np.sum(near[1] >= 0)) == 8
+    assert np.all(near[2] == -1)  # far outside
+
+
+def test_neighbourhood_index_hand_derived():
+    m = _hand_map()
+    # around (1,1,1): both stored voxels are neighbours -> (1 + 0.25) / 27; around (1,1,3): only
+    # (1,1,2) -> 0.25 / 27 (the cells with k = 4 are outside the grid and count 0)
+    got = m.neighbourhood_index(np.array([[0.15, 0.15, 0.15], [0.15, 0.15, 0.35]]))
+    np.testing.assert_allclose(got, [1.25 / 27, 0.25 / 27], rtol=1e-15)
+    # batches keep their leading shape
+    assert m.neighbourhood_index(np.zeros((2, 5, 3))).shape == (2, 5)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.floats(-0.1, 0.5), min_size=3, max_size=3))
+def test_neighbourhood_index_is_the_mean_voxel_index_of_the_neighbour_centres(p):
+    m = _hand_map()
+    near = m.grid.neighbourhood(np.array(p))
+    centres = m.grid.centres(np.maximum(near, 0))
+    ref = np.where(near >= 0, m.voxel_index(centres), 0.0).mean()
+    assert m.neighbourhood_index(np.array(p)) == pytest.approx(ref, abs=1e-15)

@@ -128,6 +128,25 @@ def test_master_device_system_outputs_the_mapped_samples():
     np.testing.assert_allclose(system.GetOutputPort("p_M").Eval(context), p_M[-1])
 
 
+def test_master_device_motion_is_a_context_parameter():
+    """One system, two contexts, two motions: each context replays its own (hand-derived
+    velocities: 1 mm per 10 ms = 0.1 m/s, 3 mm per 20 ms = 0.15 m/s), the default one the hand at
+    rest when built without a motion; a non-motion is an input error naming the field."""
+    system = MasterDevice()
+    V = system.GetOutputPort("V_WE_command")
+    a, b = system.CreateDefaultContext(), system.CreateDefaultContext()
+    np.testing.assert_allclose(V.Eval(a), 0.0)
+    system.set_motion(a, MasterMotion(dt=0.01, p_M=[[0, 0, 0], [0.001, 0, 0]]))
+    system.set_motion(b, MasterMotion(dt=0.02, p_M=[[0, 0, 0], [0, 0, 0.003]]))
+    for c in (a, b):
+        c.SetTime(0.005)
+    np.testing.assert_allclose(V.Eval(a), [0, 0, 0, 0.1, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(V.Eval(b), [0, 0, 0, 0, 0, 0.15], atol=1e-12)
+    assert system.motion_in(b).dt == 0.02 and system.motion.dt == 1.0
+    with pytest.raises(InputError, match="motion"):
+        system.set_motion(a, np.zeros((3, 3)))
+
+
 def test_operator_finishes_by_eye_after_the_script():
     from pydrake.common.value import AbstractValue
     from pydrake.math import RigidTransform

@@ -9,7 +9,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from implantplan.systems import capability_map as cm
+from implantplan.systems import map_store as ms
 from implantplan.systems import rasscmap as rm
+from implantplan.systems import rasscmap_inputs as rin
+from implantplan.systems import setup_search as ss
 from implantplan.systems.errors import InputError, PlanningFailure
 from implantplan.systems.frames import rot_x, transform
 
@@ -157,7 +160,7 @@ def test_setup_cost_formula():
     reach = np.array([[True, True], [True, False]])
     c_t = np.array([[0.6, 0.8], [1.0, 1.0]])
     c_s = np.array([0.5, 0.9])
-    np.testing.assert_allclose(rm.setup_cost(reach, c_t, c_s), [0.5 * (0.7 + 0.5), 0.0])
+    np.testing.assert_allclose(ss.setup_cost(reach, c_t, c_s), [0.5 * (0.7 + 0.5), 0.0])
 
 
 def _write(tmp_path, name, data):
@@ -171,23 +174,23 @@ def test_yaml_errors_name_the_field(tmp_path):
                        "voxel_size": 0.05, "map_depth": 0.1,
                        "body": {"arc_length": 0.3, "chord": 0.4, "length": 0.2}}}  # fmt: skip
     with pytest.raises(InputError, match="patient.body.chord"):
-        rm.load_patient(_write(tmp_path, "p.yaml", bad))
+        rin.load_patient(_write(tmp_path, "p.yaml", bad))
     bad["patient"]["body"]["chord"] = 0.2
     bad["patient"]["voxel_size"] = -1
     with pytest.raises(InputError, match="patient.voxel_size"):
-        rm.load_patient(_write(tmp_path, "p.yaml", bad))
+        rin.load_patient(_write(tmp_path, "p.yaml", bad))
     bad["patient"]["voxel_size"] = 0.05
     bad["patient"]["pose"] = {"xyz": [0, 0]}
     with pytest.raises(InputError, match="patient.pose.xyz"):
-        rm.load_patient(_write(tmp_path, "p.yaml", bad))
+        rin.load_patient(_write(tmp_path, "p.yaml", bad))
     with pytest.raises(InputError, match="task.poses"):
-        rm.load_task(_write(tmp_path, "t.yaml", {"task": {"id": "T", "poses": []}}))
+        rin.load_task(_write(tmp_path, "t.yaml", {"task": {"id": "T", "poses": []}}))
     robot = {"robot": {"name": "aubo_i10", "map": "m.h5",
                        "base_ranges": [{"x": [1.0, 0.0], "y": 0.0}]}}  # fmt: skip
     with pytest.raises(InputError, match=r"robot.base_ranges\[0\].x"):
-        rm.load_robot(_write(tmp_path, "r.yaml", robot))
+        rin.load_robot(_write(tmp_path, "r.yaml", robot))
     with pytest.raises(InputError, match="patient.access_points"):
-        rm.load_patient(
+        rin.load_patient(
             _write(
                 tmp_path,
                 "c.yaml",
@@ -203,16 +206,16 @@ def test_yaml_errors_name_the_field(tmp_path):
 
 
 def test_bundled_cases_parse():
-    p = rm.load_patient(f"{CASES}/laparoscopy_patient.yaml")
+    p = rin.load_patient(f"{CASES}/laparoscopy_patient.yaml")
     assert p.access == "constrained" and len(p.access_points) == 5
-    assert len(rm.load_task(f"{CASES}/laparoscopy_task.yaml").poses) == 200
-    rail = rm.load_robot(f"{CASES}/laparoscopy_robot_rail.yaml")
-    assert len(rm.base_candidates(rail.ranges)[0]) == 25  # 1.2 m rail at 5 cm
-    ped = rm.load_robot(f"{CASES}/pedicle_robot.yaml")
-    assert len(rm.base_candidates(ped.ranges)[0]) == 800  # as in the paper's use case
-    assert rm.load_patient(f"{CASES}/dental_patient.yaml").access == "unconstrained"
-    assert len(rm.load_task(f"{CASES}/dental_task.yaml").poses) == 6
-    assert len(rm.load_robot(f"{CASES}/dental_robot.yaml").ranges) == 2
+    assert len(rin.load_task(f"{CASES}/laparoscopy_task.yaml").poses) == 200
+    rail = rin.load_robot(f"{CASES}/laparoscopy_robot_rail.yaml")
+    assert len(rin.base_candidates(rail.ranges)[0]) == 25  # 1.2 m rail at 5 cm
+    ped = rin.load_robot(f"{CASES}/pedicle_robot.yaml")
+    assert len(rin.base_candidates(ped.ranges)[0]) == 800  # as in the paper's use case
+    assert rin.load_patient(f"{CASES}/dental_patient.yaml").access == "unconstrained"
+    assert len(rin.load_task(f"{CASES}/dental_task.yaml").poses) == 6
+    assert len(rin.load_robot(f"{CASES}/dental_robot.yaml").ranges) == 2
 
 
 def _unconstrained_problem(cmap, tmp_path, base_y):
@@ -228,58 +231,58 @@ def _unconstrained_problem(cmap, tmp_path, base_y):
         "name": "aubo_i10", "map": "unused.h5", "translation_step": 0.1, "rotation_step_deg": 30,
         "base_ranges": [{"x": [-0.3, 0.3], "y": base_y, "z": 0.0, "yaw_deg": [0, 330]},
                         {"x": [3.0, 3.2], "y": 0.0, "z": 0.0, "yaw_deg": 0}]}})  # fmt: skip
-    return rm.SetupProblem(cmap, rm.load_patient(pat), rm.load_task(task), rm.load_robot(robot))
+    return ss.SetupProblem(cmap, rin.load_patient(pat), rin.load_task(task), rin.load_robot(robot))
 
 
 def test_exhaustive_and_ga_agree_and_far_bases_score_zero(cmap, tmp_path):
     prob = _unconstrained_problem(cmap, tmp_path, [-0.3, 0.3])
-    ex = rm.optimize(prob, method="exhaustive")
+    ex = ss.optimize(prob, method="exhaustive")
     assert prob.n == 7 * 7 * 12 + 3
     # the bases 3 m away (last range) reach nothing: cost 0, the worst
     assert np.all(prob.cost[-3:] == 0.0) and ex.worst_cost == 0.0
     assert ex.cost == pytest.approx(prob.cost.max())
     ga_prob = _unconstrained_problem(cmap, tmp_path, [-0.3, 0.3])
-    ga = rm.genetic_search(ga_prob, seed=1, population=30, generations=40)
+    ga = ss.genetic_search(ga_prob, seed=1, population=30, generations=40)
     assert ga.cost <= ex.cost + 1e-12
     assert ga.cost >= 0.95 * ex.cost  # a small problem: the GA gets (close to) the optimum
-    ga2 = rm.genetic_search(_unconstrained_problem(cmap, tmp_path, [-0.3, 0.3]), seed=1,
+    ga2 = ss.genetic_search(_unconstrained_problem(cmap, tmp_path, [-0.3, 0.3]), seed=1,
                             population=30, generations=40)  # fmt: skip
     assert (ga2.best, ga2.cost) == (ga.best, ga.cost)  # same seed, same result
 
 
 def test_tie_break_takes_the_deepest_of_the_tied_best(cmap, tmp_path):
     prob = _unconstrained_problem(cmap, tmp_path, [-0.3, 0.3])
-    res = rm.exhaustive_search(prob)
+    res = ss.exhaustive_search(prob)
     ids = np.arange(prob.n)
     top = (prob.cost == prob.cost[res.best]) & (prob.margin == prob.margin[res.best])
     assert prob.cost[res.best] == prob.cost.max()
     assert prob.margin[res.best] == prob.margin[prob.cost == prob.cost.max()].max()
     if top.sum() > 1:
-        depth = rm.setup_distance(prob, ids[top], ids[~top]).min(axis=1)
+        depth = ss.setup_distance(prob, ids[top], ids[~top]).min(axis=1)
         assert depth[np.flatnonzero(ids[top] == res.best)[0]] == depth.max()
     # distance: a 30 deg yaw step at the same position = YAW_LENGTH * pi / 6
     same_pos = np.flatnonzero(np.all(prob.base_coords[:, :4] == prob.base_coords[0, :4], axis=1))
-    d = rm.setup_distance(prob, np.array([0]), same_pos)[0]
-    np.testing.assert_allclose(np.sort(d)[:2], [0.0, rm.YAW_LENGTH * np.pi / 6], atol=1e-12)
+    d = ss.setup_distance(prob, np.array([0]), same_pos)[0]
+    np.testing.assert_allclose(np.sort(d)[:2], [0.0, ss.YAW_LENGTH * np.pi / 6], atol=1e-12)
 
 
 def test_no_reachable_base_is_a_planning_failure(cmap, tmp_path):
     prob = _unconstrained_problem(cmap, tmp_path, [4.0, 4.2])
     with pytest.raises(PlanningFailure, match="reaches all 2 task poses"):
-        rm.optimize(prob)
+        ss.optimize(prob)
 
 
 def test_store_reuses_constrained_maps(cmap, tmp_path):
-    pat = rm.load_patient(f"{CASES}/laparoscopy_patient.yaml")
+    pat = rin.load_patient(f"{CASES}/laparoscopy_patient.yaml")
     pat.access_points = pat.access_points[:2]
     pat.voxel, pat.d_rot = 0.05, np.radians(15)
-    task = rm.Task("T", rm.load_task(f"{CASES}/laparoscopy_task.yaml").poses[::20])
-    robot = rm.load_robot(f"{CASES}/laparoscopy_robot_fixed.yaml")
-    store = rm.RasscmapStore(tmp_path / "store")
-    p1 = rm.SetupProblem(cmap, pat, task, robot, store=store)
+    task = rin.Task("T", rin.load_task(f"{CASES}/laparoscopy_task.yaml").poses[::20])
+    robot = rin.load_robot(f"{CASES}/laparoscopy_robot_fixed.yaml")
+    store = ms.RasscmapStore(tmp_path / "store")
+    p1 = ss.SetupProblem(cmap, pat, task, robot, store=store)
     p1.evaluate(np.arange(p1.n))
     assert (store.hits, store.misses) == (0, 2)
-    p2 = rm.SetupProblem(cmap, pat, task, robot, store=store)
+    p2 = ss.SetupProblem(cmap, pat, task, robot, store=store)
     p2.evaluate(np.arange(p2.n))
     assert store.hits == 2
     np.testing.assert_array_equal(p1.cost, p2.cost)
