@@ -49,6 +49,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from implantplan.systems import actuator
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm import _W, TWO_PI, Fpsm
 
@@ -62,6 +63,10 @@ OUTSIDE = -1.0  # the bound (m) outside the grid box at z <= z_top: a collision,
 @dataclass(frozen=True)
 class ToolGeometry:
     """The contra-angle implanting tool in its Tool frame T (seed 000 Eq. 19; SI units).
+
+    Lengths default to the one actuator definition (systems.actuator); the head and implant
+    default to the paper's model (a head as thick as the rod, the implant as its axis, line2);
+    :meth:`actuator` gives the bundled actuator's thicker head (8 mm) and implant (2 mm).
 
     T: origin at the head, x along the handle rod (out of the mouth), z along the implant axis
     (the implant points to -z). Three capsules (segment + radius) make the body:
@@ -79,11 +84,26 @@ class ToolGeometry:
         head_radius: radius of the head sphere (m); None = rod_radius.
     """
 
-    rod_radius: float = 0.006
-    implant_length: float = 0.031
-    rod_length: float = 0.2
+    rod_radius: float = actuator.ROD_RADIUS
+    implant_length: float = actuator.IMPLANT_LENGTH
+    rod_length: float = actuator.ROD_LENGTH
     implant_radius: float = 0.0
     head_radius: float | None = None
+
+    @classmethod
+    def actuator(cls, rod_radius: float = actuator.ROD_RADIUS,
+                 implant_length: float = actuator.IMPLANT_LENGTH) -> ToolGeometry:
+        """The bundled actuator's full body (systems.actuator): its head and implant radii
+        instead of the paper's lines (head = rod radius, implant = its axis)."""
+        return cls(rod_radius=rod_radius, implant_length=implant_length,
+                   head_radius=actuator.HEAD_RADIUS, implant_radius=actuator.IMPLANT_RADIUS)
+
+    def lines_T(self) -> tuple[np.ndarray, np.ndarray]:
+        """Eq. 19 in T, written once: the starts P1 = [r, 0, 0] (line1, the rod) and
+        P2 = [r, 0, -d12] (line2, the implant tip's path), (2, 3), and their common direction
+        +x (3,)."""
+        r, d12 = self.rod_radius, self.implant_length
+        return np.array([[r, 0.0, 0.0], [r, 0.0, -d12]]), np.array([1.0, 0.0, 0.0])
 
     def __post_init__(self):
         for name, positive in (
@@ -600,7 +620,7 @@ def rod_clearance(
         out = np.empty(A.shape[0])
         for rv in np.unique(r):  # Eq. 12 shrinks the model by one radius per call
             sel = r == rv
-            ls = fpsm._line_safety(A[sel], u[sel], np.maximum(L[sel], 1e-12), rv, 0.5, 0.5)
+            ls = fpsm.line_safety_batch(A[sel], u[sel], np.maximum(L[sel], 1e-12), rv)
             out[sel] = ls.d_safe_min
         return out
     out = np.empty(A.shape[0])
@@ -704,6 +724,44 @@ def feed_poses(X_CTool, depth: float, step: float) -> tuple[np.ndarray, float]:
     return P, (depth / (S - 1) if S > 1 else 0.0)
 
 
+def feed_depth(fpsm: Fpsm, X_CTool, tool: ToolGeometry) -> float:
+    """How far (m) the tools at poses X must back out along their rod axis (Tool +x) until the
+    tool origin is above the mouth opening by the head and the implant length (the largest over
+    the poses; MAX_FEED when an axis does not rise out of the mouth)."""
+    X = _poses(X_CTool)
+    need = fpsm.z_range[1] + tool.head + tool.implant_length - X[:, 2, 3]
+    rise = X[:, 2, 0]  # Center z of the rod axis: the feed direction out of the mouth
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_out = np.where(need <= 0, 0.0, need / np.where(rise > 1e-6, rise, np.nan))
+    depth = float(np.nanmax(np.where(np.isnan(s_out), MAX_FEED, s_out), initial=0.0))
+    return min(depth, MAX_FEED)
+
+
+def admissible_poses(X_CTool, lateral: float, angle: float, *, directions: int = 8) -> np.ndarray:
+    """Sample poses of the fixture's admissible region about one planned pose (4, 4): the pose
+    itself, the axis moved by ``lateral`` in ``directions`` directions across it, and the pose
+    turned by +-``angle`` about Tool y and Tool z at the origin: (1 + directions + 4, 4, 4).
+    For the exact (FCL) check; the certified bound of :func:`feed_clearance` covers the whole
+    region without sampling."""
+    X = _poses(X_CTool)[0]
+    R = X[:3, :3]
+    out = [X]
+    for a in np.arange(directions) * (2 * np.pi / directions):
+        Y = X.copy()
+        Y[:3, 3] += lateral * (np.cos(a) * R[:, 1] + np.sin(a) * R[:, 2])
+        out.append(Y)
+    for axis in (1, 2):
+        for sign in (-1.0, 1.0):
+            k = R[:, axis]
+            K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+            th = sign * angle
+            Rot = np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
+            Y = X.copy()
+            Y[:3, :3] = Rot @ R
+            out.append(Y)
+    return np.stack(out)
+
+
 def feed_clearance(
     fpsm: Fpsm,
     X_CTool,
@@ -736,13 +794,7 @@ def feed_clearance(
         if not np.isfinite(value) or value < 0:
             raise InputError(name, f"expected a tolerance >= 0, got {value}")
     if depth is None:
-        # back out until the tool origin is above the opening by the head and the implant
-        need = fpsm.z_range[1] + tool.head + tool.implant_length - X[:, 2, 3]
-        rise = X[:, 2, 0]  # Center z of the rod axis: the feed direction out of the mouth
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s_out = np.where(need <= 0, 0.0, need / np.where(rise > 1e-6, rise, np.nan))
-        depth = float(np.nanmax(np.where(np.isnan(s_out), MAX_FEED, s_out), initial=0.0))
-        depth = min(depth, MAX_FEED)
+        depth = feed_depth(fpsm, X, tool)
     P, t = feed_poses(X, depth, step)
     n, S = P.shape[:2]
     A, B, r = _tool_capsules(P.reshape(-1, 4, 4), tool)
