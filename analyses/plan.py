@@ -132,7 +132,7 @@ def _plan_into(case: Case, out: Path, *, runs, html_scene: bool, quiet: bool) ->
              f"in {prog.elapsed:.2f} s")
 
     prog = Progress("2/5 placement", quiet=quiet)
-    placements = pipeline.placement_stage(case, fit.fpsm, progress=prog)
+    placements = pipeline.placement_stage(case, fit.fpsm, progress=prog, mesh=fit.opened)
     timing["placement"] = prog.elapsed
 
     prog = Progress("3/5 robot base", quiet=quiet)
@@ -173,7 +173,8 @@ def _check(name: str, value: float, limit: float, *, unit: str, upper: bool, sit
     margin = (limit - value) if upper else (value - limit)
     passed = margin >= 0 if upper else margin > 0
     return {"name": name, "site": site, "value": float(value), "limit": float(limit),
-            "unit": unit, "margin": float(margin), "pass": bool(passed)}
+            "unit": unit, "margin": float(margin), "pass": bool(passed),
+            "limit_kind": "max" if upper else "min"}
 
 
 def plan_dict(case: Case, fit, placements, robot, cap, sims) -> dict:
@@ -197,6 +198,7 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims) -> dict:
             "rod_radius": site.rod_radius,
             "placement": {key: val for key, val in p.to_dict().items()
                           if key not in ("history", "vf")},
+            "registration": p.verification.get("registration"),
             "feeding_target": {"X_CT": p.X_CT, "X_WT": X_WT, "X_BaseEnd": X_BE,
                                "note": "End (actuator tcp) = Tool rotated by R_OE"},
             "vf": p.vf.to_dict(),
@@ -213,10 +215,19 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims) -> dict:
                 "realtime_factor": sim["realtime_factor"]},
         })
         n = site.name
-        checks.append(_check("line1 (rod) clearance", p.d_safe_min_line1, 0.0, unit="m",
-                             upper=False, site=n))
-        checks.append(_check("line2 (implant path) clearance", p.d_safe_min_line2, 0.0,
+        checks.append(_check("line1 (rod) clearance", p.d_safe_min_line1, case.clearance_margin,
                              unit="m", upper=False, site=n))
+        checks.append(_check("line2 (implant path) clearance", p.d_safe_min_line2,
+                             case.clearance_margin, unit="m", upper=False, site=n))
+        ver = p.verification
+        if ver:
+            checks.append(_check("tool clearance over the feed and the fixture's region "
+                                 "(certified, FPSM)", ver["clearance_certified"],
+                                 ver["clearance_margin"], unit="m", upper=False, site=n))
+            if ver.get("clearance_exact_min") is not None:
+                checks.append(_check("tool clearance over the feed and the fixture's region "
+                                     "(exact, FCL against the scan)", ver["clearance_exact_min"],
+                                     ver["clearance_margin"], unit="m", upper=False, site=n))
         if "x" in grid:
             dd = abs(p.d_T - float(grid["x"][0]))
             dth = abs(wrap_angle(p.theta_T - float(grid["x"][1])))

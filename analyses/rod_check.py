@@ -62,7 +62,10 @@ def _fit(case, mesh: trimesh.Trimesh, X_WC: np.ndarray, scale: float) -> Fpsm:
 def _roundtrip(mesh: trimesh.Trimesh, suffix: str, folder: Path) -> trimesh.Trimesh:
     path = folder / f"cavity{suffix}"
     mesh.export(path)
-    return load_oral_mesh(path, units="m")
+    loaded = load_oral_mesh(path, units="m")
+    # STL stores a triangle soup: weld the corners again, or every edge looks like an open cut
+    loaded.merge_vertices()
+    return loaded
 
 
 def make_variants(names=VARIANTS, *, seed: int = 0) -> list[Variant]:

@@ -450,8 +450,8 @@ def verify_placement(
         "clearance_exact_min": None,
         "exact_poses": 0,
         "clearance_margin": margin,
-        "lateral_tolerance": lateral,
-        "angle_tolerance": angle,
+        "lateral_tolerance": float(lateral),
+        "angle_tolerance": float(angle),
         "feed_depth": depth,
         "tool": tool.to_dict(),
         "method": "certified FPSM bound over the feed and the admissible region; FCL exact "
