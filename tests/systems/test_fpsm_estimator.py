@@ -63,7 +63,7 @@ def test_sound_clearance_of_the_whole_tool_by_hand():
     X = np.stack([pose([-d, 0.0, 0.044]) for d in dx])
     s = tool_safety(CYL, X, ToolLines.contra_angle(R, D12), alarm_margin=0.001)
     f = clearance_field(CYL)
-    slack = f.spacing * np.sqrt(3) / 2 + f.spacing / 8 + f.cover
+    slack = f.spacing * np.sqrt(3) / 2 + f.spacing / 4 + f.cover
     true = 0.019 - dx
     assert np.all(s.min_d_safe[true > 0] <= true[true > 0])
     assert s.min_d_safe[0] >= RESOLVE - slack
