@@ -623,11 +623,8 @@ def rod_clearance(
         d = B - A
         L = np.linalg.norm(d, axis=1)
         u = np.where(L[:, None] > 0, d / np.where(L > 0, L, 1.0)[:, None], [0.0, 0.0, 1.0])
-        out = np.empty(A.shape[0])
-        for rv in np.unique(r):  # Eq. 12 shrinks the model by one radius per call
-            sel = r == rv
-            ls = fpsm.line_safety_batch(A[sel], u[sel], np.maximum(L[sel], 1e-12), rv)
-            out[sel] = ls.d_safe_min
+        ls = fpsm.line_safety_batch(A, u, np.maximum(L, 1e-12), np.ascontiguousarray(r))
+        out = ls.d_safe_min
         return out
     out = np.empty(A.shape[0])
     _capsules_kernel(*_field_args(clearance_field(fpsm), step),
