@@ -594,6 +594,13 @@ def place_instrument(
     if int(restarts) != restarts or restarts < 0:
         raise InputError("restarts", f"expected an integer >= 0, got {restarts!r}")
     restarts = int(restarts)
+    if tool is None:
+        tool = ToolGeometry(rod_radius=rod_radius, implant_length=implant_length)
+    for name, value in (("lateral_tolerance", lateral_tolerance),
+                        ("angle_tolerance", angle_tolerance),
+                        ("clearance_margin", clearance_margin)):
+        if not np.isfinite(value) or value < 0:
+            raise InputError(name, f"expected a finite value >= 0, got {value!r}")
     X_CH = hole_frame(hole_Center_m, axis_Center)
     t = X_CH[:3, 3]
     z_lo, z_hi = fpsm.z_range
@@ -669,13 +676,6 @@ def place_instrument(
             "distance_theta_T": float(abs(wrap_angle(g["x"][1] - res.x[1]))),
             "F_pso_minus_grid": float(res.F - g["F"]),
         }
-    if tool is None:
-        tool = ToolGeometry(rod_radius=rod_radius, implant_length=implant_length)
-    for name, value in (("lateral_tolerance", lateral_tolerance),
-                        ("angle_tolerance", angle_tolerance),
-                        ("clearance_margin", clearance_margin)):
-        if not np.isfinite(value) or value < 0:
-            raise InputError(name, f"expected a finite value >= 0, got {value!r}")
     verification = verify_placement(
         fpsm, X_CT, tool, lateral=lateral_tolerance, angle=angle_tolerance,
         margin=clearance_margin, exact=exact,
