@@ -69,6 +69,12 @@ class Case:
     sim_mode: str
     site_tolerance: float = 1e-3  # m: largest distance of a site from the scanned tissue
     extra: dict = field(default_factory=dict)
+    # safety (issue 12): clinical margin, the fixture's admissible region, registration error
+    clearance_margin: float = 0.001
+    lateral_tolerance: float = 0.0005
+    angle_tolerance: float = float(np.radians(1.0))
+    registration: dict = field(default_factory=lambda: {
+        "sigma_translation": 0.0005, "sigma_rotation": float(np.radians(0.5)), "samples": 1000})
 
 
 def resolve_path(value: str, base_dir: Path, field_name: str) -> Path:
@@ -170,6 +176,16 @@ class CapabilitySection:
 
 
 @dataclass(frozen=True)
+class SafetySection:
+    clearance: float = v.spec(v.nonneg, 1.0, key="clearance_mm", scale=MM)
+    lateral_tolerance: float = v.spec(v.nonneg, 0.5, key="lateral_tolerance_mm", scale=MM)
+    angle_tolerance_deg: float = v.spec(partial(v.number, low=0.0, high=10.0), 1.0)
+    registration_sigma: float = v.spec(v.nonneg, 0.5, key="registration_sigma_mm", scale=MM)
+    registration_sigma_deg: float = v.spec(partial(v.number, low=0.0, high=10.0), 0.5)
+    registration_samples: int = v.spec(partial(v.integer, low=0), 1000)
+
+
+@dataclass(frozen=True)
 class SimulationSection:
     runs: int = v.spec(partial(v.integer, low=0), 1)
     mode: str = v.spec(v.one_of("kinematic", "dynamic"), "kinematic")
@@ -199,6 +215,7 @@ class CaseFile:
     robot: RobotSection = v.spec(v.section(RobotSection), {})
     capability: CapabilitySection = v.spec(v.section(CapabilitySection), {})
     simulation: SimulationSection = v.spec(v.section(SimulationSection), {})
+    safety: SafetySection = v.spec(v.section(SafetySection), {})
 
 
 def case_from_dict(data: dict, *, source: Path) -> Case:
@@ -266,4 +283,10 @@ def case_from_dict(data: dict, *, source: Path) -> Case:
         sim_runs=f.simulation.runs,
         sim_mode=f.simulation.mode,
         site_tolerance=f.site_check.tolerance,
+        clearance_margin=f.safety.clearance,
+        lateral_tolerance=f.safety.lateral_tolerance,
+        angle_tolerance=float(np.radians(f.safety.angle_tolerance_deg)),
+        registration={"sigma_translation": f.safety.registration_sigma,
+                      "sigma_rotation": float(np.radians(f.safety.registration_sigma_deg)),
+                      "samples": f.safety.registration_samples},
     )

@@ -73,6 +73,13 @@ def register(subparsers) -> None:
         help="how far the site may lie outside the FPSM (mm); it sits on the jaw surface",
     )
     p.add_argument("--particles", type=int, default=30, help="PSO swarm size")
+    p.add_argument("--clearance-margin-mm", type=float, default=1.0,
+                   help="clinical margin: a placement whose verified tool clearance is below "
+                        "it is a planning failure (exit 3)")
+    p.add_argument("--lateral-tolerance-mm", type=float, default=0.5,
+                   help="the fixture's lateral tolerance of the tool axis, verified")
+    p.add_argument("--angle-tolerance-deg", type=float, default=1.0,
+                   help="the fixture's angular tolerance of the tool, verified")
     p.add_argument(
         "--restarts",
         type=int,
@@ -133,6 +140,9 @@ def _place(args: argparse.Namespace) -> int:
         particles=args.particles,
         hole_tolerance=tol,
         restarts=args.restarts,
+        clearance_margin=_finite([args.clearance_margin_mm], "--clearance-margin-mm")[0] * MM,
+        lateral_tolerance=_finite([args.lateral_tolerance_mm], "--lateral-tolerance-mm")[0] * MM,
+        angle_tolerance=np.radians(_finite([args.angle_tolerance_deg], "--angle-tolerance-deg")[0]),
     )
     progress.say(
         f"PSO {placement.iterations} iterations, {placement.evaluations} evaluations, "

@@ -93,10 +93,21 @@ def site_stage(case: Case, fit: FitResult) -> SiteCheck:
     return check
 
 
-def placement_stage(case: Case, fpsm: Fpsm, *, progress=None, require_valid: bool = True
-                    ) -> list[Placement]:
+def placement_stage(case: Case, fpsm: Fpsm, *, progress=None, require_valid: bool = True,
+                    mesh: trimesh.Trimesh | None = None) -> list[Placement]:
     """Stage 2 for every site; with ``require_valid`` a site without a collision-free placement
-    is a planning failure that names the site and the reason."""
+    is a planning failure that names the site and the reason.
+
+    Every placement is verified over the fixture's admissible region against the clinical
+    margin (case ``safety``): certified on the FPSM and, with the scan ``mesh`` (mesh frame, as
+    fitted), exactly with FCL; then the registration Monte Carlo of the exact clearance along
+    the feed (``placement.verification["registration"]``)."""
+    from implantplan.systems.exact_clearance import ExactCavity, registration_monte_carlo
+    from implantplan.systems.tool_clearance import ToolGeometry
+
+    exact = None
+    if mesh is not None:
+        exact = ExactCavity.from_scan(mesh, fpsm, close_open_cuts=case.close_open_cuts)
     out = []
     for k, site in enumerate(case.sites):
         try:
@@ -108,6 +119,12 @@ def placement_stage(case: Case, fpsm: Fpsm, *, progress=None, require_valid: boo
                 implant_length=site.implant_length,
                 objective=case.objective,
                 seed=case.seed + k,
+                tool=ToolGeometry(rod_radius=site.rod_radius,
+                                  implant_length=site.implant_length),
+                lateral_tolerance=case.lateral_tolerance,
+                angle_tolerance=case.angle_tolerance,
+                clearance_margin=case.clearance_margin,
+                exact=exact,
             )
         except InputError as exc:  # name the case's field, not the placement's argument
             raise InputError(f"sites[{k}] (site {site.name})", str(exc)) from None
@@ -115,6 +132,14 @@ def placement_stage(case: Case, fpsm: Fpsm, *, progress=None, require_valid: boo
             progress.step(k, len(case.sites), f"site {site.name}: d_T {p.d_T * 1e3:.1f} mm, "
                           f"theta_T {np.rad2deg(p.theta_T):.1f} deg, F_safe {p.F_safe:.4f}, "
                           f"{'valid' if p.valid else 'INVALID'}")
+        reg = case.registration
+        if exact is not None and p.valid and reg["samples"] > 0:
+            p.verification["registration"] = registration_monte_carlo(
+                exact, p.X_CT, ToolGeometry(rod_radius=site.rod_radius,
+                                            implant_length=site.implant_length),
+                depth=p.verification["feed_depth"], sigma_translation=reg["sigma_translation"],
+                sigma_rotation=reg["sigma_rotation"], samples=reg["samples"],
+                seed=case.seed + k)
         if require_valid and not p.valid:
             raise PlanningFailure(f"site {site.name}: no collision-free instrument placement "
                                   f"({p.reason})", result={"site": site.name, **p.to_dict()})

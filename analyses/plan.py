@@ -155,7 +155,7 @@ def _plan_into(case: Case, out: Path, *, runs, html_scene: bool, quiet: bool,
                                                     strict=True)))
 
     prog = Progress("2/5 placement", quiet=quiet)
-    placements = pipeline.placement_stage(case, fit.fpsm, progress=prog)
+    placements = pipeline.placement_stage(case, fit.fpsm, progress=prog, mesh=fit.opened)
     timing["placement"] = prog.elapsed
 
     prog = Progress("3/5 robot base", quiet=quiet)
@@ -242,6 +242,7 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims, sites_checked) -> d
                            "axis_into_cavity": bool(sites_checked.axis_into_cavity[k])},
             "placement": {key: val for key, val in p.to_dict().items()
                           if key not in ("history", "vf")},
+            "registration": p.verification.get("registration"),
             "feeding_target": {"X_CT": p.X_CT, "X_WT": X_WT, "X_BaseEnd": X_BE,
                                "note": "End (actuator tcp) = Tool rotated by R_OE"},
             "vf": p.vf.to_dict(),
@@ -265,10 +266,19 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims, sites_checked) -> d
 
         add("site.on_tissue", "site on the scanned tissue", sites_checked.distance[k],
             sites_checked.tolerance, "m", True)
-        add("placement.line1_clearance", "line1 (rod) clearance", p.d_safe_min_line1, 0.0,
-            "m", False)
+        add("placement.line1_clearance", "line1 (rod) clearance", p.d_safe_min_line1,
+            case.clearance_margin, "m", False)
         add("placement.line2_clearance", "line2 (implant path) clearance", p.d_safe_min_line2,
-            0.0, "m", False)
+            case.clearance_margin, "m", False)
+        ver = p.verification
+        if ver:
+            add("placement.tool_clearance_certified", "tool clearance over the feed and the "
+                "fixture's region (certified, FPSM)", ver["clearance_certified"],
+                ver["clearance_margin"], "m", False)
+            if ver.get("clearance_exact_min") is not None:
+                add("placement.tool_clearance_exact", "tool clearance over the feed and the "
+                    "fixture's region (exact, FCL against the scan)", ver["clearance_exact_min"],
+                    ver["clearance_margin"], "m", False)
         if "x" in grid:
             add("placement.grid_d_T", "PSO vs grid optimum, d_T",
                 abs(p.d_T - float(grid["x"][0])), GRID_TOL_D, "m", True)

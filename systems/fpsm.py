@@ -563,6 +563,16 @@ class Fpsm:
             raise InputError("radius", f"expected a rod radius >= 0 m, got {radius}")
         return self._line_safety(p0, u / norm[:, None], L, radius, lambda_avg, lambda_min)
 
+    def line_safety_batch(
+        self, start, unit_direction, length, radius, lambda_avg: float = 0.5,
+        lambda_min: float = 0.5,
+    ) -> LineSafety:
+        """:meth:`line_safety` for batches the caller has already checked (the PSO's and the
+        contour maps' hot path): ``start`` (K, 3) finite, ``unit_direction`` (K, 3) of unit
+        length, ``length`` (K,) > 0 (inf for rays), ``radius`` a scalar or (K,) >= 0 (rods and
+        lines mix in one call). No input checks; the compiled kernel."""
+        return self._line_safety(start, unit_direction, length, radius, lambda_avg, lambda_min)
+
     def _line_safety(self, p0, u, L, radius, lambda_avg, lambda_min) -> LineSafety:
         """:meth:`line_safety` without input checks (compiled kernel); ``u`` unit (K, 3),
         ``L`` (K,), ``radius`` a scalar or (K,) (rods and lines mix in one call)."""

@@ -13,7 +13,9 @@ gives f_safe (Eq. 13) and the smallest safe distance of each. During the simulat
 two lines ride on the *measured* tool pose, so the estimator says, every step, how safe the
 actuator is where it actually is:
 
-    min_d_safe = min(d_safe_min(line1), d_safe_min(line2)),
+    min_d_safe = the certified clearance of the whole tool body (rod, head, implant) against the
+                 FPSM (systems.tool_clearance; issue 12), or with method="paper" the paper's
+                 min(d_safe_min(line1), d_safe_min(line2)),
     alarm = min_d_safe <= alarm_margin.
 
 With ``alarm_margin`` > 0 the alarm fires before contact (d_safe = 0) for any motion slower than
@@ -35,6 +37,7 @@ from implantplan.systems.actuator import IMPLANT_LENGTH, ROD_RADIUS
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm import Fpsm, _line_kernel
 from implantplan.systems.frames import apply, invert
+from implantplan.systems.tool_clearance import ToolClearance, ToolGeometry, clearance_field
 
 
 @dataclass(frozen=True)
@@ -50,30 +53,42 @@ class ToolLines:
     start_T: np.ndarray
     direction_T: np.ndarray
     radius: np.ndarray
+    tool: ToolGeometry | None = None  # the whole body, for the sound clearance
+    X_AT: np.ndarray | None = None  # pose of seed 000's Tool frame in the lines' frame
 
     @classmethod
     def contra_angle(cls, rod_radius: float = ROD_RADIUS,
-                     implant_length: float = IMPLANT_LENGTH) -> ToolLines:
-        """Eq. 19 in the Tool frame: P1 = [r, 0, 0], P2 = [r, 0, -d12], both along +x."""
+                     implant_length: float = IMPLANT_LENGTH,
+                     tool: ToolGeometry | None = None) -> ToolLines:
+        """Eq. 19 in the Tool frame (:meth:`ToolGeometry.lines_T`): P1 = [r, 0, 0],
+        P2 = [r, 0, -d12], both along +x; ``tool`` is the body the sound clearance checks
+        (default: :class:`ToolGeometry` of that rod radius and implant length)."""
         r, d12 = float(rod_radius), float(implant_length)
         if not np.isfinite(r) or r < 0:
             raise InputError("rod_radius", f"expected a radius >= 0 m, got {rod_radius}")
         if not np.isfinite(d12) or d12 <= 0:
             raise InputError("implant_length", f"expected a length > 0 m, got {implant_length}")
+        tool = tool or ToolGeometry(rod_radius=r, implant_length=d12)
+        starts, u = ToolGeometry(rod_radius=r, implant_length=d12).lines_T()
         return cls(
-            start_T=np.array([[r, 0.0, 0.0], [r, 0.0, -d12]]),
-            direction_T=np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]),
+            start_T=starts,
+            direction_T=np.stack([u, u]),
             radius=np.array([r, 0.0]),
+            tool=tool,
+            X_AT=np.eye(4),
         )
 
     def expressed_in(self, X_AT) -> ToolLines:
         """The same lines expressed in a frame A, given the pose ``X_AT`` of T in A (e.g. the
         plant's TCP frame, whose axes differ from seed 000's Tool frame)."""
         X = np.asarray(X_AT, dtype=float)
+        prior = np.eye(4) if self.X_AT is None else self.X_AT
         return ToolLines(
             start_T=apply(X, self.start_T),
             direction_T=self.direction_T @ X[:3, :3].T,
             radius=self.radius.copy(),
+            tool=self.tool,
+            X_AT=X @ prior,
         )
 
 
@@ -84,7 +99,9 @@ class ToolSafety:
     Attributes:
         f_safe_line1, f_safe_line2: Eq. 13 for the rod and the implant path (+inf: the line is
             wholly outside the mouth).
-        min_d_safe: smallest safe distance over both lines (m).
+        min_d_safe: with ``method="sound"`` (default) the certified clearance of the whole
+            tool body (:func:`systems.tool_clearance.tool_clearance`, m); with ``"paper"`` the
+            smallest safe distance over both lines (Eq. 12-13), m.
         alarm: min_d_safe <= alarm_margin.
     """
 
@@ -150,21 +167,50 @@ def tool_safety(
     alarm_margin: float = 0.001,
     lambda_avg: float = 0.5,
     lambda_min: float = 0.5,
+    method: str = "sound",
 ) -> ToolSafety:
-    """Safety of the actuator at tool poses ``X_CenterT`` (K, 4, 4) or (4, 4) in Center (Eq. 13).
+    """Safety of the actuator at poses ``X_CenterT`` (K, 4, 4) or (4, 4) in Center of the frame
+    the lines are given in.
 
-    Both lines of all poses in one compiled call (the lines' radii differ: one per line).
+    f_safe of each line by Eq. 13, both lines of all poses in one compiled call
+    (:class:`LinesAtPoses`); the clearance ``min_d_safe`` that the alarm watches is, by default
+    (``method="sound"``), the certified clearance of the whole tool body (rod, head, implant;
+    issue 12), or the paper's smallest line sample (``"paper"``, Eq. 12).
     """
+    if method not in ("sound", "paper"):
+        raise InputError("method", f"expected 'sound' or 'paper', got {method!r}")
     X = np.asarray(X_CenterT, dtype=float)
     if X.shape[-2:] != (4, 4):
         raise InputError("X_CenterT", f"expected (K, 4, 4) poses, got {X.shape}")
     if not np.isfinite(alarm_margin):
         raise InputError("alarm_margin", "expected a finite distance (m)")
+    X = X.reshape(-1, 4, 4)
     f, d = LinesAtPoses(fpsm, lines, lambda_avg=lambda_avg, lambda_min=lambda_min)(X)
     d_min = np.minimum(d[:, 0], d[:, 1])
+    if method == "sound":
+        d_min = _sound(fpsm, lines)(X)
     return ToolSafety(
         f_safe_line1=f[:, 0], f_safe_line2=f[:, 1], min_d_safe=d_min, alarm=d_min <= alarm_margin
     )
+
+
+_CLEARANCES: dict = {}
+
+
+def _sound(fpsm: Fpsm, lines: ToolLines):
+    """X_CenterA (K, 4, 4) -> (K,) certified whole-tool clearance, for lines given in frame A."""
+    tool = lines.tool or ToolGeometry(rod_radius=float(lines.radius[0]))
+    X_AT = np.eye(4) if lines.X_AT is None else np.asarray(lines.X_AT, dtype=float)
+    clearance = _clearance(fpsm, tool)
+    return lambda X: np.atleast_1d(clearance(np.asarray(X, dtype=float) @ X_AT))
+
+
+def _clearance(fpsm: Fpsm, tool: ToolGeometry) -> ToolClearance:
+    key = (id(fpsm), tool)
+    hit = _CLEARANCES.get(key)
+    if hit is None or hit.fpsm is not fpsm or hit.field is not clearance_field(fpsm):
+        hit = _CLEARANCES[key] = ToolClearance(fpsm, tool)
+    return hit
 
 
 class FpsmEstimator(LeafSystem):
@@ -202,6 +248,7 @@ class FpsmEstimator(LeafSystem):
         *,
         alarm_margin: float = 0.001,
         period: float | None = None,
+        method: str = "sound",
     ):
         super().__init__()
         self._fpsm = fpsm
@@ -209,6 +256,10 @@ class FpsmEstimator(LeafSystem):
         self._lines = lines or ToolLines.contra_angle()
         self._at_poses = LinesAtPoses(fpsm, self._lines)
         self._margin = float(alarm_margin)
+        if method not in ("sound", "paper"):
+            raise InputError("method", f"expected 'sound' or 'paper', got {method!r}")
+        self._method = method
+        self._sound = _sound(fpsm, self._lines) if method == "sound" else None
         self._X = self.DeclareAbstractInputPort("X_WT", AbstractValue.Make(RigidTransform()))
         if period is None:
             cache = self.DeclareCacheEntry(
@@ -237,8 +288,9 @@ class FpsmEstimator(LeafSystem):
     def estimate(self, context) -> np.ndarray:
         """[f_safe_line1, f_safe_line2, min_d_safe, alarm] for the input in ``context``."""
         X_WT = self._X.Eval(context).GetAsMatrix4()
-        f, d = self._at_poses(self._X_CenterW @ X_WT)  # tool_safety, prepared once
-        d_min = min(d[0, 0], d[0, 1])
+        X_CT = self._X_CenterW @ X_WT
+        f, d = self._at_poses(X_CT)  # tool_safety's lines, prepared once
+        d_min = self._sound(X_CT)[0] if self._sound is not None else min(d[0, 0], d[0, 1])
         out = np.array([f[0, 0], f[0, 1], d_min, float(d_min <= self._margin)])
         return np.clip(out, -self.FAR, self.FAR)
 

@@ -53,6 +53,13 @@ import numpy as np
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm import Fpsm
 from implantplan.systems.frames import rot_z, transform, unit, wrap_angle
+from implantplan.systems.tool_clearance import (
+    ToolGeometry,
+    admissible_poses,
+    feed_clearance,
+    feed_depth,
+    feed_poses,
+)
 
 OBJECTIVES = ("eq14", "eq21", "eq22")
 
@@ -102,15 +109,25 @@ class FeedingLines:
 
 
 def feeding_lines(X_CH, d_T, theta_T, rod_radius: float, implant_length: float) -> FeedingLines:
-    """Eq. 19 for a batch of (d_T, theta_T) (each (K,)), without building 4x4 matrices."""
+    """Eq. 19 for a batch of (d_T, theta_T) (each (K,)), without building 4x4 matrices: the
+    Tool-frame lines of :meth:`ToolGeometry.lines_T` carried by X_CT = X_CH (Rz(theta), d_T z)."""
     d_T = np.atleast_1d(np.asarray(d_T, dtype=float))
     theta_T = np.atleast_1d(np.asarray(theta_T, dtype=float))
     R = X_CH[:3, :3]
-    D = np.cos(theta_T)[:, None] * R[:, 0] + np.sin(theta_T)[:, None] * R[:, 1]
+    c, s = np.cos(theta_T)[:, None], np.sin(theta_T)[:, None]
+    Tx = c * R[:, 0] + s * R[:, 1]  # Tool x (= D) and y in Center
+    Ty = -s * R[:, 0] + c * R[:, 1]
     tool = X_CH[:3, 3] + d_T[:, None] * R[:, 2]
-    p1 = tool + rod_radius * D  # T_ct [r, 0, 0]
-    p2 = p1 - implant_length * R[:, 2]  # T_ct [r, 0, -d12]: Tool z = Hole z
+    starts, u = _lines_T(rod_radius, implant_length)
+    p1, p2 = (tool + a[0] * Tx + a[1] * Ty + a[2] * R[:, 2] for a in starts)
+    D = u[0] * Tx + u[1] * Ty + u[2] * R[:, 2]
     return FeedingLines(tool, D, p1, p2)
+
+
+def _lines_T(rod_radius: float, implant_length: float):
+    # Eq. 19 lives in ToolGeometry.lines_T; a zero rod radius is allowed here (the paper's
+    # line check), so build the geometry only for its lines
+    return ToolGeometry(rod_radius=rod_radius, implant_length=implant_length).lines_T()
 
 
 # -- objective (Eq. 13, 14, 21, 22) ------------------------------------------------------------
@@ -168,7 +185,7 @@ class PlacementProblem:
         starts = np.concatenate([lines.start1, lines.start2])
         dirs = np.concatenate([lines.direction, lines.direction])
         radius = np.concatenate([np.full(K, self.rod_radius), np.zeros(K)])  # Eq. 12 for line1
-        ls = self.fpsm._line_safety(
+        ls = self.fpsm.line_safety_batch(
             starts, dirs, np.full(2 * K, np.inf), radius, self.lambda_avg, self.lambda_min
         )
         f1, f2 = ls.f_safe[:K], ls.f_safe[K:]
@@ -342,6 +359,7 @@ class Placement:
     vf: object = None  # systems.virtual_fixture.VirtualFixture
     grid: dict | None = None
     settings: dict = field(default_factory=dict)
+    verification: dict = field(default_factory=dict)  # see verify_placement
 
     def to_dict(self) -> dict:
         out = {
@@ -374,6 +392,12 @@ class Placement:
             "seed": self.seed,
             "settings": self.settings,
             "vf": None if self.vf is None else self.vf.to_dict(),
+            "verification": self.verification,
+            "fixture_tolerance": {
+                "lateral": self.verification.get("lateral_tolerance"),
+                "angle": self.verification.get("angle_tolerance"),
+                "units": {"lateral": "m", "angle": "rad"},
+            },
         }
         if self.grid is not None:
             out["grid_check"] = {k: v for k, v in self.grid.items() if k not in ("coarse", "fine")}
@@ -384,6 +408,77 @@ def _height_above(lines: FeedingLines, fpsm: Fpsm) -> np.ndarray:
     """(K,) height (m) of the highest of the Tool origin, P1 and P2 above the top slice."""
     z = np.maximum(np.maximum(lines.tool[:, 2], lines.start1[:, 2]), lines.start2[:, 2])
     return z - fpsm.z_range[1]
+
+
+LATERAL_TOLERANCE = 0.0005  # m: the tool axis may leave line1 by this inside the mouth
+ANGLE_TOLERANCE = np.radians(1.0)  # rad: and its orientation turn by this
+CLEARANCE_MARGIN = 0.001  # m: the clinical margin every clearance check keeps
+
+
+def verify_placement(
+    fpsm: Fpsm,
+    X_CT: np.ndarray,
+    tool: ToolGeometry,
+    *,
+    lateral: float = LATERAL_TOLERANCE,
+    angle: float = ANGLE_TOLERANCE,
+    margin: float = CLEARANCE_MARGIN,
+    exact=None,
+    depth_step: float = 0.002,
+) -> dict:
+    """Verify the whole admissible region of a placement (issue 12): the tool at every lateral
+    offset up to ``lateral`` and turn up to ``angle`` from the planned pose X_CT, at every depth
+    of the feed (backed out along the rod axis until it is out of the mouth).
+
+    1. Certified, against the FPSM: :func:`systems.tool_clearance.feed_clearance` (a lower
+       bound over the whole region, no sampling gaps).
+    2. Exact, against the scan mesh when ``exact`` (a :class:`systems.exact_clearance.
+       ExactCavity`) is given: FCL at the planned pose, 8 lateral offsets and 4 turns
+       (:func:`systems.tool_clearance.admissible_poses`), each every ``depth_step`` along the
+       feed; the smallest value (exact at the samples).
+
+    Returns:
+        dict (SI units) with ``clearance_certified``, ``clearance_exact_min`` (None without a
+        mesh), the tolerances, the margin, ``reasons`` (empty when both are >= margin).
+    """
+    X = np.asarray(X_CT, dtype=float).reshape(4, 4)
+    depth = feed_depth(fpsm, X, tool)
+    certified = float(feed_clearance(fpsm, X, tool, depth=depth, lateral=lateral,
+                                     angle=angle)[0])
+    out = {
+        "clearance_certified": certified,
+        "clearance_exact_min": None,
+        "exact_poses": 0,
+        "clearance_margin": margin,
+        "lateral_tolerance": float(lateral),
+        "angle_tolerance": float(angle),
+        "feed_depth": depth,
+        "tool": tool.to_dict(),
+        "method": "certified FPSM bound over the feed and the admissible region; FCL exact "
+                  "against the scan at sampled poses of that region",
+        "units": "m, rad",
+    }
+    reasons = []
+    region = f"(lateral {lateral * 1e3:.2f} mm, angle {np.degrees(angle):.2f} deg)"
+    if not certified >= margin:
+        reasons.append(
+            f"the tool's certified clearance over the feed and the fixture's admissible region "
+            f"{region} is {certified * 1e3:.3f} mm, below the clinical margin "
+            f"{margin * 1e3:.3f} mm"
+        )
+    if exact is not None:
+        P, _ = feed_poses(admissible_poses(X, lateral, angle), depth, depth_step)
+        c = exact.tool_clearance(P.reshape(-1, 4, 4), tool)
+        out["clearance_exact_min"] = float(c.min())
+        out["exact_poses"] = int(c.size)
+        if not c.min() >= margin:
+            reasons.append(
+                f"the tool's exact clearance to the scan (FCL) over the feed and the admissible "
+                f"region {region} is {c.min() * 1e3:.3f} mm, below the clinical margin "
+                f"{margin * 1e3:.3f} mm"
+            )
+    out["reasons"] = reasons
+    return out
 
 
 def _invalid_reasons(problem: PlacementProblem, x: np.ndarray) -> list[str]:
@@ -448,6 +543,11 @@ def place_instrument(
     restarts: int = 3,
     verify: bool = True,
     vf_options: dict | None = None,
+    tool: ToolGeometry | None = None,
+    lateral_tolerance: float = LATERAL_TOLERANCE,
+    angle_tolerance: float = ANGLE_TOLERANCE,
+    clearance_margin: float = CLEARANCE_MARGIN,
+    exact=None,
 ) -> Placement:
     """Place the feeding target for one implant site by PSO (paper Sec. 4.3).
 
@@ -468,6 +568,13 @@ def place_instrument(
             collision-free; the best optimum of all runs is kept. 0 = the paper's single run.
         verify: also run the exhaustive grid check (:func:`verify_by_grid`).
         vf_options: keyword arguments for :meth:`VirtualFixture.from_placement`.
+        tool: the tool body checked by the verification (default: the paper's model with
+            ``rod_radius`` and ``implant_length``, :class:`ToolGeometry`).
+        lateral_tolerance, angle_tolerance: the fixture's admissible region (m, rad).
+        clearance_margin: clinical margin (m): a placement whose verified clearance is below
+            it is invalid (:func:`verify_placement`).
+        exact: an :class:`systems.exact_clearance.ExactCavity` of the scan for the exact
+            check (None: only the certified FPSM bound).
 
     Returns:
         :class:`Placement` (``seconds`` is the PSO time of all runs; loading the compiled
@@ -487,6 +594,13 @@ def place_instrument(
     if int(restarts) != restarts or restarts < 0:
         raise InputError("restarts", f"expected an integer >= 0, got {restarts!r}")
     restarts = int(restarts)
+    if tool is None:
+        tool = ToolGeometry(rod_radius=rod_radius, implant_length=implant_length)
+    for name, value in (("lateral_tolerance", lateral_tolerance),
+                        ("angle_tolerance", angle_tolerance),
+                        ("clearance_margin", clearance_margin)):
+        if not np.isfinite(value) or value < 0:
+            raise InputError(name, f"expected a finite value >= 0, got {value!r}")
     X_CH = hole_frame(hole_Center_m, axis_Center)
     t = X_CH[:3, 3]
     z_lo, z_hi = fpsm.z_range
@@ -496,7 +610,7 @@ def place_instrument(
             f"z = {t[2] * 1e3:.3f} mm is outside the model's slices "
             f"[{z_lo * 1e3:.3f}, {z_hi * 1e3:.3f}] mm (Center frame)",
         )
-    d_hole = float(fpsm._d_safe(t))
+    d_hole = float(fpsm.d_safe(t)[()])
     if d_hole < -hole_tolerance:
         raise InputError(
             "hole",
@@ -562,6 +676,11 @@ def place_instrument(
             "distance_theta_T": float(abs(wrap_angle(g["x"][1] - res.x[1]))),
             "F_pso_minus_grid": float(res.F - g["F"]),
         }
+    verification = verify_placement(
+        fpsm, X_CT, tool, lateral=lateral_tolerance, angle=angle_tolerance,
+        margin=clearance_margin, exact=exact,
+    )
+    reasons = reasons + verification["reasons"]
     placement = Placement(
         d_T=float(res.x[0]),
         theta_T=float(res.x[1]),
@@ -604,6 +723,7 @@ def place_instrument(
             "iterations_last_run": res.iterations,
             "bounds_rule": "positions clipped to the bounds, clipped velocity zeroed",
         },
+        verification=verification,
     )
     placement.vf = VirtualFixture.from_placement(placement, fpsm, **(vf_options or {}))
     return placement

@@ -23,7 +23,8 @@ most d away). Values beyond ``cap`` are clamped (a lower bound stays one).
 
 **Between nodes** the trilinear interpolant I of the node bounds L_c satisfies, for a
 1-Lipschitz f, f(q) >= sum_c w_c (L_c - |q - c|) >= I(q) - g sqrt(sum_a t_a (1 - t_a)), by
-Jensen (sum_c w_c |q - c|^2 = g^2 sum_a t_a (1 - t_a) for the cell's fractional coordinates t_a).
+Jensen (sum_c w_c |q - c|^2 = g^2 sum_a t_a (1 - t_a) for the cell's fractional coordinates t_a);
+each corner's cone L_c - |q - c| is a bound too, and the largest of the nine is used.
 
 **Along the axis** two samples q_i, q_{i+1} at distance t with bounds b_i, b_{i+1} give
 min over the segment between them of f >= (b_i + b_{i+1} - t) / 2 (both cones of slope 1). The
@@ -48,6 +49,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from implantplan.systems import actuator
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm import _W, TWO_PI, Fpsm
 
@@ -61,6 +63,10 @@ OUTSIDE = -1.0  # the bound (m) outside the grid box at z <= z_top: a collision,
 @dataclass(frozen=True)
 class ToolGeometry:
     """The contra-angle implanting tool in its Tool frame T (seed 000 Eq. 19; SI units).
+
+    Lengths default to the one actuator definition (systems.actuator); the head and implant
+    default to the paper's model (a head as thick as the rod, the implant as its axis, line2);
+    :meth:`actuator` gives the bundled actuator's thicker head (8 mm) and implant (2 mm).
 
     T: origin at the head, x along the handle rod (out of the mouth), z along the implant axis
     (the implant points to -z). Three capsules (segment + radius) make the body:
@@ -78,11 +84,26 @@ class ToolGeometry:
         head_radius: radius of the head sphere (m); None = rod_radius.
     """
 
-    rod_radius: float = 0.006
-    implant_length: float = 0.031
-    rod_length: float = 0.2
+    rod_radius: float = actuator.ROD_RADIUS
+    implant_length: float = actuator.IMPLANT_LENGTH
+    rod_length: float = actuator.ROD_LENGTH
     implant_radius: float = 0.0
     head_radius: float | None = None
+
+    @classmethod
+    def actuator(cls, rod_radius: float = actuator.ROD_RADIUS,
+                 implant_length: float = actuator.IMPLANT_LENGTH) -> ToolGeometry:
+        """The bundled actuator's full body (systems.actuator): its head and implant radii
+        instead of the paper's lines (head = rod radius, implant = its axis)."""
+        return cls(rod_radius=rod_radius, implant_length=implant_length,
+                   head_radius=actuator.HEAD_RADIUS, implant_radius=actuator.IMPLANT_RADIUS)
+
+    def lines_T(self) -> tuple[np.ndarray, np.ndarray]:
+        """Eq. 19 in T, written once: the starts P1 = [r, 0, 0] (line1, the rod) and
+        P2 = [r, 0, -d12] (line2, the implant tip's path), (2, 3), and their common direction
+        +x (3,)."""
+        r, d12 = self.rod_radius, self.implant_length
+        return np.array([[r, 0.0, 0.0], [r, 0.0, -d12]]), np.array([1.0, 0.0, 0.0])
 
     def __post_init__(self):
         for name, positive in (
@@ -406,8 +427,9 @@ def clearance_field(fpsm: Fpsm, **options) -> ClearanceField:
 
 
 @numba.njit(cache=True)
-def _grid_bound(V, ox, oy, oz, g, x, y, z):
-    """Lower bound of f at a point inside the grid's index range, else NaN."""
+def _grid_bound(V, ox, oy, oz, g, x, y, z, refine):
+    """Lower bound of f at a point inside the grid's index range, else NaN; ``refine`` adds
+    the corner cones (tighter, slower)."""
     nx, ny, nz = V.shape
     fx = (x - ox) / g
     fy = (y - oy) / g
@@ -440,17 +462,29 @@ def _grid_bound(V, ox, oy, oz, g, x, y, z):
     c1 = c01 + ty * (c11 - c01)
     val = c0 + tz * (c1 - c0)
     err = g * np.sqrt(tx * (1.0 - tx) + ty * (1.0 - ty) + tz * (1.0 - tz))
-    return val - err
+    best = val - err
+    if not refine:
+        return best
+    # the cone bound of each corner, L_c - |q - c|, is valid too: keep the larger
+    for a in range(2):
+        dx2 = (tx - a) * (tx - a)
+        for b in range(2):
+            dxy2 = dx2 + (ty - b) * (ty - b)
+            for c in range(2):
+                cone = V[i + a, j + b, k + c] - g * np.sqrt(dxy2 + (tz - c) * (tz - c))
+                if cone > best:
+                    best = cone
+    return best
 
 
 @numba.njit(cache=True)
-def _point_bound(V, ox, oy, oz, g, z_top, x, y, z):
+def _point_bound(V, ox, oy, oz, g, z_top, x, y, z, refine=True):
     """Lower bound of the signed distance f at any point (module notes)."""
-    b = _grid_bound(V, ox, oy, oz, g, x, y, z)
+    b = _grid_bound(V, ox, oy, oz, g, x, y, z, refine)
     if not np.isnan(b):
         return b
     if z > z_top:
-        b0 = _grid_bound(V, ox, oy, oz, g, x, y, z_top)
+        b0 = _grid_bound(V, ox, oy, oz, g, x, y, z_top, True)
         if np.isnan(b0) or b0 < 0.0:
             b0 = 0.0
         return np.sqrt((z - z_top) * (z - z_top) + b0 * b0)
@@ -481,7 +515,10 @@ def _segment_min(V, ox, oy, oz, g, z_top, cap, step, level, ax, ay, az, bx, by, 
         if s + t > length:
             t = length - s
         s += t
-        b = _point_bound(V, ox, oy, oz, g, z_top, ax + s * ux, ay + s * uy, az + s * uz)
+        x, y, z = ax + s * ux, ay + s * uy, az + s * uz
+        b = _point_bound(V, ox, oy, oz, g, z_top, x, y, z, False)
+        if 0.5 * (b_prev + b - t) < m or b < m:  # this sample may lower the minimum: refine
+            b = _point_bound(V, ox, oy, oz, g, z_top, x, y, z, True)
         if b <= OUTSIDE:  # outside the model's box below the opening: a collision, stop
             return OUTSIDE
         lo = 0.5 * (b_prev + b - t)
@@ -493,9 +530,9 @@ def _segment_min(V, ox, oy, oz, g, z_top, cap, step, level, ax, ay, az, bx, by, 
     return m
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def _capsules_kernel(V, ox, oy, oz, g, z_top, cap, step, resolve, A, B, r, out):
-    for k in range(A.shape[0]):
+    for k in numba.prange(A.shape[0]):
         out[k] = (
             _segment_min(
                 V, ox, oy, oz, g, z_top, cap, step, r[k] + resolve,
@@ -547,7 +584,7 @@ RESOLVE = 0.005  # clearances up to this (m) are resolved to the step; larger on
 
 def _field_args(field: ClearanceField, step: float | None):
     o = field.origin
-    st = field.spacing / 4 if step is None else float(step)
+    st = field.spacing / 2 if step is None else float(step)
     if not np.isfinite(st) or st <= 0:
         raise InputError("step", f"expected a positive step (m), got {step}")
     return (field.values, float(o[0]), float(o[1]), float(o[2]), field.spacing, field.z_top,
@@ -568,8 +605,8 @@ def rod_clearance(
             capsule is free by at least that much; module notes); ``"paper"``: Eq. 12, the
             smallest safe distance of the axis against the model shrunk by r at the slice
             crossings and the end points (not a bound; for comparison).
-        step: axis sampling step near the wall for ``sound`` (m), default a quarter of the
-            grid spacing (each step costs at most half of it in the bound).
+        step: axis sampling step near the wall for ``sound`` (m), default half the grid
+            spacing (each step costs at most half of it in the bound).
 
     Returns:
         (n,) clearances (a (1,) array for a single capsule).
@@ -586,11 +623,8 @@ def rod_clearance(
         d = B - A
         L = np.linalg.norm(d, axis=1)
         u = np.where(L[:, None] > 0, d / np.where(L > 0, L, 1.0)[:, None], [0.0, 0.0, 1.0])
-        out = np.empty(A.shape[0])
-        for rv in np.unique(r):  # Eq. 12 shrinks the model by one radius per call
-            sel = r == rv
-            ls = fpsm._line_safety(A[sel], u[sel], np.maximum(L[sel], 1e-12), rv, 0.5, 0.5)
-            out[sel] = ls.d_safe_min
+        ls = fpsm.line_safety_batch(A, u, np.maximum(L, 1e-12), np.ascontiguousarray(r))
+        out = ls.d_safe_min
         return out
     out = np.empty(A.shape[0])
     _capsules_kernel(*_field_args(clearance_field(fpsm), step),
@@ -693,6 +727,44 @@ def feed_poses(X_CTool, depth: float, step: float) -> tuple[np.ndarray, float]:
     return P, (depth / (S - 1) if S > 1 else 0.0)
 
 
+def feed_depth(fpsm: Fpsm, X_CTool, tool: ToolGeometry) -> float:
+    """How far (m) the tools at poses X must back out along their rod axis (Tool +x) until the
+    tool origin is above the mouth opening by the head and the implant length (the largest over
+    the poses; MAX_FEED when an axis does not rise out of the mouth)."""
+    X = _poses(X_CTool)
+    need = fpsm.z_range[1] + tool.head + tool.implant_length - X[:, 2, 3]
+    rise = X[:, 2, 0]  # Center z of the rod axis: the feed direction out of the mouth
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_out = np.where(need <= 0, 0.0, need / np.where(rise > 1e-6, rise, np.nan))
+    depth = float(np.nanmax(np.where(np.isnan(s_out), MAX_FEED, s_out), initial=0.0))
+    return min(depth, MAX_FEED)
+
+
+def admissible_poses(X_CTool, lateral: float, angle: float, *, directions: int = 8) -> np.ndarray:
+    """Sample poses of the fixture's admissible region about one planned pose (4, 4): the pose
+    itself, the axis moved by ``lateral`` in ``directions`` directions across it, and the pose
+    turned by +-``angle`` about Tool y and Tool z at the origin: (1 + directions + 4, 4, 4).
+    For the exact (FCL) check; the certified bound of :func:`feed_clearance` covers the whole
+    region without sampling."""
+    X = _poses(X_CTool)[0]
+    R = X[:3, :3]
+    out = [X]
+    for a in np.arange(directions) * (2 * np.pi / directions):
+        Y = X.copy()
+        Y[:3, 3] += lateral * (np.cos(a) * R[:, 1] + np.sin(a) * R[:, 2])
+        out.append(Y)
+    for axis in (1, 2):
+        for sign in (-1.0, 1.0):
+            k = R[:, axis]
+            K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+            th = sign * angle
+            Rot = np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
+            Y = X.copy()
+            Y[:3, :3] = Rot @ R
+            out.append(Y)
+    return np.stack(out)
+
+
 def feed_clearance(
     fpsm: Fpsm,
     X_CTool,
@@ -725,13 +797,7 @@ def feed_clearance(
         if not np.isfinite(value) or value < 0:
             raise InputError(name, f"expected a tolerance >= 0, got {value}")
     if depth is None:
-        # back out until the tool origin is above the opening by the head and the implant
-        need = fpsm.z_range[1] + tool.head + tool.implant_length - X[:, 2, 3]
-        rise = X[:, 2, 0]  # Center z of the rod axis: the feed direction out of the mouth
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s_out = np.where(need <= 0, 0.0, need / np.where(rise > 1e-6, rise, np.nan))
-        depth = float(np.nanmax(np.where(np.isnan(s_out), MAX_FEED, s_out), initial=0.0))
-        depth = min(depth, MAX_FEED)
+        depth = feed_depth(fpsm, X, tool)
     P, t = feed_poses(X, depth, step)
     n, S = P.shape[:2]
     A, B, r = _tool_capsules(P.reshape(-1, 4, 4), tool)

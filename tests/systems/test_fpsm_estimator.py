@@ -34,7 +34,7 @@ def test_rod_on_the_axis_by_hand():
     # sits at 50 - 6 = 44 mm from the shrunk wall: f_safe = 0.5*44 + 0.5*44 = 44 mm.
     # P2 = T + r x_T - d12 z_T = (-31, 0, 50) mm: 19 mm from the wall all the way up:
     # f_safe = 19 mm; min d_safe = 19 mm; far from the 1 mm alarm margin.
-    s = tool_safety(CYL, pose([0.0, 0.0, 0.044]), ToolLines.contra_angle(R, D12))
+    s = tool_safety(CYL, pose([0.0, 0.0, 0.044]), ToolLines.contra_angle(R, D12), method="paper")
     assert s.f_safe_line1[0] == pytest.approx(0.044, abs=1e-9)
     assert s.f_safe_line2[0] == pytest.approx(0.019, abs=1e-9)
     assert s.min_d_safe[0] == pytest.approx(0.019, abs=1e-9)
@@ -46,20 +46,49 @@ def test_alarm_near_and_in_the_wall_batched():
     # move it by -dx along Center x: line2 is at 31 + dx mm from the axis, 19 - dx from the wall.
     dx = np.array([0.0, 0.0185, 0.019, 0.025])
     X = np.stack([pose([-d, 0.0, 0.044]) for d in dx])
-    s = tool_safety(CYL, X, ToolLines.contra_angle(R, D12), alarm_margin=0.001)
+    s = tool_safety(CYL, X, ToolLines.contra_angle(R, D12), alarm_margin=0.001, method="paper")
     np.testing.assert_allclose(s.min_d_safe, 0.019 - dx, atol=1e-9)
     assert s.alarm.tolist() == [False, True, True, True]
     assert s.f_safe_line2[3] == pytest.approx(0.5 * (0.019 - 0.025), abs=1e-9)  # collision
 
 
+def test_sound_clearance_of_the_whole_tool_by_hand():
+    # The same poses: the implant axis (radius 0) runs from (0, 0, 50) to (-31 + dx, 0, 50) mm
+    # in the 50 mm cylinder, the rod and head (6 mm) on the axis: the tool's true clearance is
+    # 19 - dx mm. The certified value never exceeds it, is resolved below RESOLVE, and the
+    # alarm (1 mm) fires at 0.5 mm and in the wall.
+    from implantplan.systems.tool_clearance import RESOLVE, clearance_field
+
+    dx = np.array([0.0, 0.0185, 0.019, 0.025])
+    X = np.stack([pose([-d, 0.0, 0.044]) for d in dx])
+    s = tool_safety(CYL, X, ToolLines.contra_angle(R, D12), alarm_margin=0.001)
+    f = clearance_field(CYL)
+    slack = f.spacing * np.sqrt(3) / 2 + f.spacing / 4 + f.cover
+    true = 0.019 - dx
+    assert np.all(s.min_d_safe[true > 0] <= true[true > 0])
+    assert s.min_d_safe[0] >= RESOLVE - slack
+    assert s.min_d_safe[1] >= 0.0005 - slack
+    assert s.alarm.tolist() == [False, True, True, True]
+    # Eq. 19's line check misses the head: a tool whose head (radius 6 mm at the origin)
+    # touches the throat while both lines are clear
+    Y = pose([0.0, 0.0, 0.004])  # head sphere reaches z = -2 mm, below the bottom slice
+    assert tool_safety(CYL, Y, ToolLines.contra_angle(R, D12)).min_d_safe[0] < 0
+    assert tool_safety(CYL, Y, ToolLines.contra_angle(R, D12), method="paper").min_d_safe[0] > 0
+
+
 def test_tool_outside_the_mouth_is_safe():
     s = tool_safety(CYL, pose([0.0, 0.0, 0.2]), ToolLines.contra_angle(R, D12))
-    assert np.isinf(s.f_safe_line1[0]) and np.isinf(s.min_d_safe[0]) and not s.alarm[0]
+    assert np.isinf(s.f_safe_line1[0]) and not s.alarm[0]
+    # the whole tool is 100 mm above the opening: certified free beyond the resolved level
+    from implantplan.systems.tool_clearance import RESOLVE
+
+    assert s.min_d_safe[0] >= RESOLVE
 
 
 def test_system_with_a_center_frame_offset():
     X_WC = transform(np.eye(3), [1.0, 2.0, 0.5])
-    system = FpsmEstimator(CYL, X_WC, ToolLines.contra_angle(R, D12), alarm_margin=0.02)
+    system = FpsmEstimator(CYL, X_WC, ToolLines.contra_angle(R, D12), alarm_margin=0.02,
+                           method="paper")
     context = system.CreateDefaultContext()
     X_WT = X_WC @ pose([0.0, 0.0, 0.044])
     system.GetInputPort("X_WT").FixValue(context, AbstractValue.Make(RigidTransform(X_WT)))
@@ -77,7 +106,8 @@ def test_system_with_a_center_frame_offset():
 
 
 def test_periodic_estimator_holds_the_last_estimate():
-    system = FpsmEstimator(CYL, np.eye(4), ToolLines.contra_angle(R, D12), period=0.02)
+    system = FpsmEstimator(CYL, np.eye(4), ToolLines.contra_angle(R, D12), period=0.02,
+                           method="paper")
     context = system.CreateDefaultContext()
     system.GetInputPort("X_WT").FixValue(
         context, AbstractValue.Make(RigidTransform(pose([0.0, 0.0, 0.044])))

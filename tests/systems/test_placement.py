@@ -237,3 +237,28 @@ def test_placement_on_a_non_circular_model():
     assert p.grid["distance_d_T"] <= 0.1 * MM and p.grid["distance_theta_T"] <= np.deg2rad(0.1)
     # by symmetry about y = 0 (Hole y = Center -y here), the rod stays in the plane y = 0
     assert abs(p.line1["direction"][1]) < 1e-3
+
+
+def test_cylinder_verification_with_the_sound_clearance(cyl):
+    # At the Eq. 14 optimum with r = 6 mm (d_T = 62.5 mm, theta_T = 0) the tool origin is at
+    # Center (0, 12.5, 50) mm and the rod rises along +z: the rod axis is 50 - 12.5 = 37.5 mm
+    # from the wall, the implant axis (Tool z = Center +y, down to y = 12.5 - 31 = -18.5 mm)
+    # 50 - 18.5 = 31.5 mm, the head (a 6 mm sphere at the origin) 37.5 mm; so the true
+    # clearance over the feed is 31.5 mm. The certified value never exceeds it and, resolved
+    # only up to RESOLVE, is at least RESOLVE minus the bound's slack and the region's loss
+    # (lateral 0.5 mm + 1 deg x 31 mm).
+    from implantplan.systems.tool_clearance import RESOLVE, clearance_field
+
+    p = place_instrument(cyl, HOLE, AXIS, rod_radius=6 * MM, implant_length=D12, seed=0,
+                         verify=False)
+    v = p.verification
+    f = clearance_field(cyl)
+    slack = f.spacing * np.sqrt(3) / 2 + f.spacing / 4 + f.cover
+    loss = 0.5 * MM + np.radians(1.0) * D12
+    assert RESOLVE - slack - loss <= v["clearance_certified"] <= 31.5 * MM - 0.5 * MM
+    assert p.valid and v["reasons"] == []
+    assert p.to_dict()["fixture_tolerance"]["lateral"] == 0.5 * MM
+    # a margin above the true clearance makes the placement invalid, with the reason
+    q = place_instrument(cyl, HOLE, AXIS, rod_radius=6 * MM, implant_length=D12, seed=0,
+                         verify=False, clearance_margin=40 * MM)
+    assert not q.valid and "clinical margin 40.000 mm" in q.reason

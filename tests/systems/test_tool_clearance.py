@@ -51,7 +51,7 @@ def test_on_axis_rod_in_cylinder_is_rho_minus_r_up_to_the_resolved_level(cylinde
     # slack (grid interpolation <= g sqrt(3)/2, march <= step/2, sampling cover).
     c = rod_clearance(cylinder, [0, 0, 0.05], [0, 0, 1.0], 0.006)[0]
     f = clearance_field(cylinder)
-    slack = f.spacing * np.sqrt(3) / 2 + f.spacing / 8 + f.cover
+    slack = f.spacing * np.sqrt(3) / 2 + f.spacing / 4 + f.cover
     assert c <= RHO - 0.006
     assert c >= RESOLVE - slack
     # near the wall (clearance below RESOLVE) it is resolved: 50 - 41 - 6 = 3 mm
@@ -70,8 +70,11 @@ def test_sound_never_exceeds_exact_on_random_rods(cylinder):
     r = rng.uniform(0.002, 0.008, n)
     c = rod_clearance(cylinder, p0, p0 + 0.3 * d, r)
     exact = _exact_cylinder(p0, d, r)
-    # the exact reference samples the axis at 0.1 mm: it over-estimates by <= 0.05 mm
-    assert np.sum(c > exact + 5e-5) == 0
+    # the contract: a positive value certifies at least that much clearance (the exact
+    # reference samples the axis at 0.1 mm: it over-estimates by <= 0.05 mm); negative values
+    # are only "not certified"
+    assert np.sum((c > 0) & (c > exact + 5e-5)) == 0
+    assert np.sum((c > 0) & (exact < 0)) == 0
     free = exact > 0
     assert free.sum() > 500
     # conservative but not useless: most rods free by 1.5 mm are certified free
