@@ -21,7 +21,8 @@ applied to the scan's vertices and to its landmarks (jaw hinge point and axis, o
 normal; the opening blend band scales by s). The Center frame itself (the planner's frame) stays
 where the source case puts it, so the patient's anatomy sits slightly differently in it, as scans
 of different patients do. Each site moves with the anatomy (position and axis, in Center) plus a
-seeded jitter of ``site_jitter_mm`` N(0, I3) of its position. Draws are truncated at 3 sigma, so
+seeded jitter of ``site_jitter_mm`` N(0, I3) of its position, and then along its axis back onto
+the (opened) scan's tissue, where the plan's site check wants it. Draws are truncated at 3 sigma, so
 a cohort never holds a wild outlier. Same source, seed and settings: byte-identical files.
 """
 
@@ -31,13 +32,15 @@ import copy
 from pathlib import Path
 
 import numpy as np
+import trimesh
 import yaml
 
 from implantplan.analyses.case import load_case
 from implantplan.systems import validate as v
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import SCHEMA_VERSION, read_yaml, write_atomic, write_text_atomic
-from implantplan.systems.oral_mesh import center_frame, load_oral_mesh
+from implantplan.systems.oral_mesh import center_frame, load_oral_mesh, open_mouth
+from implantplan.systems.sites import project_to_tissue
 
 _KEYS = ("schema_version", "name", "cases", "generated")
 
@@ -131,13 +134,29 @@ def make_cohort(
         if case.cap_radius is not None:
             m["cap_radius_mm"] = _r(s * case.cap_radius * 1e3)
         R_in_C = R_C.T @ R @ R_C  # the anatomy's rotation seen in Center
-        for k, (site, raw_site) in enumerate(zip(case.sites, data["sites"], strict=True)):
-            p_C = site.position * 1e3
-            raw_site["position_mm"] = _r(R_C.T @ (s * R @ R_C @ p_C + t) + jitter[k])
-            raw_site["axis"] = _r(R_in_C @ site.axis)
         V = o + s * (V0 - o) @ R.T + t
         mesh_out = mesh.copy()
         mesh_out.vertices = V
+        # the scan as the case plans it (opened, metres): jittered sites go back onto its tissue
+        planned = trimesh.Trimesh(V * 1e-3, mesh.faces, process=False)
+        if case.mouth_opening_deg > 0:
+            planned = open_mouth(planned, case.mouth_opening_deg, **{
+                "hinge_point": np.asarray(m["hinge_point_mm"]) * 1e-3,
+                "hinge_axis": np.asarray(m["hinge_axis"]),
+                "occlusal_point": np.asarray(m["occlusal_point_mm"]) * 1e-3,
+                "occlusal_normal": np.asarray(m["occlusal_normal"]),
+                "blend": m["opening_blend_mm"] * 1e-3})
+        X_WC = center_frame(case.center_origin, case.center_z, x_hint=case.center_x_hint)
+        for k, (site, raw_site) in enumerate(zip(case.sites, data["sites"], strict=True)):
+            axis = R_in_C @ site.axis
+            p_C = R_C.T @ (s * R @ R_C @ (site.position * 1e3) + t) + jitter[k]
+            # the site moves with the anatomy and the jitter, then along its axis onto the tissue
+            # (the site check of the plan: within 1 mm of the scan, axis into the cavity)
+            on_tissue = project_to_tissue(planned, X_WC, p_C * 1e-3 + 2e-3 * axis, axis)[0]
+            if np.all(np.isfinite(on_tissue)):
+                p_C = on_tissue * 1e3
+            raw_site["position_mm"] = _r(p_C)
+            raw_site["axis"] = _r(axis)
         write_atomic(out_dir / f"{name}.obj",
                      lambda tmp, mo=mesh_out: mo.export(tmp, file_type="obj"))  # fmt: skip
         write_text_atomic(out_dir / f"{name}.yaml", yaml.safe_dump(data, sort_keys=False))
