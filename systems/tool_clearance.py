@@ -49,7 +49,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from implantplan.systems import actuator
+from implantplan.systems import actuator, validate
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm import _W, TWO_PI, Fpsm
 
@@ -568,13 +568,20 @@ def _tool_kernel(V, ox, oy, oz, g, z_top, cap, step, resolve, X, a, b, r, out):
 # -- public API --------------------------------------------------------------------------------
 
 
+MAX_COORDINATE = 1.0e3  # m: any real point in Center is within a metre; beyond this the grid
+# indices of the compiled kernels would overflow, so such input is an error, not a verdict
+
+
 def _points(value, name: str) -> np.ndarray:
     try:
         p = np.array(value, dtype=float)
     except (TypeError, ValueError):
         raise InputError(name, "expected numbers (m)") from None
-    if p.shape[-1:] != (3,) or not np.all(np.isfinite(p)):
-        raise InputError(name, f"expected finite (n, 3) points (m), got shape {p.shape}")
+    if p.ndim not in (1, 2) or p.shape[-1:] != (3,) or not np.all(np.isfinite(p)):
+        raise InputError(name, f"expected finite (n, 3) or (3,) points (m), got shape {p.shape}")
+    if p.size and np.abs(p).max() > MAX_COORDINATE:
+        raise InputError(name, f"expected points within {MAX_COORDINATE:g} m of the Center "
+                         f"origin, got a coordinate of {np.abs(p).max():.3g} m")
     return p
 
 
@@ -615,8 +622,16 @@ def rod_clearance(
         raise InputError("method", f"expected one of {METHODS}, got {method!r}")
     A = np.atleast_2d(_points(p0, "p0"))
     B = np.atleast_2d(_points(p1, "p1"))
-    A, B = np.broadcast_arrays(A, B)
-    r = np.broadcast_to(np.asarray(radius, dtype=float), (A.shape[0],))
+    try:
+        A, B = np.broadcast_arrays(A, B)
+    except ValueError:
+        raise InputError("p1", f"expected as many end points as p0 ({A.shape[0]}) or one, got "
+                         f"{B.shape[0]}") from None
+    try:
+        r = np.broadcast_to(np.asarray(radius, dtype=float), (A.shape[0],))
+    except (TypeError, ValueError):
+        raise InputError("radius", f"expected a radius (m) or one per capsule ({A.shape[0]}), "
+                         f"got {radius!r}") from None
     if not np.all(np.isfinite(r)) or np.any(r < 0):
         raise InputError("radius", "expected radii >= 0 m")
     if method == "paper":
@@ -642,10 +657,12 @@ def _tool_capsules(X_CT: np.ndarray, tool: ToolGeometry):
 
 
 def _poses(X, name: str = "X_CTool") -> np.ndarray:
-    X = np.asarray(X, dtype=float)
-    if X.shape[-2:] != (4, 4) or not np.all(np.isfinite(X)):
-        raise InputError(name, f"expected finite (n, 4, 4) or (4, 4) poses, got {X.shape}")
-    return X.reshape(-1, 4, 4)
+    """Rigid poses only: a scaled or sheared "pose" would shrink the tool and pass as safe."""
+    X = validate.pose(X, name, batch=True).reshape(-1, 4, 4)
+    if X.size and np.abs(X[:, :3, 3]).max() > MAX_COORDINATE:
+        raise InputError(name, f"expected tool positions within {MAX_COORDINATE:g} m of the "
+                         "Center origin")
+    return X
 
 
 def tool_clearance(
