@@ -83,7 +83,14 @@ def write_layout_html(sc: moprp.Scenario, xyz, branch: int, path: Path) -> Path:
     diagram, plant, _, handles = build_plant(scenario=sc, tool=True, X_WBase=X_WB,
                                              limits=sc.limits, meshcat=meshcat)
     feed = moprp.feed_poses(xyz, sc.feed_length, sc.feed_samples)
-    q_path = kin.ik(feed, limits=sc.limits, X_FT=sc.X_FT).q[:, branch]
+    record_feed(diagram, plant, handles, kin.ik(feed, limits=sc.limits, X_FT=sc.X_FT).q[:, branch])
+    write_text_atomic(path, meshcat.StaticHtml())
+    return Path(path)
+
+
+def record_feed(diagram, plant, handles, q_path) -> None:
+    """Record the arm through the configurations ``q_path`` (one per sample, t from 0 to 1 s) in
+    the Meshcat of the plant's visualizer, and publish the recording (an animation)."""
     context = diagram.CreateDefaultContext()
     pc = plant.GetMyMutableContextFromRoot(context)
     vis = handles.visualizer
@@ -94,8 +101,6 @@ def write_layout_html(sc: moprp.Scenario, xyz, branch: int, path: Path) -> Path:
         diagram.ForcedPublish(context)
     vis.StopRecording()
     vis.PublishRecording()
-    write_text_atomic(path, meshcat.StaticHtml())
-    return Path(path)
 
 
 def _plot_layout(sc, xyz, q, path, title) -> Path:

@@ -82,6 +82,7 @@ def write_site_scene(path: Path, *, fit, placement, robot, site_index: int, feed
     """
     from pydrake.geometry import Capsule, Meshcat, MeshcatParams, Sphere
 
+    from implantplan.analyses.figures.robot import record_feed
     from implantplan.diagrams.plant import build_plant
 
     sc = robot.scenario
@@ -130,17 +131,8 @@ def write_site_scene(path: Path, *, fit, placement, robot, site_index: int, feed
         meshcat.SetTransform("/case/rod", _rt(X_WCenter @ X_C_rod))
         # the arm along the feed of this site
         feed = moprp.feed_poses(robot.base_xyz, sc.feed_length, feed_samples, X_OT=robot.X_OT[k])
-        q_path = kin.ik(feed, limits=sc.limits, X_FT=sc.X_FT).q[:, int(robot.branch[k])]
-        context = diagram.CreateDefaultContext()
-        pc = plant.GetMyMutableContextFromRoot(context)
-        vis = handles.visualizer
-        vis.StartRecording(set_transforms_while_recording=False)
-        for i, q in enumerate(q_path):
-            context.SetTime(i / (len(q_path) - 1))
-            plant.SetPositions(pc, handles.arm, q)
-            diagram.ForcedPublish(context)
-        vis.StopRecording()
-        vis.PublishRecording()
+        record_feed(diagram, plant, handles,
+                    kin.ik(feed, limits=sc.limits, X_FT=sc.X_FT).q[:, int(robot.branch[k])])
         # the patient's and chair's collision blobs would hide the mouth (the scan shows it):
         # hidden (a toggle in the Controls), the arm half see-through
         meshcat.SetProperty("/drake/visualizer/patient", "visible", False)
