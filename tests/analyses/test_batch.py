@@ -28,6 +28,7 @@ def _small_case(folder: Path) -> Path:
     data["robot"].update(pop=12, gen=2)
     data["capability"].update(directions=20)
     data["simulation"]["runs"] = 0
+    data["safety"]["registration_samples"] = 100
     path = folder / "small.yaml"
     path.write_text(yaml.safe_dump(data))
     return path

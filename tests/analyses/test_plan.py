@@ -70,6 +70,7 @@ def test_feeding_targets_are_consistent_across_frames(demo_plan):
 def _case(tmp_path, **edits) -> Path:
     data = yaml.safe_load(default_case_path().read_text())
     data["mesh"]["path"] = str(models.model_path("oral/oralCavityMesh.obj"))
+    data["safety"]["registration_samples"] = 100  # the demo runs the case's 1,000
     for dotted, value in edits.items():
         d = data
         keys = dotted.split(".")

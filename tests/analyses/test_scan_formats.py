@@ -23,6 +23,7 @@ FAST = ["--runs", "0", "--no-html-scene", "--quiet"]
 
 def _plan(tmp_path, name, file_type=None, scale=1.0):
     case = yaml.safe_load(default_case_path().read_text())
+    case["safety"]["registration_samples"] = 100  # the demo runs the case's 1,000
     source = models.model_path("oral/oralCavityMesh.obj")
     if file_type is None:
         case["mesh"]["path"] = str(source)
