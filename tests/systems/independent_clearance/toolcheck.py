@@ -1,19 +1,11 @@
 """Whole-tool checks: tool_clearance / ToolClearance.one / feed_clearance vs the ground truth."""
 
 import sys
-import time
 
 import numpy as np
 
 sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parent))
-from harness import MM, MODELS, _near_wall, region
-
-from implantplan.systems.tool_clearance import (
-    ToolClearance,
-    ToolGeometry,
-    feed_clearance,
-    tool_clearance,
-)
+from harness import _near_wall
 
 
 def rot(axis, ang):
@@ -74,103 +66,3 @@ def truth_tool(G, X, tool):
             v = min(v, G.eps - r[c])
         best = min(best, v)
     return best
-
-
-def run(name, n, seed=0, feed_n=None):
-    rng = np.random.default_rng(seed)
-    f = MODELS[name]()
-    G = region(f)
-    X = random_poses(G, rng, n)
-    fs = 0
-    worst = -np.inf
-    safe = 0
-    free = 0
-    free_unsafe = 0
-    mism = 0
-    ex = None
-    t = time.time()
-    for k in range(n):
-        tool = ToolGeometry(
-            rod_radius=rng.uniform(0.5, 6) * MM,
-            implant_length=rng.uniform(5, 31) * MM,
-            rod_length=rng.uniform(20, 200) * MM,
-            implant_radius=rng.uniform(0, 2) * MM,
-            head_radius=rng.uniform(0.5, 7) * MM,
-        )
-        v = tool_clearance(f, X[k], tool)[0]
-        one = ToolClearance(f, tool).one(X[k])
-        if abs(one - v) > 1e-12:
-            mism += 1
-        tr = truth_tool(G, X[k], tool)
-        safe += v > 0
-        free += tr > G.eps
-        free_unsafe += (tr > G.eps) and v <= 0
-        if v > 0 and tr < -G.eps:
-            fs += 1
-            ex = (X[k].tolist(), tool, v, tr)
-        if v > 0:
-            worst = max(worst, v - tr)
-    print(
-        f"[tool] {name}: poses {n}, called safe {safe}, false-safe {fs}, "
-        f"worst (sound - true) {worst / MM:.4f} mm, "
-        f"free called unsafe {free_unsafe}/{free}, one()!=batch {mism} ({time.time() - t:.1f}s)",
-        flush=True,
-    )
-    if ex:
-        print("   FS example", ex)
-    # feed: truth sampled every 0.25 mm along the feed up to the computed depth (+ the default rule)
-    feed_n = feed_n if feed_n is not None else max(n // 10, 5)
-    ffs = 0
-    fsafe = 0
-    t = time.time()
-    fworst = -np.inf
-    X = random_poses_feed(G, rng, feed_n)
-    for k in range(feed_n):
-        tool = ToolGeometry(
-            rod_radius=rng.uniform(0.5, 3) * MM,
-            implant_length=rng.uniform(3, 12) * MM,
-            rod_length=0.1,
-            implant_radius=rng.uniform(0, 1) * MM,
-        )
-        lat, ang = rng.uniform(0, 0.5) * MM, np.radians(rng.uniform(0, 2))
-        v = feed_clearance(f, X[k], tool, lateral=lat, angle=ang)[0]
-        if v <= 0:
-            continue
-        fsafe += 1
-        x_dir = X[k][:3, 0]
-        need = G.ztop + tool.head + tool.implant_length - X[k][2, 3]
-        depth = min(max(need / x_dir[2], 0) if x_dir[2] > 1e-6 else 0.2, 0.2) + 0.03  # a bit beyond
-        worst_k = np.inf
-        for s in np.arange(0, depth, 0.0005):
-            for _ in range(2):
-                Y = X[k].copy()
-                Y[:3, 3] += s * x_dir
-                # admissible perturbation: rotate by <= ang about the implant start, shift <= lat
-                piv = Y[:3, 3] + Y[:3, 0] * tool.rod_radius
-                ax = rng.normal(size=3)
-                R = rot(ax, rng.uniform(0, ang))
-                Y[:3, :3] = R @ Y[:3, :3]
-                Y[:3, 3] = piv + R @ (Y[:3, 3] - piv)
-                off = rng.normal(size=3)
-                off -= off.dot(Y[:3, 0]) * Y[:3, 0]
-                Y[:3, 3] += off / (np.linalg.norm(off) + 1e-300) * rng.uniform(0, lat)
-                worst_k = min(worst_k, truth_tool(G, Y, tool))
-        fworst = max(fworst, v - worst_k)
-        if worst_k < -G.eps:
-            ffs += 1
-            print("   FEED FS", X[k].tolist(), tool, lat, ang, v, worst_k)
-    print(
-        f"[feed] {name}: feeds {feed_n}, called safe {fsafe}, false-safe {ffs}, "
-        f"worst (feed - true min) {fworst / MM:.4f} mm ({time.time() - t:.1f}s)",
-        flush=True,
-    )
-
-
-if __name__ == "__main__":
-    n = int(sys.argv[1]) if len(sys.argv) > 1 else 200
-    for name in (
-        sys.argv[2].split(",")
-        if len(sys.argv) > 2
-        else ["default", "cylinder", "slit", "nonconvex"]
-    ):
-        run(name, n, feed_n=int(sys.argv[3]) if len(sys.argv) > 3 else None)
