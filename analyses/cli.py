@@ -42,7 +42,6 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "plan many cases in parallel (Dask), one folder each, with a summary",
     ),
 }
-COMMAND_MODULES: tuple[str, ...] = tuple(dict.fromkeys(m for m, _ in COMMANDS.values()))
 
 
 def _requested_command(argv: list[str]) -> str | None:

@@ -14,11 +14,13 @@ def rot(axis, ang):
     return np.eye(3) + np.sin(ang) * K + (1 - np.cos(ang)) * K @ K
 
 
-def random_poses(G, rng, n):
+def _poses_near_wall(G, rng, n, *, top_slices: int, wall_fraction, max_tilt_deg: float):
+    """n Tool poses: origins near the wall in the top slabs, x (the rod) within max_tilt of +Z
+    (out of the mouth), a random roll about it."""
     X = np.tile(np.eye(4), (n, 1, 1))
-    p = _near_wall(G, rng, n, G.z[max(G.M - 6, 0)], G.ztop, (0.0, 0.95))
+    p = _near_wall(G, rng, n, G.z[max(G.M - top_slices, 0)], G.ztop, wall_fraction)
     for k in range(n):
-        cz = rng.uniform(np.cos(np.radians(80)), 1)
+        cz = rng.uniform(np.cos(np.radians(max_tilt_deg)), 1)
         ph = rng.uniform(0, 2 * np.pi)
         s = np.sqrt(1 - cz * cz)
         x = np.array([s * np.cos(ph), s * np.sin(ph), cz])
@@ -29,23 +31,14 @@ def random_poses(G, rng, n):
         X[k, :3, :3] = np.column_stack([x, y, np.cross(x, y)])
         X[k, :3, 3] = p[k]
     return X
+
+
+def random_poses(G, rng, n):
+    return _poses_near_wall(G, rng, n, top_slices=6, wall_fraction=(0.0, 0.95), max_tilt_deg=80)
 
 
 def random_poses_feed(G, rng, n):
-    X = np.tile(np.eye(4), (n, 1, 1))
-    p = _near_wall(G, rng, n, G.z[max(G.M - 5, 0)], G.ztop, (0.0, 0.6))
-    for k in range(n):
-        cz = rng.uniform(np.cos(np.radians(35)), 1)
-        ph = rng.uniform(0, 2 * np.pi)
-        s = np.sqrt(1 - cz * cz)
-        x = np.array([s * np.cos(ph), s * np.sin(ph), cz])
-        a = np.array([1.0, 0, 0]) if abs(x[0]) < 0.9 else np.array([0, 1.0, 0])
-        y = a - a.dot(x) * x
-        y /= np.linalg.norm(y)
-        y = rot(x, rng.uniform(0, 2 * np.pi)) @ y
-        X[k, :3, :3] = np.column_stack([x, y, np.cross(x, y)])
-        X[k, :3, 3] = p[k]
-    return X
+    return _poses_near_wall(G, rng, n, top_slices=5, wall_fraction=(0.0, 0.6), max_tilt_deg=35)
 
 
 def capsules(X, tool):
