@@ -204,6 +204,21 @@ def _combine(evs):
     return F, cv
 
 
+def percentile_reference(sc, evaluate) -> np.ndarray:
+    """Indices (n, 3) of up to ``sc.percentile_samples`` uniformly random bases in the bounds that
+    serve every site (``evaluate(X, rng) -> (F, violation)``), seeded by the scenario: what the
+    selection's percentile ranks are taken against (the plan and the studio)."""
+    rng_pct = np.random.default_rng(sc.seed + 2)
+    F_rand = []
+    for _ in range(20):
+        Xr = sc.lower + rng_pct.random((2000, 3)) * (sc.upper - sc.lower)
+        Fr, cvr = evaluate(Xr, rng_pct)
+        F_rand.append(Fr[cvr <= 0])
+        if sum(len(f) for f in F_rand) >= sc.percentile_samples:
+            break
+    return np.concatenate(F_rand)[: sc.percentile_samples]
+
+
 def robot_stage(case: Case, placements: list[Placement], *, progress=None) -> RobotResult:
     """MOPRP over the base position with every site's feeding target (NSGA-II, systems.nsga2).
 
@@ -261,15 +276,7 @@ def robot_stage(case: Case, placements: list[Placement], *, progress=None) -> Ro
         progress.say(f"SceneGraph: {dropped} front bases dropped before the selection")
 
     # percentile ranks of the selection against random bases that serve every site
-    rng_pct = np.random.default_rng(sc.seed + 2)
-    F_rand = []
-    for _ in range(20):
-        Xr = sc.lower + rng_pct.random((2000, 3)) * (sc.upper - sc.lower)
-        Fr, cvr = evaluate(Xr, rng_pct)
-        F_rand.append(Fr[cvr <= 0])
-        if sum(len(f) for f in F_rand) >= sc.percentile_samples:
-            break
-    F_rand = np.concatenate(F_rand)[: sc.percentile_samples]
+    F_rand = percentile_reference(sc, evaluate)
     pct = moprp.percentiles(F[k], F_rand) if len(F_rand) else np.full(3, np.nan)
 
     return RobotResult(

@@ -1,0 +1,281 @@
+"""The studio's live setup evaluation (DESIGN.md section 10): a plan folder's context, and what a
+base position gives, fast enough to follow a slider.
+
+A plan folder (``implantplan plan``/``demo``) holds everything the room needs: the scenario by
+name, each site's feeding target in World, fixture and tool, the Pareto front of the base search.
+:func:`load_plan` reads it once into a :class:`StudioPlan` (scenario, targets in Oral, the fast
+collision model, the random feasible bases the percentiles rank against, recomputed with the
+pipeline's own seed and function); then, per base position:
+
+- :func:`evaluate_layout` (fast, one call per slider change): every site's surviving IK branch and
+  its three MOPRP indices (systems.moprp.evaluate_bases, the worst over the sites as in the plan),
+  their percentiles, the fast model's arm clearance (a lower bound of SceneGraph's) at the pre-feed
+  and target configurations, the cart's clearance; the tool's clearances in the mouth do not
+  depend on the base and come from the plan (certified on the FPSM, exact with FCL).
+- :func:`confirm_layout` (slow, ~0.1-0.3 s): SceneGraph's signed distance along every site's
+  whole feed at that base (diagrams.arm_clearance.confirm_feed), the verdict the plan keeps.
+- :class:`CapabilityView`: the capability map (seed 004) around every target from that base; the
+  map lives in the base frame, so voxels built once are reused when the base comes back near.
+
+Everything is in SI units; the studio shows mm and deg.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from implantplan.analyses import pipeline
+from implantplan.diagrams.arm_clearance import SceneGraphClearance, confirm_feed
+from implantplan.diagrams.teleop import TeleopCase
+from implantplan.systems import actuator, moprp
+from implantplan.systems import capability_map as cm
+from implantplan.systems import kinematics as kin
+from implantplan.systems.errors import InputError
+from implantplan.systems.files import read_json
+from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.frames import invert
+from implantplan.systems.virtual_fixture import VirtualFixture
+
+
+@dataclass
+class StudioPlan:
+    """A plan folder opened for the studio (SI units, frames as in plan.json)."""
+
+    folder: Path
+    plan: dict  # plan.json as read
+    sc: moprp.Scenario
+    fpsm: Fpsm
+    names: list[str]
+    X_OT: np.ndarray  # (S, 4, 4) feeding targets in Oral
+    X_WCenter: np.ndarray
+    model: object  # the fast collision model (systems.arm_collision)
+    F_reference: np.ndarray  # (n, 3) random feasible bases' indices (percentile reference)
+    pareto_xyz: np.ndarray  # (P, 3)
+    pareto_F: np.ndarray  # (P, 3)
+    seed: int
+
+    @property
+    def base_xyz(self) -> np.ndarray:
+        """The plan's selected base position in Oral (m)."""
+        return np.asarray(self.plan["base"]["xyz_in_oral"], dtype=float)
+
+    def site_index(self, name: str) -> int:
+        if name not in self.names:
+            raise InputError("site", f"expected one of {self.names}, got {name!r}")
+        return self.names.index(name)
+
+    def tool_clearances(self) -> list[dict]:
+        """Per site the tool's clearance in the mouth from the plan (m): certified on the FPSM
+        and exact against the scan over the feed and the fixture's region (base independent)."""
+        out = []
+        for s in self.plan["sites"]:
+            ver = s["placement"].get("verification") or {}
+            out.append({"certified": ver.get("clearance_certified"),
+                        "exact": ver.get("clearance_exact_min"),
+                        "margin": ver.get("clearance_margin")})
+        return out
+
+    def teleop_case(self, site: int, xyz=None, branch: int | None = None,
+                    q_pre=None) -> TeleopCase:
+        """Site ``site``'s feeding case in the room with the base at ``xyz`` (default: the
+        plan's), starting at ``q_pre`` (default: the plan's pre-feed configuration)."""
+        s = self.plan["sites"][site]
+        xyz = self.base_xyz if xyz is None else np.asarray(xyz, dtype=float)
+        q0 = np.asarray(s["ik"]["q_pre"] if q_pre is None else q_pre, dtype=float)
+        return TeleopCase(
+            scenario=self.plan["frames"]["posture"],
+            X_WBase=self.sc.X_WO @ moprp.base_pose(xyz),
+            q_start=q0,
+            X_WCenter=self.X_WCenter,
+            fpsm=self.fpsm,
+            vf=VirtualFixture.from_dict(s["vf"]),
+            X_WTarget=self.sc.X_WO @ self.X_OT[site],
+            rod_radius=float(s["rod_radius"]),
+            implant_length=float(s["implant_length"]),
+            limits=self.sc.limits,
+            label=f"site {s['name']}",
+        )
+
+
+def load_plan(folder, *, field: str = "--plan") -> StudioPlan:
+    """Open a plan folder (its plan.json and fpsm.json) for the studio."""
+    folder = Path(folder)
+    path = folder / "plan.json" if folder.is_dir() else folder
+    plan = read_json(path, kind="plan", field=field)
+    try:
+        sc = moprp.load_scenario(plan["frames"]["scenario"], X_FT=actuator.X_FT())
+    except InputError as exc:
+        raise InputError(field, f"{path}: its scenario {plan['frames']['scenario']!r} cannot "
+                         f"be loaded by name ({exc})") from None
+    seed = int(plan["case"]["seed"])
+    sc = dataclasses.replace(sc, seed=seed)
+    fpsm = Fpsm.load(path.parent / plan["fpsm"]["file"], field=f"{field} fpsm")
+    X_WO_inv = invert(sc.X_WO)
+    X_OT = np.array([X_WO_inv @ np.asarray(s["feeding_target"]["X_WT"], dtype=float)
+                     for s in plan["sites"]])
+    model = moprp.collision_model(sc)
+
+    def evaluate(X, rng):
+        return pipeline._combine([moprp.evaluate_bases(X, sc, rng, model=model, X_OT=T)
+                                  for T in X_OT])
+
+    F_ref = pipeline.percentile_reference(sc, evaluate)
+    pareto = plan["base"]["pareto"]
+    return StudioPlan(
+        folder=path.parent, plan=plan, sc=sc, fpsm=fpsm,
+        names=[s["name"] for s in plan["sites"]], X_OT=X_OT,
+        X_WCenter=np.asarray(plan["frames"]["X_WCenter"], dtype=float), model=model,
+        F_reference=F_ref,
+        pareto_xyz=np.array([p["base_xyz"] for p in pareto], dtype=float).reshape(-1, 3),
+        pareto_F=np.array([[p["indices"][n] for n in moprp.INDEX_NAMES] for p in pareto],
+                          dtype=float).reshape(-1, 3),
+        seed=seed,
+    )
+
+
+@dataclass
+class Layout:
+    """What one base position gives (SI units; see :func:`evaluate_layout`)."""
+
+    xyz: np.ndarray  # (3,) base in Oral
+    feasible: bool  # every site has a surviving branch
+    branch: np.ndarray  # (S,) -1 where none
+    q: np.ndarray  # (S, 6) at the target (NaN where none)
+    q_pre: np.ndarray  # (S, 6)
+    site_indices: np.ndarray  # (S, 3) (inf where none)
+    indices: np.ndarray  # (3,) worst over the sites
+    percentiles: np.ndarray  # (3,)
+    arm_clearance: np.ndarray  # (S,) fast model, min over pre-feed and target, all groups
+    cart_clearance: float
+    reasons: list[str]  # per site, why no branch survived ("ok" when one did)
+    clear: bool  # fast verdict: every site's arm clearance >= the scenario's clearance
+    confirmation: list[dict] | None = None  # SceneGraph along each feed (confirm_layout)
+    capability: dict | None = None  # CapabilityView.at
+
+    @property
+    def confirmed(self) -> bool | None:
+        """SceneGraph's verdict (None until confirmed)."""
+        if self.confirmation is None:
+            return None
+        return all(c["ok"] for c in self.confirmation)
+
+
+def evaluate_layout(sp: StudioPlan, xyz) -> Layout:
+    """The fast evaluation of a base position (see the module docstring)."""
+    xyz = np.asarray(xyz, dtype=float).reshape(3)
+    if not np.all(np.isfinite(xyz)):
+        raise InputError("base_xyz", f"expected finite coordinates (m), got {xyz}")
+    sc = sp.sc
+    rng = np.random.default_rng(sp.seed)
+    evs = [moprp.evaluate_bases(xyz[None], sc, rng, model=sp.model, X_OT=T) for T in sp.X_OT]
+    F, _ = pipeline._combine(evs)
+    branch = np.array([int(e.branch[0]) for e in evs])
+    feasible = bool(np.all(branch >= 0))
+    q = np.array([e.q[0] for e in evs])
+    q_pre = np.array([e.q_pre[0] for e in evs])
+    site_idx = np.array([e.objectives[0] for e in evs])
+    indices = F[0] if feasible else np.full(3, np.inf)
+    pct = moprp.percentiles(indices, sp.F_reference) if feasible else np.full(3, np.nan)
+    arm = np.full(len(evs), -np.inf)
+    ok = branch >= 0
+    if np.any(ok):
+        qs = np.concatenate([q_pre[ok], q[ok]])
+        d = moprp.collision_clearance(qs, xyz, sc, sp.model)
+        dmin = np.minimum(np.minimum(d["self"], d["environment"]), d["cabinet"])
+        arm[ok] = np.minimum(dmin[: ok.sum()], dmin[ok.sum():])
+    reasons = []
+    for e in evs:
+        codes = e.reason[0]
+        if e.branch[0] >= 0:
+            reasons.append("ok")
+        else:
+            common = codes[codes > 0]
+            code = int(np.bincount(common).argmax()) if common.size else moprp.DROP_IK
+            reasons.append(moprp.DROP_REASONS[code])
+    return Layout(
+        xyz=xyz, feasible=feasible, branch=branch, q=q, q_pre=q_pre, site_indices=site_idx,
+        indices=indices, percentiles=pct, arm_clearance=arm,
+        cart_clearance=float(moprp.cart_clearance(xyz[None], sc)[0]), reasons=reasons,
+        clear=bool(feasible and np.all(moprp.is_clear(arm, sc.clearance))),
+    )
+
+
+def confirm_layout(sp: StudioPlan, layout: Layout) -> list[dict]:
+    """SceneGraph along every site's whole feed at the layout's base (sets and returns
+    ``layout.confirmation``; a site without a branch is reported not ok)."""
+    checker = SceneGraphClearance(sp.sc, layout.xyz)
+    out = []
+    for k, T in enumerate(sp.X_OT):
+        if layout.branch[k] < 0:
+            out.append({"distance": float("-inf"), "pair": ["", ""], "samples": 0, "ok": False,
+                        "limit": sp.sc.clearance, "distance_pre": float("nan"),
+                        "distance_target": float("nan")})
+        else:
+            out.append(confirm_feed(checker, sp.sc, int(layout.branch[k]), X_OT=T))
+    layout.confirmation = out
+    return out
+
+
+@dataclass
+class CapabilityView:
+    """The capability map around the feeding targets, grown as the base moves.
+
+    The map is of the arm + actuator in its base frame (seed 004), so the voxels a base position
+    needs are the 3x3x3 neighbourhoods of the targets expressed in that base; voxels already built
+    for an earlier position are kept. Resolution and directions are the plan's case's defaults
+    (``voxel``, ``directions``)."""
+
+    sp: StudioPlan
+    voxel: float = 0.05  # m, the case default (analyses.case: capability.voxel_mm 50)
+    directions: int = 100
+    _built: dict = field(default_factory=dict)  # voxel id -> (reach row, all-roll row)
+    _tried: set = field(default_factory=set)  # voxel ids built (stored or unreachable)
+
+    def __post_init__(self):
+        X_FA = actuator.actuator_map_frame()
+        self._X_FA = X_FA
+        self.params = cm.make_params(self.voxel, self.directions, limits=self.sp.sc.limits,
+                                     X_FT=X_FA, tool="actuator")
+        self.grid = cm.make_grid(self.params)
+
+    def at(self, layout: Layout) -> dict:
+        """Capability at each target from the layout's base, and the voxels around them.
+
+        Returns:
+            dict(index (S,) of the target's voxel, neighbourhood_index (S,), map_reachable (S,),
+            centres_W (V, 3) voxel centres in World, voxel_index (V,), voxel (m)); also set as
+            ``layout.capability``.
+        """
+        X_BE = moprp.target_pose(layout.xyz, self.sp.X_OT)
+        X_BA = X_BE @ invert(actuator.X_FT()) @ self._X_FA
+        near = self.grid.neighbourhood(X_BA[:, :3, 3])
+        ids = np.unique(near[near >= 0])
+        todo = np.array([i for i in ids if int(i) not in self._tried], dtype=np.int64)
+        if todo.size:
+            vox, reach, allr = cm.build_block(self.params, todo)
+            for v, r, a in zip(vox, reach, allr, strict=True):
+                self._built[int(v)] = (r, a)
+            self._tried.update(int(i) for i in todo)
+        keys = np.array(sorted(self._built), dtype=np.int64)
+        width = (self.params.directions + 7) // 8
+        reach = np.array([self._built[int(k)][0] for k in keys], dtype=np.uint8).reshape(-1, width)
+        allr = np.array([self._built[int(k)][1] for k in keys], dtype=np.uint8).reshape(-1, width)
+        cmap = cm.CapabilityMap(self.params, self.grid, keys, reach, allr)
+        map_reach, index = cmap.query(X_BA)
+        neigh = cmap.neighbourhood_index(X_BA[:, :3, 3])
+        centres_B = self.grid.centres(ids)
+        X_WB = self.sp.sc.X_WO @ moprp.base_pose(layout.xyz)
+        out = {
+            "index": index, "neighbourhood_index": neigh, "map_reachable": map_reach,
+            "centres_W": centres_B @ X_WB[:3, :3].T + X_WB[:3, 3],
+            "voxel_index": cmap.voxel_index(centres_B),
+            "voxel": self.voxel,
+            "ik_branches": kin.ik(X_BE, limits=self.sp.sc.limits,
+                                  X_FT=actuator.X_FT()).valid.sum(axis=-1),
+        }
+        layout.capability = out
+        return out
