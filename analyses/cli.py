@@ -37,6 +37,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "robot": ("implantplan.analyses.robot_place", "robot base placement (MOPRP, seed 001)"),
     "simulate": ("implantplan.analyses.simulate", "teleoperated-feeding simulations (seed 001)"),
     "analyze": ("implantplan.analyses.simulate", "offline analyses of layouts"),
+    "studio": (
+        "implantplan.analyses.studio",
+        "the planning studio: live setup planning and teleoperation in the browser (Meshcat)",
+    ),
     "batch": (
         "implantplan.analyses.batch",
         "plan many cases in parallel (Dask), one folder each, with a summary",

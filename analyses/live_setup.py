@@ -27,17 +27,20 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from pydrake.systems.analysis import Simulator
 
 from implantplan.analyses import pipeline
 from implantplan.diagrams.arm_clearance import SceneGraphClearance, confirm_feed
-from implantplan.diagrams.teleop import TeleopCase
+from implantplan.diagrams.teleop import FeedRun, TeleopCase, build_teleop, simulate
 from implantplan.systems import actuator, moprp
 from implantplan.systems import capability_map as cm
 from implantplan.systems import kinematics as kin
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import read_json
 from implantplan.systems.fpsm import Fpsm
-from implantplan.systems.frames import invert
+from implantplan.systems.frames import frame_from_z, invert
+from implantplan.systems.master_device import IncrementalMapping, MasterMotion
+from implantplan.systems.master_input import LiveMasterDevice, MasterInput
 from implantplan.systems.virtual_fixture import VirtualFixture
 
 
@@ -101,8 +104,9 @@ class StudioPlan:
         )
 
 
-def load_plan(folder, *, field: str = "--plan") -> StudioPlan:
-    """Open a plan folder (its plan.json and fpsm.json) for the studio."""
+def load_plan(folder, *, field: str = "--plan", reference: bool = True) -> StudioPlan:
+    """Open a plan folder (its plan.json and fpsm.json) for the studio; without ``reference``
+    no percentile reference is sampled (replays need none; percentiles are then NaN)."""
     folder = Path(folder)
     path = folder / "plan.json" if folder.is_dir() else folder
     plan = read_json(path, kind="plan", field=field)
@@ -123,7 +127,7 @@ def load_plan(folder, *, field: str = "--plan") -> StudioPlan:
         return pipeline._combine([moprp.evaluate_bases(X, sc, rng, model=model, X_OT=T)
                                   for T in X_OT])
 
-    F_ref = pipeline.percentile_reference(sc, evaluate)
+    F_ref = pipeline.percentile_reference(sc, evaluate) if reference else np.zeros((0, 3))
     pareto = plan["base"]["pareto"]
     return StudioPlan(
         folder=path.parent, plan=plan, sc=sc, fpsm=fpsm,
@@ -279,3 +283,107 @@ class CapabilityView:
         }
         layout.capability = out
         return out
+
+
+# -- teleoperation by a person -------------------------------------------------------------------
+
+
+def feed_mapping(case: TeleopCase) -> IncrementalMapping:
+    """The master frame for a live feed: M's +x along the feed (from the start pose's tool
+    position to the target), y and z across it, so "feed in" pushes the tool along the fixture."""
+    u = case.X_WTarget[:3, 3] - case.X_WE(case.q_start)[:3, 3]
+    n = float(np.linalg.norm(u))
+    if n < 1e-9:
+        raise InputError("q_start", "the start pose is already at the feeding target")
+    return IncrementalMapping(R_WM=frame_from_z(np.zeros(3), u / n)[:3, [2, 0, 1]])
+
+
+class LiveTeleop:
+    """The teleop diagram (diagrams.teleop.build_teleop: fixture, supervisor, estimator, diff
+    IK, arm) driven by a live master input, stepped by the caller (the studio's loop) at real
+    time.
+
+    Args:
+        case: the feeding case (:meth:`StudioPlan.teleop_case`).
+        source: the live master input (systems.master_input.MasterInput).
+        meshcat: draw the plant there (None: headless).
+        realtime_rate: the Simulator's target real-time rate (1.0 in the studio; 0 runs as fast
+            as it can, for tests).
+    """
+
+    def __init__(self, case: TeleopCase, source: MasterInput, *, meshcat=None,
+                 realtime_rate: float = 1.0):
+        self.case = case
+        self.mapping = feed_mapping(case)
+        self.device = LiveMasterDevice(source, self.mapping)
+        self.teleop = build_teleop(case, meshcat=meshcat, master=self.device)
+        self.simulator = Simulator(self.teleop.diagram)
+        self.simulator.set_target_realtime_rate(realtime_rate)
+        self.context = self.simulator.get_mutable_context()
+        diffik_context = self.teleop.diffik.GetMyMutableContextFromRoot(self.context)
+        self.teleop.diffik.GetInputPort("use_robot_state").FixValue(diffik_context, False)
+        self.teleop.initialize(self.context)
+        self.simulator.Initialize()
+        self.start_W = case.X_WE(case.q_start)[:3, 3]
+
+    @property
+    def time(self) -> float:
+        return float(self.context.get_time())
+
+    def advance(self, seconds: float) -> None:
+        """Run ``seconds`` more of simulated time (whole control periods)."""
+        dt = self.device.dt
+        n = max(int(round(seconds / dt)), 1)
+        self.simulator.AdvanceTo((round(self.time / dt) + n) * dt)
+
+    def state(self) -> dict:
+        """Tool position, feed progress (m along the feed, target = its length), the fixture's
+        force (N, World), the supervisor's barrier [h, scale, active], the estimator's alarm."""
+        t = self.teleop
+        X_WE = t.tool_pose.GetOutputPort("X_WE").Eval(
+            t.tool_pose.GetMyContextFromRoot(self.context)).GetAsMatrix4()
+        p = X_WE[:3, 3]
+        target = self.case.X_WTarget[:3, 3]
+        u = (target - self.start_W) / np.linalg.norm(target - self.start_W)
+        force = t.vf.GetOutputPort("F_W_fixture").Eval(t.vf.GetMyContextFromRoot(self.context))
+        barrier = t.supervisor.GetOutputPort("barrier").Eval(
+            t.supervisor.GetMyContextFromRoot(self.context))
+        alarm = t.estimator.GetOutputPort("alarm").Eval(
+            t.estimator.GetMyContextFromRoot(self.context))
+        return {"t": self.time, "p_WE": p, "X_WE": X_WE,
+                "feed": float((p - self.start_W) @ u),
+                "feed_length": float(np.linalg.norm(target - self.start_W)),
+                "to_target": float(np.linalg.norm(target - p)),
+                "F_W_fixture": np.array(force), "barrier": np.array(barrier),
+                "alarm": bool(alarm[0] > 0.5)}
+
+    def save(self, csv_path) -> Path:
+        """Write the run's recording (MasterDevice CSV, atomically) and return its path."""
+        from implantplan.systems.master_device import save_csv
+
+        motion = self.device.recording(self.time)
+        return save_csv(csv_path, motion)
+
+
+def replay(case: TeleopCase, motion: MasterMotion) -> FeedRun:
+    """A recorded live run on the same diagram with MasterDevice (no finishing by eye), for its
+    duration: the run again."""
+    teleop = build_teleop(case, motion, mapping=feed_mapping(case), finish=False)
+    return simulate(teleop, motion.duration)
+
+
+def recorded_case(csv_path) -> tuple[TeleopCase, MasterMotion, dict]:
+    """A studio recording's case (from ``<csv>.json``: the plan folder, site, base, start) and
+    motion, for a replay."""
+    from implantplan.systems.master_device import load_csv
+
+    csv_path = Path(csv_path)
+    side = csv_path.with_suffix(".json")
+    if not side.is_file():
+        raise InputError("--csv", f"expected the recording's case beside it: {str(side)!r} "
+                         "(the studio writes both)")
+    info = read_json(side, kind="teleop_recording", field="--csv")
+    sp = load_plan(side.parent / info["plan"], field="--csv plan", reference=False)
+    case = sp.teleop_case(sp.site_index(str(info["site"])), info["base_xyz"],
+                          q_pre=info["q_start"])
+    return case, load_csv(csv_path, field="--csv"), info

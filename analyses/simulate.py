@@ -252,6 +252,8 @@ def register(subparsers) -> None:
     p.add_argument("--mode", default="kinematic", choices=("kinematic", "dynamic"),
                    help="kinematic: the arm follows diff IK exactly (default); dynamic: 1 ms plant")
     p.add_argument("--meshcat-html", type=Path, help="write a static HTML replay of run 0")
+    p.add_argument("--csv", type=Path, help="replay a studio recording (MasterDevice CSV with "
+                   "its <name>.json case beside it) instead of scripted feeds")
     _operator_options(p)
     p.set_defaults(func=cmd_feeding)
     p = sub.add_parser("circle", help="circle r 25 mm at 10 mm/s with injected joint error")
@@ -298,7 +300,33 @@ def _layout(args, progress):
     return inst, sc, sc_plant, xyz, branch, source
 
 
+def cmd_replay(args) -> int:
+    """``simulate feeding --csv FILE``: one recorded run replayed on its case."""
+    from implantplan.analyses.live_setup import recorded_case, replay
+
+    case, motion, info = recorded_case(args.csv)
+    run = replay(case, motion)
+    end = case.X_WE(run.q[-1])
+    recorded = np.asarray(info.get("end_X_WE", np.full((4, 4), np.nan)), dtype=float)
+    data = {"csv": str(args.csv), "site": info["site"], "base_xyz": info["base_xyz"],
+            "duration_s": motion.duration, "end_X_WE": end,
+            "end_difference_m": float(np.linalg.norm(end[:3, 3] - recorded[:3, 3])),
+            "to_target_m": float(np.linalg.norm(end[:3, 3] - case.X_WTarget[:3, 3])),
+            "max_vf_violation": float(np.max(run.violation)),
+            "min_d_safe": float(np.min(run.min_d_safe)),
+            "collision_alarm": bool(np.any(run.alarm)),
+            "realtime_factor": run.sim_seconds / run.wall_seconds}
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_json(args.out / "feeding.json", data, kind="feeding_replay")
+    print(f"replay: {motion.duration:.2f} s, end {np.round(1e3 * end[:3, 3], 3).tolist()} mm, "
+          f"{1e3 * data['end_difference_m']:.4f} mm from the recorded end, "
+          f"{1e3 * data['to_target_m']:.2f} mm to the target, alarm {data['collision_alarm']}")
+    return 0
+
+
 def cmd_feeding(args) -> int:
+    if args.csv is not None:
+        return cmd_replay(args)
     _check_count(args.runs, "--runs")
     progress = Progress("simulate feeding", quiet=args.quiet)
     inst, sc, sc_plant, xyz, branch, source = _layout(args, progress)

@@ -253,6 +253,7 @@ def build_teleop(
     estimator_period: float = 0.02,
     gains: tuple[float, float, float] = (900.0, 1.0, 60.0),
     meshcat=None,
+    master=None,
 ) -> Teleop:
     """Wire the feeding diagram of one case; it replays any master motion.
 
@@ -277,6 +278,9 @@ def build_teleop(
         estimator_period: update period of the FPSM estimator and its loggers (s).
         gains: (kp, ki, kd) of the inverse dynamics controller (dynamic mode).
         meshcat: a pydrake.geometry.Meshcat, or None.
+        master: a master system to use instead of MasterDevice (a LeafSystem with the output
+            port ``V_WE_command``, e.g. systems.master_input.LiveMasterDevice); ``motion``,
+            ``mapping`` and ``finish`` are then its business (no finishing input is wired).
     """
     if mode not in MODES:
         raise InputError("mode", f"expected kinematic or dynamic, got {mode!r}")
@@ -285,8 +289,10 @@ def build_teleop(
     tcp = plant.GetFrameByName("tcp")
     q0 = np.asarray(case.q_start, dtype=float)
 
+    if master is not None:
+        finish = False
     target = case.X_WTarget[:3, 3] if finish else None
-    master = builder.AddSystem(MasterDevice(motion, mapping, target_W=target))
+    master = builder.AddSystem(master or MasterDevice(motion, mapping, target_W=target))
     master.set_name("master")
     vf = builder.AddSystem(
         VirtualFixtureForceLaw(

@@ -80,7 +80,7 @@ def write_site_scene(path: Path, *, fit, placement, robot, site_index: int, feed
         robot: the pipeline's RobotResult (scenario, base, branches, X_OT).
         site_index: the site's index in the plan.
     """
-    from pydrake.geometry import Capsule, Meshcat, MeshcatParams, Sphere
+    from pydrake.geometry import Meshcat, MeshcatParams
 
     from implantplan.analyses.figures.robot import record_feed
     from implantplan.diagrams.plant import build_plant
@@ -88,47 +88,13 @@ def write_site_scene(path: Path, *, fit, placement, robot, site_index: int, feed
     sc = robot.scenario
     k = site_index
     X_WCenter = sc.X_WO @ robot.X_OC
-    X_W_mesh = X_WCenter @ invert(fit.fpsm.X_WC)
     meshcat = Meshcat(MeshcatParams(port=0))
     try:
         diagram, plant, _, handles = build_plant(scenario=sc, tool=True, X_WBase=robot.X_WBase,
                                                  limits=sc.limits, meshcat=meshcat)
-        # the scan, in World
-        V = apply(X_W_mesh, np.asarray(fit.opened.vertices))
-        meshcat.SetTriangleMesh("/case/scan", V.T, np.asarray(fit.opened.faces).T,
-                                _rgba(TISSUE))
-        # FPSM slices
-        fpsm = fit.fpsm
-        theta = np.linspace(0.0, 2 * np.pi, 121)
-        for j, z in enumerate(fpsm.slice_z):
-            rho = fpsm.radius_at(theta, np.full_like(theta, z))
-            P = np.stack([rho * np.cos(theta), rho * np.sin(theta), np.full_like(theta, z)], -1)
-            meshcat.SetLine(f"/case/fpsm/slice_{j}", apply(X_WCenter, P).T, 2.0,
-                            _rgba(FPSM_BLUE))
-        # site, implant path, feeding target
-        hole_W = apply(X_WCenter, placement.X_CH[:3, 3])
-        meshcat.SetObject("/case/site", Sphere(0.0015), _rgba(IMPLANT_RED))
-        meshcat.SetTransform("/case/site", _rt(frame_from_z(hole_W, [0.0, 0.0, 1.0])))
-        l1, l2 = placement.line1, placement.line2
-        u = np.asarray(l2["direction"])
-        start2 = np.asarray(l2["start"])
-        meshcat.SetLine("/case/implant_path",
-                        apply(X_WCenter, np.stack([start2, placement.X_CH[:3, 3]])).T, 4.0,
-                        _rgba(IMPLANT_RED))
-        X_WT = X_WCenter @ placement.X_CT
-        for axis, color in enumerate(((1, 0, 0, 1), (0, 0.7, 0, 1), (0, 0, 1, 1))):
-            ends = np.stack([X_WT[:3, 3], X_WT[:3, 3] + 0.01 * X_WT[:3, axis]])
-            meshcat.SetLine(f"/case/feeding_target/{'xyz'[axis]}", ends.T, 3.0, _rgba(color))
-        # the fixture and the rod at the target
-        Vf, Ff = revolution_surface(placement.vf)
-        meshcat.SetTriangleMesh("/case/fixture", apply(X_WCenter, Vf).T, Ff.T,
-                                _rgba(FIXTURE_GREEN))
-        r = float(l1["radius"])
-        rod_len = float(placement.vf.profile()[0][-1])
-        mid = np.asarray(l1["start"]) + 0.5 * rod_len * u
-        X_C_rod = frame_from_z(mid, u)
-        meshcat.SetObject("/case/rod", Capsule(max(r, 1e-4), rod_len), _rgba(ROD_GREY))
-        meshcat.SetTransform("/case/rod", _rt(X_WCenter @ X_C_rod))
+        draw_site(meshcat, opened=fit.opened, fpsm=fit.fpsm, X_WCenter=X_WCenter,
+                  placement=placement)
+        u = np.asarray(placement.line2["direction"])
         # the arm along the feed of this site
         feed = moprp.feed_poses(robot.base_xyz, sc.feed_length, feed_samples, X_OT=robot.X_OT[k])
         record_feed(diagram, plant, handles,
@@ -148,3 +114,54 @@ def write_site_scene(path: Path, *, fit, placement, robot, site_index: int, feed
     finally:
         del meshcat
     return Path(path)
+
+
+def draw_site(meshcat, *, opened, fpsm, X_WCenter, placement, prefix: str = "/case",
+              scan: bool = True) -> None:
+    """Draw one site's case under ``prefix`` (the paths of the module docstring): the scan (when
+    ``scan``) and FPSM slices, the site, implant path, feeding target, fixture and rod.
+
+    Args:
+        opened: the opened scan (mesh frame); fpsm: the FPSM (its X_WC = Center in the mesh
+            frame); X_WCenter: Center in World; placement: anything with the placement's
+            X_CH, X_CT, line1, line2 and vf (systems.placement.Placement).
+    """
+    from pydrake.geometry import Capsule, Sphere
+
+    X_W_mesh = X_WCenter @ invert(fpsm.X_WC)
+    if scan:
+        # the scan, in World
+        V = apply(X_W_mesh, np.asarray(opened.vertices))
+        meshcat.SetTriangleMesh(f"{prefix}/scan", V.T, np.asarray(opened.faces).T,
+                                _rgba(TISSUE))
+        # FPSM slices
+        theta = np.linspace(0.0, 2 * np.pi, 121)
+        for j, z in enumerate(fpsm.slice_z):
+            rho = fpsm.radius_at(theta, np.full_like(theta, z))
+            P = np.stack([rho * np.cos(theta), rho * np.sin(theta), np.full_like(theta, z)], -1)
+            meshcat.SetLine(f"{prefix}/fpsm/slice_{j}", apply(X_WCenter, P).T, 2.0,
+                            _rgba(FPSM_BLUE))
+    # site, implant path, feeding target
+    hole_W = apply(X_WCenter, placement.X_CH[:3, 3])
+    meshcat.SetObject(f"{prefix}/site", Sphere(0.0015), _rgba(IMPLANT_RED))
+    meshcat.SetTransform(f"{prefix}/site", _rt(frame_from_z(hole_W, [0.0, 0.0, 1.0])))
+    l1, l2 = placement.line1, placement.line2
+    u = np.asarray(l2["direction"])
+    start2 = np.asarray(l2["start"])
+    meshcat.SetLine(f"{prefix}/implant_path",
+                    apply(X_WCenter, np.stack([start2, placement.X_CH[:3, 3]])).T, 4.0,
+                    _rgba(IMPLANT_RED))
+    X_WT = X_WCenter @ placement.X_CT
+    for axis, color in enumerate(((1, 0, 0, 1), (0, 0.7, 0, 1), (0, 0, 1, 1))):
+        ends = np.stack([X_WT[:3, 3], X_WT[:3, 3] + 0.01 * X_WT[:3, axis]])
+        meshcat.SetLine(f"{prefix}/feeding_target/{'xyz'[axis]}", ends.T, 3.0, _rgba(color))
+    # the fixture and the rod at the target
+    Vf, Ff = revolution_surface(placement.vf)
+    meshcat.SetTriangleMesh(f"{prefix}/fixture", apply(X_WCenter, Vf).T, Ff.T,
+                            _rgba(FIXTURE_GREEN))
+    r = float(l1["radius"])
+    rod_len = float(placement.vf.profile()[0][-1])
+    mid = np.asarray(l1["start"]) + 0.5 * rod_len * u
+    X_C_rod = frame_from_z(mid, u)
+    meshcat.SetObject(f"{prefix}/rod", Capsule(max(r, 1e-4), rod_len), _rgba(ROD_GREY))
+    meshcat.SetTransform(f"{prefix}/rod", _rt(X_WCenter @ X_C_rod))
