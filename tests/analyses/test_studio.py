@@ -1,0 +1,178 @@
+"""The studio's logic without a browser: Meshcat's API moves the sliders and clicks the buttons
+(a button click is the message the browser sends, injected into the server), the studio's
+``poll`` reacts; the fast verdicts are checked against SceneGraph on random bases."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from implantplan.analyses import live_setup as ls
+from implantplan.analyses import studio as st
+from implantplan.analyses.cli import main
+from implantplan.diagrams.arm_clearance import SceneGraphClearance
+from implantplan.systems import moprp
+from implantplan.systems.files import read_json
+from implantplan.systems.master_input import KeyboardMaster, LiveMasterDevice
+
+
+def _str(s: str) -> bytes:
+    b = s.encode()
+    assert len(b) < 32
+    return bytes([0xA0 | len(b)]) + b
+
+
+def click(meshcat, name: str) -> None:
+    """What the browser sends when a button is pressed: msgpack {type: button, name}."""
+    meshcat._InjectWebsocketMessage(bytes([0x82]) + _str("type") + _str("button")
+                                    + _str("name") + _str(name))
+
+
+@pytest.fixture()
+def plan_copy(demo_plan, tmp_path):
+    """A copy of the demo plan (the studio writes into its folder)."""
+    return shutil.copytree(demo_plan, tmp_path / "plan")
+
+
+@pytest.fixture()
+def studio(plan_copy):
+    s, meshcat, status = st.open_studio(plan_copy, realtime_rate=0.0, scan=False)
+    yield s
+    status.close()
+
+
+def test_layout_at_the_planned_base_is_the_plans(studio):
+    plan = studio.sp.plan
+    lay = studio.layout
+    assert np.allclose(lay.xyz, plan["base"]["xyz_in_oral"])
+    assert lay.indices.tolist() == [plan["base"]["indices_worst_over_sites"][n]
+                                    for n in moprp.INDEX_NAMES]
+    assert lay.percentiles.tolist() == [plan["base"]["percentiles"][n]
+                                        for n in moprp.INDEX_NAMES]
+    assert lay.branch.tolist() == [s["ik"]["branch"] for s in plan["sites"]]
+    assert lay.confirmed and lay.clear
+    sg = [c["distance"] for c in lay.confirmation]
+    assert sg == pytest.approx([s["ik"]["feed_clearance"]["distance_m"] for s in plan["sites"]])
+    status = studio.status()
+    assert status["setup"]["feasible"] and status["mode"] == "setup"
+    assert len(status["setup"]["capability_index"]) == len(plan["sites"])
+
+
+def test_sliders_move_the_base_and_change_the_indices(studio):
+    m = studio.meshcat
+    before = studio.layout
+    x0 = m.GetSliderValue(st.BASE_SLIDERS[0])
+    m.SetSliderValue(st.BASE_SLIDERS[0], x0 + 20.0)
+    assert studio.poll()
+    after = studio.layout
+    assert after.xyz[0] == pytest.approx(1e-3 * (x0 + 20.0))
+    assert after.xyz[1:] == pytest.approx(before.xyz[1:], abs=1e-3)
+    assert not np.array_equal(after.indices, before.indices)
+    assert len(studio.latency) == 2
+    # the Pareto slider puts the base on that member (to the slider's 1 mm step)
+    m.SetSliderValue(st.PARETO_SLIDER, 3)
+    studio.poll()
+    assert studio.layout.xyz == pytest.approx(studio.sp.pareto_xyz[3], abs=6e-4)
+    m.SetSliderValue(st.SITE_SLIDER, 1)
+    studio.poll()
+    assert studio.status()["site"] == studio.sp.names[1]
+
+
+def test_keep_layout_writes_the_plan_with_the_checks_recomputed(studio, plan_copy):
+    m = studio.meshcat
+    m.SetSliderValue(st.BASE_SLIDERS[1], m.GetSliderValue(st.BASE_SLIDERS[1]) - 10.0)
+    studio.poll()
+    click(m, st.KEEP)
+    studio.poll()
+    plan = read_json(plan_copy / "plan.json", kind="plan")
+    assert plan["base"]["xyz_in_oral"] == pytest.approx(studio.layout.xyz.tolist())
+    arm = [c for c in plan["checks"] if c["id"] == "robot.arm_clearance_scene_graph"]
+    assert len(arm) == len(plan["sites"])
+    assert [c["value"] for c in arm] == pytest.approx(
+        [c["distance"] for c in studio.layout.confirmation])
+    assert plan["passed"] == all(c["pass"] for c in plan["checks"])
+    assert len({c["id"] + str(c["site"]) for c in plan["checks"]}) == len(plan["checks"])
+
+
+def test_quit_button_ends_the_loop(studio):
+    click(studio.meshcat, st.QUIT)
+    assert studio.poll() is False
+
+
+def test_keyboard_teleop_feeds_to_the_fixture_stop_and_the_recording_replays(studio, plan_copy,
+                                                                             tmp_path):
+    m = studio.meshcat
+    click(m, st.TELEOP)
+    studio.poll()
+    assert studio.mode == "teleop"
+    feed_in = st.KEYS["feed_in"][0]
+    for _ in range(3):
+        click(m, st.KEYS["faster"][0])
+    for i in range(160):  # 8 s simulated, the key pressed every 0.25 s (held)
+        if i % 5 == 0:
+            click(m, feed_in)
+        studio.poll()
+    s = studio.status()["teleop"]
+    assert s["speed_mm_s"] == pytest.approx(5.0 * 1.5**3)
+    # it went the whole feed and stopped at the fixture's end (the target), not past it
+    assert s["feed_mm"] > s["feed_length_mm"] - 1.0
+    assert s["feed_mm"] < s["feed_length_mm"] + 0.5
+    assert s["to_target_mm"] < 1.0
+    assert not s["alarm"]
+    end = studio.teleop.state()["p_WE"]
+    click(m, st.TELEOP)  # leaving teleop saves the run
+    studio.poll()
+    assert studio.mode == "setup" and len(studio.saved) == 1
+    csv = studio.saved[0]
+    assert csv.read_text().startswith("t_s,x_m,y_m,z_m\n")
+    out = tmp_path / "replay"
+    assert main(["simulate", "feeding", "--csv", str(csv), "--out", str(out)]) == 0
+    rep = json.loads((out / "feeding.json").read_text())
+    assert rep["end_difference_m"] < 1e-6
+    assert np.asarray(rep["end_X_WE"])[:3, 3] == pytest.approx(end, abs=1e-6)
+
+
+def test_csv_replay_without_its_case_is_an_input_error(tmp_path, capsys):
+    csv = tmp_path / "r.csv"
+    csv.write_text("t_s,x_m,y_m,z_m\n0,0,0,0\n0.005,0,0,0\n")
+    assert main(["simulate", "feeding", "--csv", str(csv), "--out", str(tmp_path / "o")]) == 2
+    assert "--csv" in capsys.readouterr().err
+
+
+def test_live_master_records_what_it_commanded():
+    kb = KeyboardMaster(speed=0.01, hold=0.1)
+    dev = LiveMasterDevice(kb, dt=0.005)
+    ctx = dev.CreateDefaultContext()
+    kb.press("feed_in", 0.0)
+    for k in range(40):  # 0.2 s: moving for the first 0.1 s only
+        ctx.SetTime(k * 0.005)
+        v = dev.GetOutputPort("V_WE_command").Eval(ctx)
+        assert v[3] == pytest.approx(0.01 if k < 20 else 0.0)
+    motion = dev.recording(0.2)
+    assert motion.p_M.shape == (41, 3)
+    assert motion.p_M[-1] == pytest.approx([0.001, 0.0, 0.0])
+    assert np.allclose(motion.velocity_M()[:40, 0], [0.01] * 20 + [0.0] * 20)
+
+
+def test_fast_arm_clearance_never_above_scene_graph_on_random_bases(studio):
+    """False-safe check: the fast verdict's clearance is a lower bound of SceneGraph's at the
+    same configurations, on random bases in the bounds (not designed ones)."""
+    sp = studio.sp
+    rng = np.random.default_rng(14)
+    X = sp.sc.lower + rng.random((40, 3)) * (sp.sc.upper - sp.sc.lower)
+    checked = false_safe = 0
+    for xyz in X:
+        lay = ls.evaluate_layout(sp, xyz)
+        ok = lay.branch >= 0
+        if not ok.any():
+            continue
+        sg = SceneGraphClearance(sp.sc, xyz)
+        for k in np.flatnonzero(ok):
+            d = sg(np.stack([lay.q_pre[k], lay.q[k]]), max_distance=0.2).distance.min()
+            checked += 1
+            assert lay.arm_clearance[k] <= d + 1e-9
+            if lay.arm_clearance[k] >= sp.sc.clearance and d < sp.sc.clearance:
+                false_safe += 1
+    assert checked >= 10
+    assert false_safe == 0
