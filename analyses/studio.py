@@ -126,7 +126,8 @@ class Studio:
         away = target - base[:3, 3]
         away[2] = 0.0
         away /= max(np.linalg.norm(away), 1e-9)
-        self.meshcat.SetCameraPose(target + np.array([0.0, 0.0, 0.6]) + 0.5 * away, target)
+        # from the side away from the robot, a little above the mouth (the arm comes from above)
+        self.meshcat.SetCameraPose(target + np.array([0.0, 0.0, 0.25]) + 0.8 * away, target)
 
     def _add_controls(self) -> None:
         m, sc = self.meshcat, self.sp.sc
@@ -275,6 +276,7 @@ class Studio:
         self.meshcat.Delete("/studio/capability")
         self.teleop = ls.LiveTeleop(case, self.keyboard, meshcat=self.meshcat,
                                     realtime_rate=self.realtime_rate)
+        self.meshcat.SetProperty("/drake/visualizer/patient", "visible", False)
         self.mode = "teleop"
         self.messages.append(f"teleop: site {self.sp.names[self.site]}, keys W/S feed")
 
@@ -459,6 +461,10 @@ class StatusServer:
                     with server.lock:
                         body = json.dumps(server.studio.status()).encode()
                     kind = "application/json"
+                elif self.path == "/favicon.ico":
+                    self.send_response(204)
+                    self.end_headers()
+                    return
                 elif self.path in ("/", "/index.html"):
                     body, kind = page, "text/html; charset=utf-8"
                 else:
