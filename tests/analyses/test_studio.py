@@ -176,3 +176,11 @@ def test_fast_arm_clearance_never_above_scene_graph_on_random_bases(studio):
                 false_safe += 1
     assert checked >= 10
     assert false_safe == 0
+
+
+def test_studio_command_user_errors_exit_2(tmp_path, capsys):
+    assert main(["studio"]) == 2
+    assert "expected a case YAML or --plan DIR" in capsys.readouterr().err
+    assert main(["studio", "--plan", str(tmp_path)]) == 2
+    assert "--plan" in capsys.readouterr().err
+    assert main(["studio", "--plan", str(tmp_path), "--port", "70000"]) == 2
