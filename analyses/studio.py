@@ -207,7 +207,9 @@ class Studio:
     def keep(self) -> Path:
         """Write the current layout into the plan folder's plan.json (atomically), with the
         layout's checks recomputed; returns the path."""
-        from implantplan.analyses.plan import MIN_CAPABILITY, _check
+        from types import SimpleNamespace
+
+        from implantplan.analyses.plan import MIN_CAPABILITY, _check, _scene_graph_fields
 
         lay, sp = self.layout, self.sp
         if not lay.feasible:
@@ -232,10 +234,7 @@ class Studio:
                 "branch": int(lay.branch[k]), "q": lay.q[k], "q_pre": lay.q_pre[k],
                 "indices": dict(zip(moprp.INDEX_NAMES, lay.site_indices[k].tolist(),
                                     strict=True)),
-                "scene_graph_clearance_m": feed["distance_target"],
-                "scene_graph_clearance_pre_m": feed["distance_pre"],
-                "feed_clearance": {"distance_m": feed["distance"], "pair": feed["pair"],
-                                   "samples": feed["samples"], "limit_m": feed["limit"]}})
+                **_scene_graph_fields(SimpleNamespace(feed_clearance=lay.confirmation), k)})
             s["feeding_target"]["X_BaseEnd"] = moprp.target_pose(lay.xyz, sp.X_OT[k])
             s["capability"] = {"map_reachable": bool(cap["map_reachable"][k]),
                                "voxel_index": float(cap["index"][k]),
