@@ -105,6 +105,7 @@ class Studio:
         self._add_controls()
         self._build_setup_arm()
         self.update(sp.base_xyz)
+        self.show_capability()
 
     # -- scene and controls ---------------------------------------------------------------------
     def _draw_case(self, scan) -> None:
@@ -201,8 +202,16 @@ class Studio:
         self.latency.append(time.perf_counter() - t0)
         self.layout = layout
         self._show_arm(layout)
-        self._show_capability(self.capability.at(layout))
+        self._capability_due = True  # drawn once the base rests for a poll (see poll)
         return layout
+
+    def show_capability(self) -> dict:
+        """The capability around the targets from the current base, drawn (new voxels are
+        built: up to ~0.5 s, so it waits until a slider rests)."""
+        cap = self.capability.at(self.layout)
+        self._show_capability(cap)
+        self._capability_due = False
+        return cap
 
     def keep(self) -> Path:
         """Write the current layout into the plan folder's plan.json (atomically), with the
@@ -224,7 +233,7 @@ class Studio:
         base["percentiles"] = dict(zip(moprp.INDEX_NAMES, lay.percentiles.tolist(), strict=True))
         base["rule"] = "kept in the studio (the planned knee point was " \
             f"{np.round(1e3 * sp.base_xyz, 1).tolist()} mm)"
-        cap = lay.capability or self.capability.at(lay)
+        cap = lay.capability or self.show_capability()
         layout_checks = ("robot.arm_clearance_scene_graph", "robot.ik_branches",
                          "capability.neighbourhood_index")
         checks = [c for c in plan["checks"] if c["id"] not in layout_checks]
@@ -289,6 +298,7 @@ class Studio:
         self.meshcat.Delete("/studio/tool")
         self._build_setup_arm()
         self.update(self.layout.xyz)
+        self.show_capability()
 
     def save_recording(self) -> Path:
         """Write the teleop run so far as MasterDevice CSV in ``recordings/`` with its case."""
@@ -361,6 +371,8 @@ class Studio:
         self._sliders = values
         if changed:
             self.update(np.array([values[n] for n in BASE_SLIDERS]) * 1e-3)
+        elif self._capability_due:
+            self.show_capability()
         if KEEP in clicks:
             try:
                 self.keep()
