@@ -95,6 +95,7 @@ from implantplan.systems.kinematics import (
 KIND = "capability_map"
 SCHEMA_VERSION = 2  # 2: certified (conservative) cells; 1 (centre-sampled only) is refused
 SLACK = float(np.radians(1.0))  # joint-limit margin of certified maps (rad)
+ROLL_NB = 1  # sampled rolls: a cell's samples include this many roll neighbours each side
 OVERSHOOT = 0.5  # a joint may move past its sampled range by this share of it inside a cell
 GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
 SHOULDER = np.array([0.0, 0.0, DH_D1])  # joint 2 axis meets joint 1 axis here (base_link)
@@ -461,7 +462,9 @@ def branch_samples(
 
 
 @numba.njit(cache=True)
-def _certify_kernel(q, ok, corner_of, nb, lo, hi, slack, overshoot, gap, out):  # pragma: no cover
+def _certify_kernel(
+    q, ok, corner_of, nb, lo, hi, slack, overshoot, gap, roll_nb, out
+):  # pragma: no cover - compiled
     """out[v, d] = the cell (voxel v, direction d) is certified, see :func:`certified_cells`.
 
     q (u, K, R, 8, 6), ok (u, K, R, 8): branches at the corner samples; corner_of (n, 8) rows
@@ -472,7 +475,7 @@ def _certify_kernel(q, ok, corner_of, nb, lo, hi, slack, overshoot, gap, out):  
     n_dir, m_nb = nb.shape
     n_roll = q.shape[2]
     n_joint = 5 if n_roll == 1 else 6
-    r_lo, r_hi = (-1, 2) if n_roll > 1 else (0, 1)
+    r_lo, r_hi = (-roll_nb, roll_nb + 1) if n_roll > 1 else (0, 1)
     qlo = np.empty((8, 6))
     qhi = np.empty((8, 6))
     good = np.empty(8, dtype=np.bool_)
@@ -578,7 +581,7 @@ def certified_cells(
         np.ascontiguousarray(q), np.ascontiguousarray(ok),
         np.ascontiguousarray(inv.reshape(len(voxel_ids), 8).astype(np.int64)),
         direction_neighbours(directions), np.ascontiguousarray(lim[0]),
-        np.ascontiguousarray(lim[1]), float(params.slack), OVERSHOOT, float(gap), out,
+        np.ascontiguousarray(lim[1]), float(params.slack), OVERSHOOT, float(gap), ROLL_NB, out,
     )  # fmt: skip
     return out
 
