@@ -224,7 +224,7 @@ def resolve_map(robot: rin.Robot, override: str | None, *, quiet: bool = False) 
     b = robot.build
     for key in b:
         if key not in ("voxel_mm", "directions", "limits", "tool", "rolls", "workers",
-                       "self_collision"):  # fmt: skip
+                       "self_collision", "cell"):  # fmt: skip
             raise InputError(f"robot.build.{key}", "unknown key")
     cmap, _ = build_map(
         float(b.get("voxel_mm", 50)),
@@ -234,6 +234,7 @@ def resolve_map(robot: rin.Robot, override: str | None, *, quiet: bool = False) 
         b.get("rolls"),
         b.get("workers"),
         self_collision=bool(b.get("self_collision", False)),
+        cell=str(b.get("cell", "certified")),
         quiet=quiet,
         out=path,
     )

@@ -110,3 +110,16 @@ def test_plan_unreachable_exit_3_and_missing_map_exit_2(map_path, tmp_path):
     (tmp_path / "nomap.yaml").write_text(yaml.safe_dump(robot))
     args[args.index("--robot") + 1] = str(tmp_path / "nomap.yaml")
     assert main(args) == 2
+
+
+def test_robot_build_block_takes_the_cell(tmp_path):
+    robot = yaml.safe_load(Path(f"{CASES}/pedicle_robot.yaml").read_text())
+    robot["robot"]["map"] = str(tmp_path / "built.h5")
+    robot["robot"]["build"] = {"voxel_mm": 200, "directions": 12, "cell": "centre",
+                               "workers": 1}  # fmt: skip
+    (tmp_path / "r.yaml").write_text(yaml.safe_dump(robot))
+    args = ["capmap", "plan", "--patient", f"{CASES}/pedicle_patient.yaml",
+            "--task", f"{CASES}/pedicle_task.yaml", "--robot", str(tmp_path / "r.yaml"),
+            "--out", str(tmp_path / "plan")]  # fmt: skip
+    assert main(args) in (0, 3)
+    assert cm.load(tmp_path / "built.h5").params.cell == "centre"
