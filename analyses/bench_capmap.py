@@ -1,7 +1,8 @@
 """Benchmark of seed 004 for the AUBO-i10: capability maps and RASSCMAP setup planning.
 
 Run: ``python -m implantplan.analyses.bench_capmap [--workers W] [--skip-fine] [--samples N]
-[--scaleout-only | --skip-scaleout] [--scaleout-directions K]``
+[--scaleout-only | --skip-scaleout] [--scaleout-directions K] [--safety-only]
+[--safety-samples N]``
 
 Prints, side by side with the paper's figures (seed 004 Sec. 4-5, Table 1) and the public anchors
 for capability maps (~3,300 IK/s single-thread; a 5 cm x 200-direction map in ~25 min; 1.3-1.45 M
@@ -13,6 +14,12 @@ Scale-out (Dask, systems.scaleout): one map (5 cm x ``--scaleout-directions`` 45
 single-process work here) built in this process, on a 1-worker and on a 2-worker LocalCluster
 (ratios side by side; the maps are checked equal), and the engine's per-task overhead (no-op tasks:
 one round trip alone, and the cost per task when many are queued) against one block's work.
+Safety (the house rule: a map may reject reachable poses, never accept unreachable ones): the
+certified map (``cell="certified"``, the default) against the centre-sampled map of the paper
+(``cell="centre"``), side by side on the same poses: false-safe count against exact IK at the pose
+(``--safety-samples`` uniform poses plus as many within 1e-7 of the exact reachability boundary),
+the share of IK-reachable poses each rejects (the cost), and why the centre map's false-safe
+cases happen (roll, position in the voxel, direction in the bin; the IK's failure reason).
 Timings on a shared machine are noisy; the lead re-runs them.
 """
 
@@ -31,7 +38,7 @@ from implantplan.systems import map_store as ms
 from implantplan.systems import rasscmap_inputs as rin
 from implantplan.systems import scaleout
 from implantplan.systems import setup_search as ss
-from implantplan.systems.kinematics import fk, ik
+from implantplan.systems.kinematics import REASONS, fk, ik
 
 CASES = os.path.join(
     os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "models", "capmap_cases"
@@ -58,8 +65,10 @@ def bench_ik(n: int = 200_000) -> float:
     return n / min(timeit.repeat(lambda: ik(X, limits="175"), number=1, repeat=3))
 
 
-def bench_map(voxel: float, k: int, workers: int) -> tuple[cm.CapabilityMap, float]:
-    params = cm.make_params(voxel, k)
+def bench_map(
+    voxel: float, k: int, workers: int, cell: str = "certified"
+) -> tuple[cm.CapabilityMap, float]:
+    params = cm.make_params(voxel, k, cell=cell)
     built = []
     (t,) = timeit.repeat(lambda: built.append(cm.build(params, workers=workers)), number=1,
                          repeat=1)
@@ -70,6 +79,73 @@ def bench_query(m: cm.CapabilityMap, n: int = 2_000_000) -> float:
     X = cm.random_poses(n, seed=7)
     m.query(X[:1000])
     return n / min(timeit.repeat(lambda: m.query(X), number=1, repeat=3))
+
+
+def false_safe_causes(cmap: cm.CapabilityMap, poses: np.ndarray) -> dict:
+    """Why a map says reachable where exact IK at the pose fails, per false-safe pose: ``roll``
+    (some roll of the pose reaches: only the pose's own roll fails, the q6 gap), else
+    ``position`` (the pose's direction reaches from the voxel centre: the pose sits elsewhere in
+    the voxel), else ``direction`` (the bin's direction reaches from the pose's position: the
+    pose's direction differs from its bin's), else ``both``; and the IK's failure reasons at the
+    pose (q6 relaxed): the workspace boundary (elbow / shoulder / wrist) or joint limits."""
+    p = cmap.params
+    reach, _ = cmap.query(poses)
+    bad = np.flatnonzero(reach & ~cm.exact_reachable(p, poses))
+    X = poses[bad]
+    relaxed = cm._relaxed_limits(p.limits)
+    X_FT = p.X_FT_matrix()
+
+    def some_roll(pos, z):
+        Y = np.zeros((len(pos), 4, 4))
+        Y[:, :3, :3], Y[:, :3, 3], Y[:, 3, 3] = cm.frames_from_z(z), pos, 1.0
+        if p.rolls == 1:
+            return ik(Y @ np.linalg.inv(X_FT), limits=relaxed).valid.any(-1)
+        return np.array([cm.reach_at(p, pos[i : i + 1], z[i : i + 1])[0][0, 0]
+                         for i in range(len(pos))], dtype=bool)  # fmt: skip
+
+    rolled = cm._some_roll_truth(p, X)[0] if len(X) else np.zeros(0, bool)
+    centre = cmap.grid.centres(np.ravel_multi_index(cmap.grid.cells(X[:, :3, 3]).T,
+                                                    cmap.grid.shape)) if len(X) else X[:, :3, 3]
+    binned = cmap.directions[cmap.nearest_direction(X[:, :3, 2])] if len(X) else X[:, :3, 2]
+    pos_ok = some_roll(centre, X[:, :3, 2]) & ~rolled
+    dir_ok = some_roll(X[:, :3, 3], binned) & ~rolled & ~pos_ok
+    out = {"false_safe": len(bad), "roll": int(rolled.sum()), "position": int(pos_ok.sum()),
+           "direction": int(dir_ok.sum())}
+    out["both"] = out["false_safe"] - out["roll"] - out["position"] - out["direction"]
+    codes = ik(X @ np.linalg.inv(X_FT), limits=relaxed).reason if len(X) else np.zeros((0, 8))
+    limits = np.any(codes == 4, axis=-1)
+    out["joint_limits"] = int((limits & ~rolled).sum())
+    out["workspace_boundary"] = int((~limits & ~rolled).sum())
+    out["reasons"] = sorted({REASONS[int(c)] for c in np.unique(codes)}) if len(X) else []
+    return out
+
+
+def bench_safety(voxel: float, k: int, workers: int, samples: int, maps=None) -> None:
+    """Centre-sampled vs certified map, same poses: false-safe vs exact IK, conservatism cost."""
+    _header(f"Safety: centre-sampled vs certified map, {voxel * 100:g} cm x {k} dirs (flange)")
+    built = {}
+    for cell in ("centre", "certified"):
+        m, t = (maps or {}).get(cell) or bench_map(voxel, k, workers, cell)
+        built[cell] = m
+        _row(f"build, {cell} ({workers} workers)", t, None, "s")
+    sets = {
+        f"{samples:,} uniform poses (reach ball, SO(3))": cm.random_poses(samples, seed=11),
+        f"{samples:,} poses within 1e-7 of the IK boundary": cm.boundary_poses(
+            built["centre"].params, samples, seed=12),
+    }  # fmt: skip
+    print(f"  {'poses':<46s} {'map':<10s} {'false-safe':>10s} {'rejected':>9s} {'index':>7s}")
+    for name, X in sets.items():
+        for cell, m in built.items():
+            a = cm.accuracy(m, X)
+            print(f"  {name:<46s} {cell:<10s} {a['false_safe']:>10d} "
+                  f"{a['rejected_reachable']:>9.2%} {m.index.mean() if len(m.index) else 0:>7.3f}")
+    print("    false-safe: map says reachable, exact IK at the pose (its roll) finds no branch;")
+    print("    rejected: share of the IK-reachable poses the map calls unreachable (the cost);")
+    print("    index: mean reachability index of the stored voxels")
+    for name, X in sets.items():
+        print(f"  causes of the centre map's false-safe cases, {name}: "
+              f"{false_safe_causes(built['centre'], X)}")
+    return built
 
 
 def _noop(x):
@@ -152,6 +228,9 @@ def main(argv=None) -> int:
     ap.add_argument("--skip-scaleout", action="store_true", help="skip the Dask section")
     ap.add_argument("--scaleout-directions", type=int, default=450,
                     help="directions of the scale-out map (5 cm voxels; 450: >= 60 s of work)")
+    ap.add_argument("--safety-only", action="store_true", help="only the safety section")
+    ap.add_argument("--safety-samples", type=int, default=20_000,
+                    help="poses per set of the safety section (uniform, near the boundary)")
     ap.add_argument("--block-poses", type=int, default=None,
                     help="IK poses per block of the scale-out map (default: the CLI's)")
     args = ap.parse_args(argv)
@@ -159,19 +238,25 @@ def main(argv=None) -> int:
     if args.scaleout_only:
         bench_scaleout(args.scaleout_directions, args.block_poses)
         return 0
+    if args.safety_only:
+        bench_safety(0.05, 100, args.workers, args.safety_samples)
+        return 0
 
     _header("Capability map (AUBO-i10 flange, +-175 deg; roll free about joint 6)")
     ik_rate = bench_ik()
     _row("IK samples/s (8 branches, 1 thread)", ik_rate, 3300.0, "1/s", higher_is_better=True)
     m100, t100 = bench_map(0.05, 100, args.workers)
     _row(f"map 5 cm x 100 dirs ({args.workers} workers) [a]", t100, 25 * 60.0 / 2, "s")
+    c100, tc100 = bench_map(0.05, 100, args.workers, "centre")
+    _row("  same, centre-sampled (the paper's; not safe) [a]", tc100, 25 * 60.0 / 2, "s")
     m200, t200 = bench_map(0.05, 200, args.workers)
     _row(f"map 5 cm x 200 dirs ({args.workers} workers)", t200, 25 * 60.0, "s")
     fine = None
     if not args.skip_fine:
         fine, tf = bench_map(0.025, 200, args.workers)
         _row(f"map 2.5 cm x 200 dirs ({args.workers} workers) [a]", tf, 25 * 60.0 * 8, "s")
-    print("    [a] anchor scaled by (voxels x directions): 25 min x 1/2 and x 8")
+    print("    [a] anchor scaled by (voxels x directions): 25 min x 1/2 and x 8; certified maps")
+    print("        solve IK at every voxel corner (~2.2x the poses) and check each cell's samples")
     q = bench_query(m200)
     _row("queries/s (5 cm x 200 map, 2 M random poses)", q, 1.4e6, "1/s", higher_is_better=True)
 
@@ -187,11 +272,17 @@ def main(argv=None) -> int:
         vals = f"{a['correct']:8.3%} {a['TP']:7.3%} {a['FP']:7.3%} {a['FN']:7.3%} {a['TN']:7.3%}"
         part = f"{a['partial_voxel_share']:8.3%} {a['partial_voxel_correct']:8.3%}"
         print(f"  {name:<22s} {vals} {part}")
+    a = cm.accuracy(c100, X)
+    vals = f"{a['correct']:8.3%} {a['TP']:7.3%} {a['FP']:7.3%} {a['FN']:7.3%} {a['TN']:7.3%}"
+    print(f"  {'5 cm x 100, centre':<22s} {vals}")
     print(f"  {'anchor 2.5 cm x 200':<22s} {0.959:8.3%} {'':>7s} {0.030:7.3%} {0.011:7.3%}")
     print(
         "    TP..TN: fractions of all poses; partial: share of poses in voxels with 0 < index < 1"
     )
     print("    and the correct rate among them (the hard cases).")
+
+    bench_safety(0.05, 100, args.workers, args.safety_samples,
+                 maps={"centre": (c100, tc100), "certified": (m100, t100)})
 
     _header("RASSCMAP and setup search (5 cm x 100 map)")
     pedi = _problem(m100, "pedicle_patient.yaml", "pedicle_task.yaml", "pedicle_robot.yaml")

@@ -2,14 +2,14 @@
 
 Subcommands:
 
-- ``capmap build [--voxel-mm V] [--directions K] [--limits 175|360] [--tool actuator]
-  [--rolls R] [--self-collision] [--workers W] [--scheduler local|tcp://HOST:PORT] [--resume]
-  --out map.h5`` (without ``--tool`` the mapped frame is the flange, wrist3_Link; with ``--tool
-  actuator`` it is the actuator's implant tip, z along the implant axis, the drilling
-  direction). Voxel blocks run on the engine of systems.scaleout (a LocalCluster by default
-  when W > 1); finished blocks go to ``map.h5.blocks-<key>/`` so ``--resume`` redoes only the
-  missing ones; the HDF5 is written once at the end (atomically) and the block folder removed.
-  Progress (blocks done / total, ETA) on stderr; a summary on stdout.
+- ``capmap build [--voxel-mm V] [--directions K] [--limits 175|360] [--tool actuator] [--rolls R]
+  [--self-collision] [--cell certified|centre] [--workers W] [--scheduler local|tcp://HOST:PORT]
+  [--resume] --out map.h5`` (without ``--tool`` the mapped frame is the flange, wrist3_Link; with
+  ``--tool actuator`` it is the actuator's implant tip, z along the implant axis, the drilling
+  direction). Voxel blocks run on the engine of systems.scaleout (a LocalCluster by default when W >
+  1); finished blocks go to ``map.h5.blocks-<key>/`` so ``--resume`` redoes only the missing ones;
+  the HDF5 is written once at the end (atomically) and the block folder removed. Progress (blocks
+  done / total, ETA) on stderr; a summary on stdout.
 - ``capmap query map.h5 --poses FILE.npy --out q.json``: poses N x 4 x 4 in base_link; JSON with
   ``reachable`` (bool) and ``index`` (float), one per pose.
 - ``capmap accuracy map.h5 [--samples N] [--seed S]``: TP/FP/FN against direct IK.
@@ -71,6 +71,7 @@ def build_map(
     workers: int | None,
     *,
     self_collision: bool = False,
+    cell: str = "certified",
     quiet: bool = False,
     scheduler: str | None = None,
     out: str | Path | None = None,
@@ -88,7 +89,7 @@ def build_map(
     X_FT, name = tool_frame(tool)
     params = cm.make_params(
         voxel_mm / 1000.0, directions, limits=limits, X_FT=X_FT, tool=name, rolls=rolls,
-        self_collision=self_collision,
+        self_collision=self_collision, cell=cell,
     )  # fmt: skip
     scaleout.check_scheduler(scheduler, workers)
     if int(poses_per_block) != poses_per_block or poses_per_block < 1:
@@ -141,7 +142,7 @@ def _cmd_build(args) -> int:
     t0 = time.perf_counter()
     cmap, info = build_map(
         args.voxel_mm, args.directions, args.limits, args.tool, args.rolls, args.workers,
-        self_collision=args.self_collision, scheduler=args.scheduler, out=args.out,
+        self_collision=args.self_collision, cell=args.cell, scheduler=args.scheduler, out=args.out,
         resume=args.resume, poses_per_block=args.block_poses,
     )  # fmt: skip
     summary = {
@@ -223,7 +224,7 @@ def resolve_map(robot: rin.Robot, override: str | None, *, quiet: bool = False) 
     b = robot.build
     for key in b:
         if key not in ("voxel_mm", "directions", "limits", "tool", "rolls", "workers",
-                       "self_collision"):  # fmt: skip
+                       "self_collision", "cell"):  # fmt: skip
             raise InputError(f"robot.build.{key}", "unknown key")
     cmap, _ = build_map(
         float(b.get("voxel_mm", 50)),
@@ -233,6 +234,7 @@ def resolve_map(robot: rin.Robot, override: str | None, *, quiet: bool = False) 
         b.get("rolls"),
         b.get("workers"),
         self_collision=bool(b.get("self_collision", False)),
+        cell=str(b.get("cell", "certified")),
         quiet=quiet,
         out=path,
     )
@@ -369,6 +371,11 @@ def register(subparsers) -> None:
     b.add_argument(
         "--self-collision", action="store_true", help="also require self-collision-free IK"
     )
+    b.add_argument(
+        "--cell", choices=("certified", "centre"), default="certified",
+        help="certified (default): reachable only where IK holds over the whole cell (never "
+        "false-safe); centre: IK at the voxel centre only (the paper's; not safe)",
+    )  # fmt: skip
     b.add_argument("--out", required=True, help="output .h5")
     b.set_defaults(func=_cmd_build)
 

@@ -10,7 +10,7 @@ import yaml
 from implantplan.analyses.cli import main
 from implantplan.systems import capability_map as cm
 from implantplan.systems.files import read_json
-from implantplan.systems.frames import rot_x, transform
+from implantplan.systems.frames import rot_z, transform
 
 CASES = str(Path(__file__).resolve().parents[2] / "models" / "capmap_cases")
 
@@ -18,15 +18,16 @@ CASES = str(Path(__file__).resolve().parents[2] / "models" / "capmap_cases")
 @pytest.fixture(scope="module")
 def map_path(tmp_path_factory):
     path = tmp_path_factory.mktemp("maps") / "m.h5"
+    # centre-sampled: a certified map this coarse certifies too little for the plan's 6 tasks
     code = main(["capmap", "build", "--voxel-mm", "100", "--directions", "40", "--workers", "1",
-                 "--out", str(path)])  # fmt: skip
+                 "--cell", "centre", "--out", str(path)])  # fmt: skip
     assert code == 0
     return path
 
 
 def test_build_writes_a_loadable_map(map_path, capsys):
     m = cm.load(map_path, expect={"voxel": 0.1, "directions": 40, "limits": "175"})
-    assert m.params.tool == "flange" and len(m.voxel_ids) > 0
+    assert m.params.tool == "flange" and len(m.voxel_ids) > 0 and m.params.cell == "centre"
 
 
 def test_build_with_self_collision_and_actuator(tmp_path):
@@ -37,21 +38,24 @@ def test_build_with_self_collision_and_actuator(tmp_path):
                  "--out", str(path)])  # fmt: skip
     assert code == 0
     m = cm.load(path, expect={"tool": "actuator", "self_collision": True, "rolls": 4})
+    assert m.params.cell == "certified"  # the default
     # the mapped frame is the implant tip, z along the implant axis (flange -y)
     np.testing.assert_allclose(m.params.X_FT_matrix()[:3, 2], [0.0, -1.0, 0.0], atol=1e-12)
 
 
 def test_query_json(map_path, tmp_path):
     m = cm.load(map_path)
-    full = m.centres()[np.flatnonzero(m.index == 1.0)[0]]
-    poses = np.stack([transform(rot_x(0.7), full), transform(np.eye(3), [4.0, 0.0, 0.0])])
+    row = int(np.argmax(m.index))  # the best certified voxel and one of its reachable directions
+    d = int(np.flatnonzero(m.reach_rows([row])[0])[0])
+    pose = transform(cm.frames_from_z(m.directions[d]) @ rot_z(0.7), m.centres()[row])
+    poses = np.stack([pose, transform(np.eye(3), [4.0, 0.0, 0.0])])
     np.save(tmp_path / "p.npy", poses)
     code = main(["capmap", "query", str(map_path), "--poses", str(tmp_path / "p.npy"),
                  "--out", str(tmp_path / "q.json")])  # fmt: skip
     assert code == 0
     q = read_json(tmp_path / "q.json", kind="capmap_query")
     assert q["reachable"] == [True, False]
-    assert q["index"] == [1.0, 0.0]
+    assert q["index"] == [m.index[row], 0.0] and m.index[row] > 0
 
 
 def test_query_bad_input_exit_2(map_path, tmp_path):
@@ -106,3 +110,16 @@ def test_plan_unreachable_exit_3_and_missing_map_exit_2(map_path, tmp_path):
     (tmp_path / "nomap.yaml").write_text(yaml.safe_dump(robot))
     args[args.index("--robot") + 1] = str(tmp_path / "nomap.yaml")
     assert main(args) == 2
+
+
+def test_robot_build_block_takes_the_cell(tmp_path):
+    robot = yaml.safe_load(Path(f"{CASES}/pedicle_robot.yaml").read_text())
+    robot["robot"]["map"] = str(tmp_path / "built.h5")
+    robot["robot"]["build"] = {"voxel_mm": 200, "directions": 12, "cell": "centre",
+                               "workers": 1}  # fmt: skip
+    (tmp_path / "r.yaml").write_text(yaml.safe_dump(robot))
+    args = ["capmap", "plan", "--patient", f"{CASES}/pedicle_patient.yaml",
+            "--task", f"{CASES}/pedicle_task.yaml", "--robot", str(tmp_path / "r.yaml"),
+            "--out", str(tmp_path / "plan")]  # fmt: skip
+    assert main(args) in (0, 3)
+    assert cm.load(tmp_path / "built.h5").params.cell == "centre"

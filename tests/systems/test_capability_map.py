@@ -16,7 +16,32 @@ from implantplan.systems.kinematics import fk, ik
 
 @pytest.fixture(scope="module")
 def coarse():
-    return cm.build(cm.make_params(0.15, 30), workers=1)
+    """A 15 cm / 30-direction map sampled at voxel centres (the query machinery; a certified map
+    this coarse certifies almost nothing)."""
+    return cm.build(cm.make_params(0.15, 30, cell="centre"), workers=1)
+
+
+REGIONS = {  # name: (centre of a 12 cm ball in base_link, m): where the default suite checks
+    "outer reach": cm.SHOULDER + np.array([0.62, -0.55, 0.58]),  # ~1.02 m from the shoulder
+    "shoulder cylinder": np.array([0.05, 0.24, 0.45]),  # wrist centre near d4 of joint 1's axis
+    "mid workspace": cm.SHOULDER + np.array([-0.35, 0.45, -0.2]),
+}
+
+
+def regional_map(centre, params=None, radius=0.12):
+    """The certified 5 cm / 100-direction map over the voxels that meet a ball (built like the
+    plan's capability check: only the voxels needed)."""
+    params = params or cm.make_params(0.05, 100)
+    grid = cm.make_grid(params)
+    ids = np.arange(grid.size)
+    near = np.linalg.norm(grid.centres(ids) - centre, axis=1) <= radius + grid.voxel
+    vox, reach, allr = cm.build_block(params, ids[near])
+    return cm.CapabilityMap(params, grid, vox, reach, allr)
+
+
+@pytest.fixture(scope="module")
+def regional():
+    return {name: regional_map(c) for name, c in REGIONS.items()}
 
 
 def test_golden_spiral_unit_and_spread():
@@ -172,9 +197,12 @@ def test_hdf5_round_trip_and_parameter_check(coarse, tmp_path):
 
 
 def test_accuracy_counts_add_up(coarse):
-    acc = cm.accuracy(coarse, cm.random_poses(5000, seed=2))
+    X = cm.random_poses(5000, seed=2)
+    acc = cm.accuracy(coarse, X)
     assert acc["TP"] + acc["FP"] + acc["FN"] + acc["TN"] == pytest.approx(1.0)
-    assert acc["correct"] > 0.85  # a 15 cm / 30-direction map is still mostly right
+    assert acc["correct"] > 0.85  # a 15 cm / 30-direction centre map is still mostly right
+    assert acc["FP"] > 0 and acc["false_safe"] == round(acc["FP"] * 5000)
+    assert acc["rejected_reachable"] == pytest.approx(acc["FN"] / (acc["TP"] + acc["FN"]))
 
 
 def test_bad_params_are_input_errors():
@@ -229,3 +257,119 @@ def test_neighbourhood_index_is_the_mean_voxel_index_of_the_neighbour_centres(p)
     centres = m.grid.centres(np.maximum(near, 0))
     ref = np.where(near >= 0, m.voxel_index(centres), 0.0).mean()
     assert m.neighbourhood_index(np.array(p)) == pytest.approx(ref, abs=1e-15)
+
+
+# -- the certified (conservative) map ----------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", [20261201, 4711, 99])
+@pytest.mark.parametrize("region", list(REGIONS))
+def test_certified_map_is_never_false_safe(regional, region, seed):
+    """0 poses the map calls reachable where exact IK at the pose fails: poses uniform in the
+    region (position in the ball, SO(3) rotation) and poses within 1e-7 of the exact
+    reachability boundary (seeds not tuned)."""
+    m, c = regional[region], REGIONS[region]
+    X = np.concatenate([
+        cm.random_poses(2000, seed=seed, radius=0.12, center=c),
+        cm.boundary_poses(m.params, 1000, seed=seed + 1, radius=0.12, center=c),
+    ])  # fmt: skip
+    acc = cm.accuracy(m, X)
+    assert acc["false_safe"] == 0
+    assert acc["TP"] > 0.01  # it still says reachable for many poses
+
+
+def test_centre_sampled_map_is_false_safe_near_the_boundary(regional):
+    """The old map (IK at voxel centres) accepts poses exact IK rejects; the certified map's
+    reachable cells are a subset of the centre map's."""
+    c = REGIONS["outer reach"]
+    safe = regional["outer reach"]
+    old = regional_map(c, cm.make_params(0.05, 100, cell="centre"))
+    X = cm.boundary_poses(old.params, 2000, seed=5, radius=0.12, center=c)
+    assert cm.accuracy(old, X)["false_safe"] > 0
+    assert cm.accuracy(safe, X)["false_safe"] == 0
+    rows = np.searchsorted(old.voxel_ids, safe.voxel_ids)
+    assert np.array_equal(old.voxel_ids[rows], safe.voxel_ids)
+    assert np.all(old.reach_rows(rows) | ~safe.reach_rows())
+    assert 0 < safe.index.mean() < old.index.mean()
+
+
+def test_boundary_poses_straddle_the_exact_boundary():
+    params = cm.make_params(0.15, 30)
+    X = cm.boundary_poses(params, 400, seed=3)
+    assert X.shape == (400, 4, 4)
+    truth = cm.exact_reachable(params, X)
+    assert np.array_equal(truth[0::2], ~truth[1::2])  # pairs: one reachable, one not
+    gap = np.linalg.norm(X[0::2, :3, 3] - X[1::2, :3, 3], axis=1)
+    assert gap.max() < 1e-5
+    np.testing.assert_array_equal(X, cm.boundary_poses(params, 400, seed=3))
+
+
+def _wrap(x):
+    return (x + np.pi) % (2 * np.pi) - np.pi
+
+
+def test_certified_cells_follow_their_definition():
+    """The compiled kernel against a plain numpy reading of the rule (flange, +-175 deg): one
+    branch valid at every corner x neighbour direction, each joint's room to its limits over the
+    samples >= slack + half its spread, and for every roll two such branches whose q6 difference
+    stays farther from 0 (mod 2 pi) than the 10 deg gap + 2 slack + half its spread."""
+    params = cm.make_params(0.05, 100)
+    grid = cm.make_grid(params)
+    ids = np.ravel_multi_index(grid.cells(REGIONS["mid workspace"] + np.array([[0, 0, 0],
+                               [0.05, 0, 0], [0, 0.3, 0.1]])).T, grid.shape)
+    dirs = cm.golden_spiral(100)
+    got = cm.certified_cells(params, grid, ids, dirs)
+    nb = cm.direction_neighbours(dirs)
+    ijk = np.stack(np.unravel_index(ids, grid.shape), -1)
+    corners = grid.origin + (ijk[:, None] + cm.CORNERS[None]) * grid.voxel
+    q, ok = cm.branch_samples(params, corners.reshape(-1, 3), dirs)
+    q, ok = q.reshape(len(ids), 8, 100, 8, 6), ok.reshape(len(ids), 8, 100, 8)
+    lim = np.radians(175.0)
+    slack, gap = params.slack, np.radians(10.0)
+    expect = np.zeros_like(got)
+    for v in range(len(ids)):
+        for d in range(100):
+            S, O = q[v][:, nb[d]].reshape(-1, 8, 6), ok[v][:, nb[d]].reshape(-1, 8)
+            good = []
+            for b in range(8):
+                x = S[:, b, :5]
+                x = x[0] + _wrap(x - x[0])
+                room = slack + 0.5 * (x.max(0) - x.min(0))
+                if O[:, b].all() and np.all(lim - np.abs(x).max(0) >= room - 1e-12):
+                    good.append(b)
+            for i, a in enumerate(good):
+                for b in good[i + 1:]:
+                    dq = S[:, a, 5] - S[:, b, 5]
+                    u = dq[0] % (2 * np.pi) + _wrap(dq - dq[0] % (2 * np.pi))
+                    room = gap + 2 * slack + 0.5 * (u.max() - u.min())
+                    expect[v, d] |= u.min() >= room and u.max() <= 2 * np.pi - room
+    np.testing.assert_array_equal(got, expect)
+    assert 0 < got.sum() < got.size
+
+
+def test_direction_neighbours_are_symmetric_and_near():
+    d = cm.golden_spiral(100)
+    nb = cm.direction_neighbours(d)
+    assert np.all(nb[:, 0] == np.arange(100))
+    assert all(a in nb[b] for a in range(100) for b in nb[a])
+    assert 5 <= min(len(set(r)) - 1 for r in nb) and max(len(set(r)) - 1 for r in nb) <= 8
+    # every direction's Voronoi cell lies closer to it than its farthest neighbour
+    cos = np.einsum("ij,ikj->ik", d, d[nb]).min(axis=1)
+    assert np.all(np.arccos(cos) < 0.6)
+
+
+def test_schema_1_maps_are_refused_naming_the_file(coarse, tmp_path):
+    path = tmp_path / "old.h5"
+    coarse.save(path)
+    with h5py.File(path, "a") as f:
+        f.attrs["schema_version"] = 1
+    with pytest.raises(InputError, match="old.h5.*rebuild"):
+        cm.load(path)
+
+
+def test_cell_and_slack_are_validated():
+    with pytest.raises(InputError, match="cell"):
+        cm.make_params(0.1, 10, cell="corner")
+    with pytest.raises(InputError, match="slack"):
+        cm.make_params(0.1, 10, cell="centre", slack=0.1)
+    assert cm.make_params(0.1, 10).key() != cm.make_params(0.1, 10, cell="centre").key()
