@@ -44,7 +44,7 @@ from implantplan.systems import rasscmap_inputs as rin
 from implantplan.systems import scaleout, validate
 from implantplan.systems import setup_search as ss
 from implantplan.systems.actuator import actuator_map_frame
-from implantplan.systems.errors import InputError
+from implantplan.systems.errors import InputError, PlanningFailure
 from implantplan.systems.files import write_json
 from implantplan.systems.frames import invert
 
@@ -289,6 +289,15 @@ def plan(
         return d
 
     X_BT = invert(problem.bases[problem.split(np.array([res.best]))[0][0]])[None] @ task.poses
+    # The final check uses the exact reference, not the map: closed-form IK at each task pose.
+    exact = cm.exact_reachable(cmap.params, X_BT)
+    exact_check = {
+        "reference": "closed-form IK at each task pose from the best base (map's tool frame, "
+                     "joint limits, self-collision when the map checks it)",
+        "reachable": [bool(v) for v in exact],
+        "poses": int(exact.size),
+        "pass": bool(exact.all()),
+    }  # fmt: skip
     data = {
         "patient": patient.id,
         "task": task.id,
@@ -304,6 +313,7 @@ def plan(
         "best": describe(res.best),
         "worst": describe(res.worst),
         "task_poses_in_best_base": X_BT,
+        "exact_check": exact_check,
         "maps_used": {
             "cmap": str(Path(map_override) if map_override else robot.map_path),
             "cmap_params": cmap.params.as_dict(),
@@ -324,6 +334,11 @@ def plan(
             prog.say("Meshcat could not start here; no HTML written")
     data["files"] = files
     write_json(out / "plan.json", data, kind="capmap_plan")
+    if not exact_check["pass"]:
+        missed = [i for i, v in enumerate(exact_check["reachable"]) if not v]
+        raise PlanningFailure(
+            f"the map's best base does not pass the exact check: closed-form IK finds no "
+            f"solution for task pose(s) {missed} (plan written to {out / 'plan.json'})")
     return data
 
 
@@ -338,6 +353,8 @@ def _cmd_plan(args) -> int:
         "best_base_yaw_deg": round(best["base_yaw_deg"], 2),
         "access_point": best.get("access_point"),
         "cost": round(best["cost"], 4),
+        "exact_check": f"{sum(data['exact_check']['reachable'])} of {data['exact_check']['poses']} "
+                       "task poses reached by exact IK",
         "worst_cost": round(data["worst"]["cost"], 4),
         "method": data["method"],
         "seconds": round(data["seconds"], 4),

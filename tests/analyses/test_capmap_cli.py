@@ -93,6 +93,10 @@ def test_plan_pedicle_case(map_path, tmp_path, capsys):
     assert plan["candidates"] == 800 and plan["method"] == "exhaustive"
     assert 0.0 < plan["best"]["cost"] <= 1.0
     assert plan["best"]["all_task_poses_reachable"]
+    # the final check is exact IK at each task pose, independent of the map
+    assert plan["exact_check"]["pass"] and plan["exact_check"]["poses"] == 6
+    ref = cm.exact_reachable(cm.load(map_path).params, np.asarray(plan["task_poses_in_best_base"]))
+    assert ref.all()
     assert plan["worst"]["cost"] <= plan["best"]["cost"]
     assert (tmp_path / "plan" / "best_vs_worst.png").stat().st_size > 10_000
     assert (tmp_path / "plan" / "cmap_slices.png").stat().st_size > 10_000
