@@ -423,6 +423,52 @@ def clearance_field(fpsm: Fpsm, **options) -> ClearanceField:
     return field
 
 
+def boundary_mesh(fpsm: Fpsm, *, angles: int = 4096, rings: int = 2, outer: float = 1.0):
+    """The boundary of the free region F (module notes) as a triangle mesh in Center (m): the
+    slab walls (``angles`` samples per curve, ``rings`` + 1 rows per slab: the wall is linear in z
+    at each angle, so only the angular chords and the quads' twist depart from it), the throat
+    disc at z_0 and the annulus of the plane z_top between the top curve and radius ``outer``.
+
+    An exact reference of the distance to the FPSM boundary, to the triangulation's error
+    (sub-micrometre at the default density on the bundled models): ``ExactCavity`` over it
+    measures how far a rod's certified bound lies below its true FPSM clearance
+    (analyses.rod_check's breakdown). Not used by the bound itself.
+    """
+    import trimesh
+
+    th = np.arange(angles) * (TWO_PI / angles)
+    c, s = np.cos(th), np.sin(th)
+    V, F = [], []
+    nv = 0
+    z = fpsm.slice_z
+    for j in range(z.size - 1):
+        zz = np.linspace(z[j], z[j + 1], rings + 1)
+        R = fpsm.radius_at(th[None, :], zz[:, None])
+        V.append(np.stack([R * c, R * s, np.broadcast_to(zz[:, None], R.shape)], -1)
+                 .reshape(-1, 3))
+        idx = nv + np.arange((rings + 1) * angles).reshape(rings + 1, angles)
+        a, b = idx[:-1], np.roll(idx[:-1], -1, axis=1)
+        cc, d = idx[1:], np.roll(idx[1:], -1, axis=1)
+        F += [np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, cc], -1).reshape(-1, 3)]
+        nv += (rings + 1) * angles
+    for zc, top in ((z[0], False), (z[-1], True)):
+        R = fpsm.radius_at(th, np.full(angles, zc))
+        ring = nv + np.arange(angles)
+        V.append(np.column_stack([R * c, R * s, np.full(angles, zc)]))
+        nv += angles
+        if top:
+            V.append(np.column_stack([outer * c, outer * s, np.full(angles, zc)]))
+            out = nv + np.arange(angles)
+            nv += angles
+            F += [np.stack([ring, out, np.roll(out, -1)], -1),
+                  np.stack([ring, np.roll(out, -1), np.roll(ring, -1)], -1)]
+        else:
+            V.append(np.array([[0.0, 0.0, zc]]))
+            F.append(np.stack([np.full(angles, nv), ring, np.roll(ring, -1)], -1))
+            nv += 1
+    return trimesh.Trimesh(np.concatenate(V), np.concatenate(F), process=False)
+
+
 # -- compiled kernels --------------------------------------------------------------------------
 
 
@@ -543,26 +589,33 @@ def _capsules_kernel(V, ox, oy, oz, g, z_top, cap, step, resolve, A, B, r, out):
 
 
 @numba.njit(cache=True)
+def _tool_one(V, ox, oy, oz, g, z_top, cap, step, resolve, X, a, b, r):
+    """The tool's clearance at one pose X ((4, 4) or (3, 4), Tool in Center): the smallest of
+    its capsules' (a, b (C, 3) in T, radii r (C,))."""
+    best = np.inf
+    for c in range(a.shape[0]):
+        px = X[0, 3] + X[0, 0] * a[c, 0] + X[0, 1] * a[c, 1] + X[0, 2] * a[c, 2]
+        py = X[1, 3] + X[1, 0] * a[c, 0] + X[1, 1] * a[c, 1] + X[1, 2] * a[c, 2]
+        pz = X[2, 3] + X[2, 0] * a[c, 0] + X[2, 1] * a[c, 1] + X[2, 2] * a[c, 2]
+        qx = X[0, 3] + X[0, 0] * b[c, 0] + X[0, 1] * b[c, 1] + X[0, 2] * b[c, 2]
+        qy = X[1, 3] + X[1, 0] * b[c, 0] + X[1, 1] * b[c, 1] + X[1, 2] * b[c, 2]
+        qz = X[2, 3] + X[2, 0] * b[c, 0] + X[2, 1] * b[c, 1] + X[2, 2] * b[c, 2]
+        v = (
+            _segment_min(
+                V, ox, oy, oz, g, z_top, cap, step, r[c] + resolve, px, py, pz, qx, qy, qz
+            )
+            - r[c]
+        )
+        if v < best:
+            best = v
+    return best
+
+
+@numba.njit(cache=True)
 def _tool_kernel(V, ox, oy, oz, g, z_top, cap, step, resolve, X, a, b, r, out):
     """out[k] = min over the tool's capsules (a, b (C, 3) in T, radii r (C,)) at pose X[k]."""
     for k in range(X.shape[0]):
-        best = np.inf
-        for c in range(a.shape[0]):
-            px = X[k, 0, 3] + X[k, 0, 0] * a[c, 0] + X[k, 0, 1] * a[c, 1] + X[k, 0, 2] * a[c, 2]
-            py = X[k, 1, 3] + X[k, 1, 0] * a[c, 0] + X[k, 1, 1] * a[c, 1] + X[k, 1, 2] * a[c, 2]
-            pz = X[k, 2, 3] + X[k, 2, 0] * a[c, 0] + X[k, 2, 1] * a[c, 1] + X[k, 2, 2] * a[c, 2]
-            qx = X[k, 0, 3] + X[k, 0, 0] * b[c, 0] + X[k, 0, 1] * b[c, 1] + X[k, 0, 2] * b[c, 2]
-            qy = X[k, 1, 3] + X[k, 1, 0] * b[c, 0] + X[k, 1, 1] * b[c, 1] + X[k, 1, 2] * b[c, 2]
-            qz = X[k, 2, 3] + X[k, 2, 0] * b[c, 0] + X[k, 2, 1] * b[c, 1] + X[k, 2, 2] * b[c, 2]
-            v = (
-                _segment_min(
-                    V, ox, oy, oz, g, z_top, cap, step, r[c] + resolve, px, py, pz, qx, qy, qz
-                )
-                - r[c]
-            )
-            if v < best:
-                best = v
-        out[k] = best
+        out[k] = _tool_one(V, ox, oy, oz, g, z_top, cap, step, resolve, X[k], a, b, r)
 
 
 # -- public API --------------------------------------------------------------------------------
@@ -713,7 +766,6 @@ class ToolClearance:
         self._args = _field_args(self.field, step)
         a, b, r = self.tool.capsules_T()
         self._a, self._b, self._r = a, b, np.ascontiguousarray(r, dtype=float)
-        self._out1 = np.empty(1)
 
     def __call__(self, X_CTool) -> np.ndarray:
         X = np.ascontiguousarray(_poses(X_CTool))
@@ -723,9 +775,8 @@ class ToolClearance:
 
     def one(self, X_CTool: np.ndarray) -> float:
         """Clearance (m) at one (4, 4) pose, without input checks."""
-        X = np.ascontiguousarray(X_CTool, dtype=float).reshape(1, 4, 4)
-        _tool_kernel(*self._args, X, self._a, self._b, self._r, self._out1)
-        return float(self._out1[0])
+        return _tool_one(*self._args, np.ascontiguousarray(X_CTool, dtype=float), self._a,
+                         self._b, self._r)
 
 
 def feed_poses(X_CTool, depth: float, step: float) -> tuple[np.ndarray, float]:

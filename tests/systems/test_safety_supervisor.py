@@ -15,7 +15,9 @@ from implantplan.systems.safety_supervisor import (
     Barrier,
     SafetySupervisor,
     barrier_filter,
+    _step_pose,
     clearance,
+    stepped_poses,
     supervise,
 )
 from implantplan.systems.tool_clearance import ToolClearance, ToolGeometry
@@ -127,6 +129,19 @@ def test_supervised_step_keeps_the_barrier_and_never_amplifies(x, V):
     wrong = supervise(CLEAR, pose(x)[None], V[None], BAR, DT, g=np.roll(V, 2)[None])
     assert wrong.h_next[0] >= wrong.h[0] + DT * b - 1e-8
     assert np.sum(wrong.V[0] ** 2 * M) <= np.sum(V**2 * M) * (1 + 1e-12) + 1e-18
+
+
+@settings(max_examples=60, deadline=None)
+@given(V=arrays(float, (6,), elements=st.floats(-2.0, 2.0)), dt=st.floats(1e-4, 0.05))
+def test_compiled_step_is_drakes_angle_axis_step(V, dt):
+    """The slow path's compiled pose step (Rodrigues) against the Drake AngleAxis step of
+    :func:`stepped_poses`: the same pose to rounding, for any twist."""
+    X = pose(0.03)
+    X[:3, :3] = X[:3, :3] @ transform(np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0],
+                                                [0.0, 1.0, 0.0]]), [0, 0, 0])[:3, :3]
+    out = np.empty((4, 4))
+    _step_pose(X, V, dt, out)
+    np.testing.assert_allclose(out, stepped_poses(X[None], V[None], dt)[0], atol=1e-14)
 
 
 def test_the_system_alone_filters_and_integrates():
