@@ -538,10 +538,13 @@ def _point_bound(V, ox, oy, oz, g, z_top, x, y, z, refine=True):
 
 
 @numba.njit(cache=True)
-def _segment_min(V, ox, oy, oz, g, z_top, cap, step, level, ax, ay, az, bx, by, bz):
+def _segment_min(V, ox, oy, oz, g, z_top, cap, step, level, ax, ay, az, bx, by, bz,
+                 stop=-np.inf):
     """Lower bound of min f over the segment a-b (adaptive march, module notes): distances up
     to ``level`` are resolved to the step; where the bound is far above both the running
-    minimum and ``level`` the march takes long steps (the interval bound stays >= either)."""
+    minimum and ``level`` the march takes long steps (the interval bound stays >= either).
+    Once the running minimum is below ``stop`` the march ends and returns it (then only "below
+    ``stop``" is certain: the verdict-only path)."""
     dx = bx - ax
     dy = by - ay
     dz = bz - az
@@ -550,7 +553,7 @@ def _segment_min(V, ox, oy, oz, g, z_top, cap, step, level, ax, ay, az, bx, by, 
     if b_prev <= OUTSIDE:
         return OUTSIDE
     m = min(b_prev, cap)
-    if length <= 0.0:
+    if length <= 0.0 or m < stop:
         return m
     ux = dx / length
     uy = dy / length
@@ -572,17 +575,23 @@ def _segment_min(V, ox, oy, oz, g, z_top, cap, step, level, ax, ay, az, bx, by, 
             m = lo
         if b < m:
             m = b
+        if m < stop:
+            return m
         b_prev = b
     return m
 
 
 @numba.njit(cache=True, parallel=True)
-def _capsules_kernel(V, ox, oy, oz, g, z_top, cap, step, resolve, A, B, r, out):
+def _capsules_kernel(V, ox, oy, oz, g, z_top, cap, step, resolve, A, B, r, out,
+                     verdict=-np.inf):
+    """out[k] = the capsules' certified clearances; with a finite ``verdict`` the march of a
+    capsule stops as soon as its clearance is certain to be <= verdict (out[k] is then only
+    known to be <= verdict: the verdict-only path)."""
     for k in numba.prange(A.shape[0]):
         out[k] = (
             _segment_min(
                 V, ox, oy, oz, g, z_top, cap, step, r[k] + resolve,
-                A[k, 0], A[k, 1], A[k, 2], B[k, 0], B[k, 1], B[k, 2],
+                A[k, 0], A[k, 1], A[k, 2], B[k, 0], B[k, 1], B[k, 2], r[k] + verdict,
             )
             - r[k]
         )
@@ -673,6 +682,35 @@ def rod_clearance(
     """
     if method not in METHODS:
         raise InputError("method", f"expected one of {METHODS}, got {method!r}")
+    A, B, r = _capsule_batch(p0, p1, radius)
+    if method == "paper":
+        d = B - A
+        L = np.linalg.norm(d, axis=1)
+        u = np.where(L[:, None] > 0, d / np.where(L > 0, L, 1.0)[:, None], [0.0, 0.0, 1.0])
+        ls = fpsm.line_safety_batch(A, u, np.maximum(L, 1e-12), np.ascontiguousarray(r))
+        out = ls.d_safe_min
+        return out
+    out = np.empty(A.shape[0])
+    _capsules_kernel(*_field_args(clearance_field(fpsm), step), A, B, r, out)
+    return out
+
+
+def rod_safe(fpsm: Fpsm, p0, p1, radius, *, clearance: float = 0.0,
+             step: float | None = None) -> np.ndarray:
+    """The verdict only: (n,) True where the sound clearance of :func:`rod_clearance` is above
+    ``clearance`` (m), the same verdict as ``rod_clearance(...) > clearance``, faster: a
+    capsule's march stops as soon as its bound is certain to be at or below ``clearance``."""
+    A, B, r = _capsule_batch(p0, p1, radius)
+    clearance = float(clearance)
+    if not np.isfinite(clearance):
+        raise InputError("clearance", f"expected a finite clearance (m), got {clearance}")
+    out = np.empty(A.shape[0])
+    _capsules_kernel(*_field_args(clearance_field(fpsm), step), A, B, r, out, clearance)
+    return out > clearance
+
+
+def _capsule_batch(p0, p1, radius):
+    """Checked, contiguous (n, 3) starts and ends and (n,) radii (m) of a batch of capsules."""
     A = np.atleast_2d(_points(p0, "p0"))
     B = np.atleast_2d(_points(p1, "p1"))
     try:
@@ -687,18 +725,7 @@ def rod_clearance(
                          f"got {radius!r}") from None
     if not np.all(np.isfinite(r)) or np.any(r < 0):
         raise InputError("radius", "expected radii >= 0 m")
-    if method == "paper":
-        d = B - A
-        L = np.linalg.norm(d, axis=1)
-        u = np.where(L[:, None] > 0, d / np.where(L > 0, L, 1.0)[:, None], [0.0, 0.0, 1.0])
-        ls = fpsm.line_safety_batch(A, u, np.maximum(L, 1e-12), np.ascontiguousarray(r))
-        out = ls.d_safe_min
-        return out
-    out = np.empty(A.shape[0])
-    _capsules_kernel(*_field_args(clearance_field(fpsm), step),
-                     np.ascontiguousarray(A), np.ascontiguousarray(B),
-                     np.ascontiguousarray(r), out)
-    return out
+    return np.ascontiguousarray(A), np.ascontiguousarray(B), np.ascontiguousarray(r)
 
 
 def _tool_capsules(X_CT: np.ndarray, tool: ToolGeometry):

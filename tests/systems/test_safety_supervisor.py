@@ -14,8 +14,8 @@ from implantplan.systems.frames import transform
 from implantplan.systems.safety_supervisor import (
     Barrier,
     SafetySupervisor,
-    barrier_filter,
     _step_pose,
+    barrier_filter,
     clearance,
     stepped_poses,
     supervise,
