@@ -206,14 +206,15 @@ def _step_pose(X, V, dt, out):
 
 
 @numba.njit(cache=True)
-def _filter_step(F, ox, oy, oz, spacing, z_top, cap, step, resolve, a, b, r,
+def _filter_step(field, a, b, r,
                  X, V, h, g, have_g, dt, margin, alpha, length_scale, eps_p, eps_w, scales,
                  V_out, X_next, g_out, work):
     """Steps 2-3 of the module docstring for one pose X (4, 4) and twist V (6,) in Center whose
     command failed the discrete condition at barrier h: the gradient (12 perturbed poses, unless
     ``have_g``: then ``g`` is used), the projection, the scales tried on h itself. Writes V_out,
     X_next, g_out (the gradient used); returns (h at X_next, |V_out|_M / |V|_M). ``work`` is a
-    (4, 4) buffer; the field and tool arguments are ToolClearance's."""
+    (4, 4) buffer; ``field`` (the tuple of the field's kernel arguments) and the tool's
+    capsules are ToolClearance's."""
     if have_g:
         for i in range(6):
             g_out[i] = g[i]
@@ -224,11 +225,11 @@ def _filter_step(F, ox, oy, oz, spacing, z_top, cap, step, resolve, a, b, r,
                 e[:] = 0.0
                 e[i] = sign
                 _step_pose(X, e, eps_w, work)  # rotated about the TCP by sign eps_w about x_i
-                hr = _tool_one(F, ox, oy, oz, spacing, z_top, cap, step, resolve, work, a, b, r)
+                hr = _tool_one(*field, work, a, b, r)
                 e[i] = 0.0
                 e[3 + i] = sign
                 _step_pose(X, e, eps_p, work)  # moved by sign eps_p along x_i
-                hp = _tool_one(F, ox, oy, oz, spacing, z_top, cap, step, resolve, work, a, b, r)
+                hp = _tool_one(*field, work, a, b, r)
                 if sign > 0.0:
                     g_out[i], g_out[3 + i] = hr, hp
                 else:
@@ -248,7 +249,7 @@ def _filter_step(F, ox, oy, oz, spacing, z_top, cap, step, resolve, a, b, r,
         for i in range(6):
             Vs[i] = scales[k] * Vp[i]
         _step_pose(X, Vs, dt, work)
-        hs = _tool_one(F, ox, oy, oz, spacing, z_top, cap, step, resolve, work, a, b, r)
+        hs = _tool_one(*field, work, a, b, r)
         if hs >= limit:
             chosen, h_next = scales[k], hs
             X_next[:, :] = work
@@ -322,7 +323,7 @@ def supervise(clear: ToolClearance, X_CT, V_C, barrier: Barrier, dt: float, *,
         g_k = np.empty(6)
         Xn = np.empty((4, 4))
         h_next[k], scale[k] = _filter_step(
-            *args, a, b_, r, Xk, np.ascontiguousarray(V[k]), float(h[k]), g_in[k], have_g,
+            args, a, b_, r, Xk, np.ascontiguousarray(V[k]), float(h[k]), g_in[k], have_g,
             float(dt), barrier.margin, barrier.alpha, barrier.length_scale, barrier.eps_p,
             barrier.eps_w, SCALES, V_out[k], Xn, g_k, work)
         X_next[k], g_out[k] = Xn, g_k
@@ -517,7 +518,7 @@ class SafetySupervisor(LeafSystem):
                 age = int(x[39])
                 have_g = age < GRADIENT_REUSE
                 h, scale = _filter_step(
-                    *self._clear._args, self._clear._a, self._clear._b, self._clear._r, X0, V,
+                    self._clear._args, self._clear._a, self._clear._b, self._clear._r, X0, V,
                     h0, x[33:39], have_g, self._period, bar.margin, bar.alpha,
                     bar.length_scale, bar.eps_p, bar.eps_w, SCALES, self._Vo, self._Xn,
                     self._g, self._work)

@@ -105,6 +105,25 @@ def test_verdict_path_gives_the_signed_bounds_verdict(cylinder, threshold):
     assert not rod_safe(cylinder, *rod, clearance=0.0041)[0]
 
 
+def test_a_start_just_outside_the_wall_is_never_certified(cylinder):
+    """The squared-distance bound is one of the unsigned distance (module notes), so whether a
+    start is in F is decided separately: a rod starting in tissue, 0.01-1.5 mm beyond the wall
+    (inside the grid box, in cells with corner nodes inside the cylinder), is not free, whatever
+    its radius and direction; the same points moved 5 mm inside are."""
+    rng = np.random.default_rng(5)
+    n = 2000
+    th = rng.uniform(0, 2 * np.pi, n)
+    rr = RHO + rng.uniform(1e-5, 1.5e-3, n)
+    p0 = np.column_stack([rr * np.cos(th), rr * np.sin(th), rng.uniform(0.01, 0.09, n)])
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    p1 = p0 + rng.uniform(0.0, 0.01, n)[:, None] * d
+    assert np.all(rod_clearance(cylinder, p0, p1, 0.0) <= 0)
+    assert not rod_safe(cylinder, p0, p1, 0.0).any()
+    inside = p0 * np.array([0.9, 0.9, 1.0])  # 5 mm and more inside the wall
+    assert np.mean(rod_clearance(cylinder, inside, inside, 0.0) > 0) > 0.99
+
+
 def test_leaving_through_the_side_or_throat_is_a_collision(cylinder):
     side = rod_clearance(cylinder, [0, 0, 0.05], [0.2, 0, 0.05], 0.001)
     throat = rod_clearance(cylinder, [0, 0, 0.05], [0, 0, -0.05], 0.001)
