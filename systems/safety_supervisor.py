@@ -332,6 +332,25 @@ def supervise(clear: ToolClearance, X_CT, V_C, barrier: Barrier, dt: float, *,
 
 
 @numba.njit(cache=True)
+def _world_pose_of_E(new, X_WC, X_TE):
+    """new[21:33] = the World pose of E (p_WE, R_WE row-major) from the Tool pose in Center in
+    new[0:12] (p_CT, R_CT row-major); E's origin is the Tool's."""
+    for i in range(3):
+        pw = X_WC[i, 3]
+        for j in range(3):
+            pw += X_WC[i, j] * new[j]
+        new[21 + i] = pw
+        for j in range(3):
+            acc = 0.0
+            for k in range(3):
+                RWk = 0.0
+                for m in range(3):
+                    RWk += X_WC[i, m] * new[3 + 3 * m + k]
+                acc += RWk * X_TE[k, j]
+            new[24 + 3 * i + j] = acc
+
+
+@numba.njit(cache=True)
 def _advance(x, V_W, dR, dt, R_CW, X_WC, X_TE, new, X1):
     """The supervisor's state one period on under the twist V_W (World) left as it is: the Tool
     pose in Center (p + v dt, dR R), the twist, scale 1, not active, the World pose of E; X1 the
@@ -349,19 +368,7 @@ def _advance(x, V_W, dR, dt, R_CW, X_WC, X_TE, new, X1):
     for i in range(6):
         new[12 + i] = V_W[i]
     new[19], new[20] = 1.0, 0.0
-    for i in range(3):
-        pw = X_WC[i, 3]
-        for j in range(3):
-            pw += X_WC[i, j] * new[j]
-        new[21 + i] = pw
-        for j in range(3):
-            acc = 0.0
-            for k in range(3):
-                RWk = 0.0
-                for m in range(3):
-                    RWk += X_WC[i, m] * new[3 + 3 * m + k]
-                acc += RWk * X_TE[k, j]
-            new[24 + 3 * i + j] = acc
+    _world_pose_of_E(new, X_WC, X_TE)
     for i in range(3):
         X1[i, 3] = new[i]
         for j in range(3):
@@ -386,19 +393,7 @@ def _commit(X, V, scale, R_CW, X_WC, X_TE, new):
             v += R_CW[j, i] * V[3 + j]
         new[12 + i], new[15 + i] = w, v
     new[19], new[20] = scale, 1.0
-    for i in range(3):
-        pw = X_WC[i, 3]
-        for j in range(3):
-            pw += X_WC[i, j] * X[j, 3]
-        new[21 + i] = pw
-        for j in range(3):
-            acc = 0.0
-            for k in range(3):
-                RWk = 0.0
-                for m in range(3):
-                    RWk += X_WC[i, m] * X[m, k]
-                acc += RWk * X_TE[k, j]
-            new[24 + 3 * i + j] = acc
+    _world_pose_of_E(new, X_WC, X_TE)
 
 
 class SafetySupervisor(LeafSystem):

@@ -481,6 +481,18 @@ def boundary_mesh(fpsm: Fpsm, *, angles: int = 4096, rings: int = 2, outer: floa
 # -- compiled kernels --------------------------------------------------------------------------
 
 
+@numba.njit(cache=True, inline="always")
+def _trilinear(v000, v100, v010, v110, v001, v101, v011, v111, tx, ty, tz):
+    """The trilinear interpolant of a cell's corner values at fractional coordinates t."""
+    c00 = v000 + tx * (v100 - v000)
+    c10 = v010 + tx * (v110 - v010)
+    c01 = v001 + tx * (v101 - v001)
+    c11 = v011 + tx * (v111 - v011)
+    c0 = c00 + ty * (c10 - c00)
+    c1 = c01 + ty * (c11 - c01)
+    return c0 + tz * (c1 - c0)
+
+
 @numba.njit(cache=True)
 def _grid_bound(V, ox, oy, oz, g, x, y, z, refine):
     """Lower bound of f at a point inside the grid's index range, else NaN; ``refine`` adds
@@ -520,23 +532,12 @@ def _grid_bound(V, ox, oy, oz, g, x, y, z, refine):
     s010, s110 = max(v010, 0.0) ** 2, max(v110, 0.0) ** 2
     s001, s101 = max(v001, 0.0) ** 2, max(v101, 0.0) ** 2
     s011, s111 = max(v011, 0.0) ** 2, max(v111, 0.0) ** 2
-    q00 = s000 + tx * (s100 - s000)
-    q10 = s010 + tx * (s110 - s010)
-    q01 = s001 + tx * (s101 - s001)
-    q11 = s011 + tx * (s111 - s011)
-    q0 = q00 + ty * (q10 - q00)
-    q1 = q01 + ty * (q11 - q01)
-    sq = q0 + tz * (q1 - q0) - g * g * spread
+    sq = _trilinear(s000, s100, s010, s110, s001, s101, s011, s111, tx, ty, tz) - g * g * spread
     if sq > ROUNDING * ROUNDING:
         best = np.sqrt(sq) - ROUNDING
     else:  # near or beyond the wall: the trilinear interpolant less its Jensen term
-        c00 = v000 + tx * (v100 - v000)
-        c10 = v010 + tx * (v110 - v010)
-        c01 = v001 + tx * (v101 - v001)
-        c11 = v011 + tx * (v111 - v011)
-        c0 = c00 + ty * (c10 - c00)
-        c1 = c01 + ty * (c11 - c01)
-        best = c0 + tz * (c1 - c0) - g * np.sqrt(spread)
+        val = _trilinear(v000, v100, v010, v110, v001, v101, v011, v111, tx, ty, tz)
+        best = val - g * np.sqrt(spread)
     if not refine:
         return best
     # the cone bound of each corner, L_c - |q - c|, is valid too: keep the larger
