@@ -13,10 +13,11 @@ alpha (h - margin) passes; at the margin no approach is left; below it (which th
 never causes) the command may not approach further but is not turned into a retreat, so the
 supervisor never amplifies a command. The fixture's return law brings the tool back.
 
-Discrete time (period dt), in one batched clearance call per step of 14 poses: the pose X, 12
+Discrete time (period dt). The commanded next pose X + dt V costs one clearance query; only a
+command that fails the condition enters one compiled kernel (no allocation per step) for the 12
 poses perturbed along the twist's coordinates (translations by +-eps_p, rotations about the TCP
-by +-eps_w: the central-difference gradient g of h with respect to the twist) and the commanded
-next pose X + dt V:
+by +-eps_w: the central-difference gradient g of h with respect to the twist), the projection
+and the scale tries:
 
 1. if h(X + dt V) >= h + dt b - 10 nm (the discrete barrier condition holds for the command
    itself, no linearization) or h is +inf (the tool is outside the mouth), V passes untouched;
@@ -26,8 +27,8 @@ next pose X + dt V:
    the lever it swings): V' = V + lambda M^-1 g, lambda = (0.9 b - g . V) / (g^T M^-1 g) >= 0.
    The half-space contains 0 (b <= 0), so the projection is non-expansive: |V'|_M <= |V|_M;
 3. h being a minimum over the tool's parts (not smooth), the projected command is checked on
-   h itself at X + dt V' and, only if that fails, at s = 3/4, 1/2, 1/4 of it (one batched call):
-   the largest s that meets the discrete condition is taken, s = 0 (stop) if none does.
+   h itself at X + dt V' and, only if that fails, at s = 3/4, 1/2, 1/4 of it in turn: the
+   largest s that meets the discrete condition is taken, s = 0 (stop) if none does.
    Stopping always meets it, so the guarantee does not rest on the gradient: the LeafSystem
    reuses one gradient over up to 4 consecutive steps at the wall.
 

@@ -691,7 +691,7 @@ RESOLVE = 0.005  # clearances up to this (m) are resolved to the step; larger on
 
 def _field_args(field: ClearanceField, step: float | None, fpsm: Fpsm):
     o = field.origin
-    st = field.spacing / 4 if step is None else float(step)
+    st = field.spacing / 2 if step is None else float(step)
     if not np.isfinite(st) or st <= 0:
         raise InputError("step", f"expected a positive step (m), got {step}")
     return (field.values, float(o[0]), float(o[1]), float(o[2]), field.spacing, field.z_top,
@@ -713,8 +713,9 @@ def rod_clearance(
             capsule is free by at least that much; module notes); ``"paper"``: Eq. 12, the
             smallest safe distance of the axis against the model shrunk by r at the slice
             crossings and the end points (not a bound; for comparison).
-        step: axis sampling step near the wall for ``sound`` (m), default a quarter of the
-            grid spacing (each step costs at most half of it in the bound).
+        step: axis sampling step near the wall for ``sound`` (m), default half the grid
+            spacing (each step costs at most half of it in the bound; a quarter cuts the
+            rejected free rods by about a third at twice the cost).
 
     Returns:
         (n,) clearances (a (1,) array for a single capsule).
