@@ -304,7 +304,9 @@ def supervise(clear: ToolClearance, X_CT, V_C, barrier: Barrier, dt: float, *,
     K = X.shape[0]
     if V.shape[0] != K:
         raise InputError("V_C", f"expected one twist per pose ({K}), got {V.shape[0]}")
-    X_cmd = stepped_poses(X, V, dt)
+    X_cmd = np.empty_like(X)
+    for k in range(K):  # the compiled step (Drake's AngleAxis rejects a twist of ~1e-160)
+        _step_pose(np.ascontiguousarray(X[k]), np.ascontiguousarray(V[k]), float(dt), X_cmd[k])
     if h is None:
         H = clear(np.concatenate([X, X_cmd]))
         h, h_cmd = H[:K], H[K:]
