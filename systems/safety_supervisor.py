@@ -13,10 +13,11 @@ alpha (h - margin) passes; at the margin no approach is left; below it (which th
 never causes) the command may not approach further but is not turned into a retreat, so the
 supervisor never amplifies a command. The fixture's return law brings the tool back.
 
-Discrete time (period dt), in one batched clearance call per step of 14 poses: the pose X, 12
+Discrete time (period dt). The commanded next pose X + dt V costs one clearance query; only a
+command that fails the condition enters one compiled kernel (no allocation per step) for the 12
 poses perturbed along the twist's coordinates (translations by +-eps_p, rotations about the TCP
-by +-eps_w: the central-difference gradient g of h with respect to the twist) and the commanded
-next pose X + dt V:
+by +-eps_w: the central-difference gradient g of h with respect to the twist), the projection
+and the scale tries:
 
 1. if h(X + dt V) >= h + dt b - 10 nm (the discrete barrier condition holds for the command
    itself, no linearization) or h is +inf (the tool is outside the mouth), V passes untouched;
@@ -26,8 +27,8 @@ next pose X + dt V:
    the lever it swings): V' = V + lambda M^-1 g, lambda = (0.9 b - g . V) / (g^T M^-1 g) >= 0.
    The half-space contains 0 (b <= 0), so the projection is non-expansive: |V'|_M <= |V|_M;
 3. h being a minimum over the tool's parts (not smooth), the projected command is checked on
-   h itself at X + dt V' and, only if that fails, at s = 3/4, 1/2, 1/4 of it (one batched call):
-   the largest s that meets the discrete condition is taken, s = 0 (stop) if none does.
+   h itself at X + dt V' and, only if that fails, at s = 3/4, 1/2, 1/4 of it in turn: the
+   largest s that meets the discrete condition is taken, s = 0 (stop) if none does.
    Stopping always meets it, so the guarantee does not rest on the gradient: the LeafSystem
    reuses one gradient over up to 4 consecutive steps at the wall.
 
@@ -50,7 +51,7 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm import Fpsm
 from implantplan.systems.frames import invert
-from implantplan.systems.tool_clearance import ToolClearance, ToolGeometry
+from implantplan.systems.tool_clearance import ToolClearance, ToolGeometry, _tool_one
 from implantplan.systems.vf_system import step_pose
 
 AIM = 0.9  # the projection aims at this share of the allowed approach rate
@@ -117,8 +118,35 @@ def stepped_poses(X_CT: np.ndarray, V: np.ndarray, dt) -> np.ndarray:
     return out
 
 
+@numba.njit(cache=True)
+def _project(V, h, g, margin, alpha, length_scale, out) -> bool:
+    """Step 2 for one command: out = V projected on g . V' >= b (b = min(-alpha (h - margin),
+    0)) in the metric L^2 |w|^2 + |v|^2; True when the command was changed."""
+    finite = np.isfinite(h)
+    for i in range(6):
+        out[i] = V[i]
+        if not np.isfinite(g[i]):
+            finite = False
+    if not finite:
+        return False
+    b = min(-alpha * (h - margin), 0.0)
+    inv_l2 = 1.0 / (length_scale * length_scale)
+    gMg = 0.0
+    gV = 0.0
+    for i in range(6):
+        gMg += g[i] * g[i] * (inv_l2 if i < 3 else 1.0)
+        gV += g[i] * V[i]
+    if not (gV < b and gMg > 0.0):
+        return False
+    lam = (b - gV) / gMg
+    for i in range(6):
+        out[i] = V[i] + lam * g[i] * (inv_l2 if i < 3 else 1.0)
+    return True
+
+
 def barrier_filter(V, h, g, *, margin: float, alpha: float, length_scale: float):
-    """The projection of step 2 for K commands, vectorized.
+    """The projection of step 2 for K commands (the compiled kernel of the supervisor's step,
+    one command at a time).
 
     Args:
         V: (K, 6) commanded twists [w; v]; h: (K,) barrier values (m; +inf: no constraint);
@@ -127,17 +155,17 @@ def barrier_filter(V, h, g, *, margin: float, alpha: float, length_scale: float)
     Returns:
         (V' (K, 6), b (K,) the required rate, active (K,) bool: the command was changed).
     """
-    V = np.asarray(V, dtype=float).reshape(-1, 6)
+    V = np.ascontiguousarray(V, dtype=float).reshape(-1, 6)
     h = np.asarray(h, dtype=float).reshape(-1)
-    g = np.asarray(g, dtype=float).reshape(-1, 6)
+    g = np.ascontiguousarray(g, dtype=float).reshape(-1, 6)
     finite = np.isfinite(h) & np.all(np.isfinite(g), axis=1)
     b = np.where(finite, np.minimum(-alpha * (np.where(finite, h, 0.0) - margin), 0.0), -np.inf)
-    Minv = np.concatenate([np.full(3, 1.0 / length_scale**2), np.ones(3)])
-    gMg = np.sum(g * g * Minv, axis=1)
-    gV = np.sum(g * V, axis=1)
-    active = finite & (gV < b) & (gMg > 0)
-    lam = np.where(active, (b - gV) / np.where(gMg > 0, gMg, 1.0), 0.0)
-    return V + lam[:, None] * g * Minv, b, active
+    out = np.empty_like(V)
+    active = np.zeros(V.shape[0], dtype=bool)
+    for k in range(V.shape[0]):
+        active[k] = _project(V[k], float(h[k]), g[k], float(margin), float(alpha),
+                             float(length_scale), out[k])
+    return out, b, active
 
 
 def barrier_holds(h, h_next, barrier: Barrier, dt: float) -> np.ndarray:
@@ -147,6 +175,97 @@ def barrier_holds(h, h_next, barrier: Barrier, dt: float) -> np.ndarray:
     with np.errstate(invalid="ignore"):
         b = np.minimum(-barrier.alpha * (h - barrier.margin), 0.0)
         return ~np.isfinite(h) | (np.asarray(h_next) >= h + dt * b - TOLERANCE)
+
+
+@numba.njit(cache=True)
+def _step_pose(X, V, dt, out):
+    """out = X one period dt on under the twist V = [w; v] (Center): p + v dt, exp([w] dt) R
+    (Rodrigues' formula: Drake's AngleAxis rotation, to rounding)."""
+    wx, wy, wz = V[0], V[1], V[2]
+    n = np.sqrt(wx * wx + wy * wy + wz * wz)
+    angle = n * dt
+    for i in range(3):
+        out[i, 3] = X[i, 3] + V[3 + i] * dt
+        out[3, i] = 0.0
+    out[3, 3] = 1.0
+    if angle == 0.0:
+        for i in range(3):
+            for j in range(3):
+                out[i, j] = X[i, j]
+        return
+    kx, ky, kz = wx / n, wy / n, wz / n
+    c, s = np.cos(angle), np.sin(angle)
+    C = 1.0 - c
+    r00, r01, r02 = c + kx * kx * C, kx * ky * C - kz * s, kx * kz * C + ky * s
+    r10, r11, r12 = ky * kx * C + kz * s, c + ky * ky * C, ky * kz * C - kx * s
+    r20, r21, r22 = kz * kx * C - ky * s, kz * ky * C + kx * s, c + kz * kz * C
+    for j in range(3):
+        x0, x1, x2 = X[0, j], X[1, j], X[2, j]
+        out[0, j] = r00 * x0 + r01 * x1 + r02 * x2
+        out[1, j] = r10 * x0 + r11 * x1 + r12 * x2
+        out[2, j] = r20 * x0 + r21 * x1 + r22 * x2
+
+
+@numba.njit(cache=True)
+def _filter_step(field, a, b, r,
+                 X, V, h, g, have_g, dt, margin, alpha, length_scale, eps_p, eps_w, scales,
+                 V_out, X_next, g_out, work):
+    """Steps 2-3 of the module docstring for one pose X (4, 4) and twist V (6,) in Center whose
+    command failed the discrete condition at barrier h: the gradient (12 perturbed poses, unless
+    ``have_g``: then ``g`` is used), the projection, the scales tried on h itself. Writes V_out,
+    X_next, g_out (the gradient used); returns (h at X_next, |V_out|_M / |V|_M). ``work`` is a
+    (4, 4) buffer; ``field`` (the tuple of the field's kernel arguments) and the tool's
+    capsules are ToolClearance's."""
+    if have_g:
+        for i in range(6):
+            g_out[i] = g[i]
+    else:
+        e = np.zeros(6)
+        for i in range(3):
+            for sign in (1.0, -1.0):
+                e[:] = 0.0
+                e[i] = sign
+                _step_pose(X, e, eps_w, work)  # rotated about the TCP by sign eps_w about x_i
+                hr = _tool_one(*field, work, a, b, r)
+                e[i] = 0.0
+                e[3 + i] = sign
+                _step_pose(X, e, eps_p, work)  # moved by sign eps_p along x_i
+                hp = _tool_one(*field, work, a, b, r)
+                if sign > 0.0:
+                    g_out[i], g_out[3 + i] = hr, hp
+                else:
+                    g_out[i] = (g_out[i] - hr) / (2.0 * eps_w)
+                    g_out[3 + i] = (g_out[3 + i] - hp) / (2.0 * eps_p)
+        for i in range(6):
+            if not np.isfinite(g_out[i]):  # out of the mouth: no limit
+                g_out[i] = 0.0
+    # aim at 90% of the allowed approach: room for the linearization of a non-smooth h
+    Vp = np.empty(6)
+    _project(V, h, g_out, margin, AIM * alpha, length_scale, Vp)
+    limit = h + dt * min(-alpha * (h - margin), 0.0) - TOLERANCE
+    h_next = h
+    chosen = 0.0
+    Vs = np.empty(6)
+    for k in range(scales.size):
+        for i in range(6):
+            Vs[i] = scales[k] * Vp[i]
+        _step_pose(X, Vs, dt, work)
+        hs = _tool_one(*field, work, a, b, r)
+        if hs >= limit:
+            chosen, h_next = scales[k], hs
+            X_next[:, :] = work
+            break
+    if chosen == 0.0:  # stopping always meets the condition
+        X_next[:, :] = X
+    l2 = length_scale * length_scale
+    num = 0.0
+    den = 0.0
+    for i in range(6):
+        V_out[i] = chosen * Vp[i]
+        m = l2 if i < 3 else 1.0
+        num += V_out[i] * V_out[i] * m
+        den += V[i] * V[i] * m
+    return h_next, (np.sqrt(num / den) if den > 0.0 else 1.0)
 
 
 @dataclass(frozen=True)
@@ -185,7 +304,9 @@ def supervise(clear: ToolClearance, X_CT, V_C, barrier: Barrier, dt: float, *,
     K = X.shape[0]
     if V.shape[0] != K:
         raise InputError("V_C", f"expected one twist per pose ({K}), got {V.shape[0]}")
-    X_cmd = stepped_poses(X, V, dt)
+    X_cmd = np.empty_like(X)
+    for k in range(K):  # the compiled step (Drake's AngleAxis rejects a twist of ~1e-160)
+        _step_pose(np.ascontiguousarray(X[k]), np.ascontiguousarray(V[k]), float(dt), X_cmd[k])
     if h is None:
         H = clear(np.concatenate([X, X_cmd]))
         h, h_cmd = H[:K], H[K:]
@@ -195,53 +316,41 @@ def supervise(clear: ToolClearance, X_CT, V_C, barrier: Barrier, dt: float, *,
     V_out, X_next, h_next = V.copy(), X_cmd, h_cmd.copy()
     scale = np.ones(K)
     g_out = np.full((K, 6), np.nan)
-    todo = np.flatnonzero(~ok)
-    if todo.size:
-        n = todo.size
-        if g is None:
-            eps = np.concatenate([np.full(3, barrier.eps_w), np.full(3, barrier.eps_p)])
-            H = clear(perturbed_poses(X[todo], barrier.eps_p, barrier.eps_w).reshape(-1, 4, 4))
-            H = H.reshape(n, 12)
-            with np.errstate(invalid="ignore"):
-                g_todo = (H[:, :6] - H[:, 6:]) / (2.0 * eps)
-            g_todo = np.where(np.isfinite(g_todo), g_todo, 0.0)  # out of the mouth: no limit
-            g_out[todo] = g_todo
-        else:
-            g_todo = np.asarray(g, dtype=float).reshape(K, 6)[todo]
-            g_out[todo] = g_todo
-        # aim at 90% of the allowed approach: room for the linearization of a non-smooth h
-        Vp, _, _ = barrier_filter(V[todo], h[todo], g_todo, margin=barrier.margin,
-                                  alpha=AIM * barrier.alpha, length_scale=barrier.length_scale)
-        S = SCALES.size
-        # the full projected step first; the smaller scales only where it fails
-        Xt = np.repeat(X[todo], S, axis=0).reshape(n, S, 4, 4)
-        Ht = np.full((n, S), -np.inf)
-        Xt[:, 0] = stepped_poses(X[todo], Vp, dt)
-        Ht[:, 0] = clear(Xt[:, 0])
-        good = np.zeros((n, S), dtype=bool)
-        good[:, 0] = barrier_holds(h[todo], Ht[:, 0], barrier, dt)
-        rest = np.flatnonzero(~good[:, 0])
-        if rest.size:
-            Vr = (Vp[rest, None, :] * SCALES[None, 1:, None]).reshape(-1, 6)
-            Xr = stepped_poses(np.repeat(X[todo][rest], S - 1, axis=0), Vr, dt)
-            Xt[rest, 1:] = Xr.reshape(rest.size, S - 1, 4, 4)
-            Ht[rest, 1:] = clear(Xr).reshape(rest.size, S - 1)
-            good[rest, 1:] = barrier_holds(np.repeat(h[todo][rest], S - 1).reshape(-1, S - 1),
-                                           Ht[rest, 1:], barrier, dt)
-        Xt = Xt.reshape(n * S, 4, 4)
-        first = np.where(good.any(axis=1), good.argmax(axis=1), S)
-        chosen = np.concatenate([SCALES, [0.0]])[first]
-        V_out[todo] = Vp * chosen[:, None]
-        pick = np.arange(n) * S + np.minimum(first, S - 1)
-        stop = first == S
-        X_next[todo] = np.where(stop[:, None, None], X[todo], Xt[pick])
-        h_next[todo] = np.where(stop, h[todo], Ht.reshape(-1)[pick])
-        M = np.concatenate([np.full(3, barrier.length_scale**2), np.ones(3)])
-        norm = np.sqrt(np.sum(V[todo] ** 2 * M, axis=1))
-        scale[todo] = np.where(norm > 0, np.sqrt(np.sum(V_out[todo] ** 2 * M, axis=1))
-                               / np.where(norm > 0, norm, 1.0), 1.0)
+    args = clear._args
+    a, b_, r = clear._a, clear._b, clear._r
+    work = np.empty((4, 4))
+    have_g = g is not None
+    g_in = (np.ascontiguousarray(g, dtype=float).reshape(K, 6) if have_g else np.zeros((K, 6)))
+    for k in np.flatnonzero(~ok):
+        Xk = np.ascontiguousarray(X[k])
+        g_k = np.empty(6)
+        Xn = np.empty((4, 4))
+        h_next[k], scale[k] = _filter_step(
+            args, a, b_, r, Xk, np.ascontiguousarray(V[k]), float(h[k]), g_in[k], have_g,
+            float(dt), barrier.margin, barrier.alpha, barrier.length_scale, barrier.eps_p,
+            barrier.eps_w, SCALES, V_out[k], Xn, g_k, work)
+        X_next[k], g_out[k] = Xn, g_k
     return Supervised(V=V_out, X_next=X_next, h=h, h_next=h_next, scale=scale, active=~ok,
                       g=g_out)
+
+
+@numba.njit(cache=True)
+def _world_pose_of_E(new, X_WC, X_TE):
+    """new[21:33] = the World pose of E (p_WE, R_WE row-major) from the Tool pose in Center in
+    new[0:12] (p_CT, R_CT row-major); E's origin is the Tool's."""
+    for i in range(3):
+        pw = X_WC[i, 3]
+        for j in range(3):
+            pw += X_WC[i, j] * new[j]
+        new[21 + i] = pw
+        for j in range(3):
+            acc = 0.0
+            for k in range(3):
+                RWk = 0.0
+                for m in range(3):
+                    RWk += X_WC[i, m] * new[3 + 3 * m + k]
+                acc += RWk * X_TE[k, j]
+            new[24 + 3 * i + j] = acc
 
 
 @numba.njit(cache=True)
@@ -262,24 +371,32 @@ def _advance(x, V_W, dR, dt, R_CW, X_WC, X_TE, new, X1):
     for i in range(6):
         new[12 + i] = V_W[i]
     new[19], new[20] = 1.0, 0.0
-    for i in range(3):
-        pw = X_WC[i, 3]
-        for j in range(3):
-            pw += X_WC[i, j] * new[j]
-        new[21 + i] = pw
-        for j in range(3):
-            acc = 0.0
-            for k in range(3):
-                RWk = 0.0
-                for m in range(3):
-                    RWk += X_WC[i, m] * new[3 + 3 * m + k]
-                acc += RWk * X_TE[k, j]
-            new[24 + 3 * i + j] = acc
+    _world_pose_of_E(new, X_WC, X_TE)
     for i in range(3):
         X1[i, 3] = new[i]
         for j in range(3):
             X1[i, j] = new[3 + 3 * i + j]
     X1[3, 0], X1[3, 1], X1[3, 2], X1[3, 3] = 0.0, 0.0, 0.0, 1.0
+
+
+@numba.njit(cache=True)
+def _commit(X, V, scale, R_CW, X_WC, X_TE, new):
+    """The supervisor's state after a filtered step: the Tool pose X (4, 4) in Center, the
+    filtered twist V (Center) in World, the scale, active, the World pose of E (``new[0:21]``
+    but h, and ``new[21:33]``)."""
+    for i in range(3):
+        new[i] = X[i, 3]
+        for j in range(3):
+            new[3 + 3 * i + j] = X[i, j]
+    for i in range(3):  # R_WC = R_CW^T
+        w = 0.0
+        v = 0.0
+        for j in range(3):
+            w += R_CW[j, i] * V[j]
+            v += R_CW[j, i] * V[3 + j]
+        new[12 + i], new[15 + i] = w, v
+    new[19], new[20] = scale, 1.0
+    _world_pose_of_E(new, X_WC, X_TE)
 
 
 class SafetySupervisor(LeafSystem):
@@ -346,6 +463,9 @@ class SafetySupervisor(LeafSystem):
         self._X_ET = np.eye(4)
         self._X_ET[:3, :3] = R_ET
         self._X_TE = invert(self._X_ET)
+        # buffers of the compiled slow path (no allocation per step)
+        self._X0, self._Xn, self._work = np.eye(4), np.eye(4), np.eye(4)
+        self._Vc, self._Vo, self._g = np.zeros(6), np.zeros(6), np.zeros(6)
         self._V_in = self.DeclareVectorInputPort("V_WE_corrected", 6)
         # state: [p_CT (3), R_CT row-major (9), V filtered in World (6), h, scale, active,
         #         p_WE (3), R_WE row-major (9), gradient (6), its age in steps]
@@ -389,22 +509,20 @@ class SafetySupervisor(LeafSystem):
             # barrier_holds, on floats (the common case must be cheap)
             b = min(-bar.alpha * (h0 - bar.margin), 0.0) if h0 < np.inf else -np.inf
             if h0 < np.inf and not h >= h0 + self._period * b - TOLERANCE:  # the slow path
-                X0 = np.eye(4)
+                X0 = self._X0
                 X0[:3, :3], X0[:3, 3] = x[3:12].reshape(3, 3), x[:3]
-                V = np.concatenate([w_C, self._R_CW @ V_W[3:]])
+                V = self._Vc
+                V[:3], V[3:] = w_C, self._R_CW @ V_W[3:]
                 age = int(x[39])
-                res = supervise(self._clear, X0[None], V[None], self._barrier, self._period,
-                                h=[h0], g=x[None, 33:39] if age < GRADIENT_REUSE else None)
-                new[33:39] = res.g[0]
-                new[39] = age + 1 if age < GRADIENT_REUSE else 1
-                V, h = res.V[0], res.h_next[0]
-                p, R = res.X_next[0, :3, 3], res.X_next[0, :3, :3]
-                R_WC = self._R_CW.T
-                new[:3], new[3:12] = p, R.ravel()
-                new[12:15], new[15:18] = R_WC @ V[:3], R_WC @ V[3:]
-                new[19], new[20] = res.scale[0], 1.0
-                new[21:24] = R_WC @ p + self._X_WC[:3, 3]
-                new[24:33] = (R_WC @ R @ self._X_TE[:3, :3]).ravel()
+                have_g = age < GRADIENT_REUSE
+                h, scale = _filter_step(
+                    self._clear._args, self._clear._a, self._clear._b, self._clear._r, X0, V,
+                    h0, x[33:39], have_g, self._period, bar.margin, bar.alpha,
+                    bar.length_scale, bar.eps_p, bar.eps_w, SCALES, self._Vo, self._Xn,
+                    self._g, self._work)
+                new[33:39] = self._g
+                new[39] = age + 1 if have_g else 1
+                _commit(self._Xn, self._Vo, scale, self._R_CW, self._X_WC, self._X_TE, new)
             new[18] = min(h, FAR)
         else:
             new[18] = min(h0, FAR)

@@ -25,6 +25,14 @@ most d away). Values beyond ``cap`` are clamped (a lower bound stays one).
 1-Lipschitz f, f(q) >= sum_c w_c (L_c - |q - c|) >= I(q) - g sqrt(sum_a t_a (1 - t_a)), by
 Jensen (sum_c w_c |q - c|^2 = g^2 sum_a t_a (1 - t_a) for the cell's fractional coordinates t_a);
 each corner's cone L_c - |q - c| is a bound too, and the largest of the nine is used.
+Tighter away from the wall: the distance d to the boundary set (unsigned) has d(q)^2 - |q|^2 =
+min over boundary points b of (|b|^2 - 2 q . b), a minimum of affine functions, so concave;
+with the trilinear weights (convex, sum_c w_c c = q) d(q)^2 >= sum_c w_c max(L_c, 0)^2 -
+g^2 sum_a t_a (1 - t_a). It loses about g^2 sum t (1 - t) / (2 d) instead of g sqrt(sum t (1 -
+t)) (0.05 mm instead of 0.87 mm at the cell centre for d = 7 mm, g = 1 mm), and is at least the
+linear bound wherever that one is >= 0. Being a bound of the unsigned distance, it certifies
+only that the axis never meets the boundary: the axis then stays on the side of its start, and
+whether the start is in F is decided exactly (Eq. 10-11 at its height).
 
 **Along the axis** two samples q_i, q_{i+1} at distance t with bounds b_i, b_{i+1} give
 min over the segment between them of f >= (b_i + b_{i+1} - t) / 2 (both cones of slope 1). The
@@ -51,10 +59,11 @@ import numpy as np
 
 from implantplan.systems import actuator, validate
 from implantplan.systems.errors import InputError
-from implantplan.systems.fpsm import _W, TWO_PI, Fpsm
+from implantplan.systems.fpsm import _W, TWO_PI, Fpsm, _point_d_safe
 
 METHODS = ("sound", "paper")
 OUTSIDE = -1.0  # the bound (m) outside the grid box at z <= z_top: a collision, not a distance
+ROUNDING = 1e-9  # m taken off the square-root bound (rounding of the squared interpolation)
 
 
 # -- the tool ----------------------------------------------------------------------------------
@@ -423,7 +432,65 @@ def clearance_field(fpsm: Fpsm, **options) -> ClearanceField:
     return field
 
 
+def boundary_mesh(fpsm: Fpsm, *, angles: int = 4096, rings: int = 2, outer: float = 1.0):
+    """The boundary of the free region F (module notes) as a triangle mesh in Center (m): the
+    slab walls (``angles`` samples per curve, ``rings`` + 1 rows per slab: the wall is linear in z
+    at each angle, so only the angular chords and the quads' twist depart from it), the throat
+    disc at z_0 and the annulus of the plane z_top between the top curve and radius ``outer``.
+
+    An exact reference of the distance to the FPSM boundary, to the triangulation's error
+    (sub-micrometre at the default density on the bundled models): ``ExactCavity`` over it
+    measures how far a rod's certified bound lies below its true FPSM clearance
+    (analyses.rod_check's breakdown). Not used by the bound itself.
+    """
+    import trimesh
+
+    th = np.arange(angles) * (TWO_PI / angles)
+    c, s = np.cos(th), np.sin(th)
+    V, F = [], []
+    nv = 0
+    z = fpsm.slice_z
+    for j in range(z.size - 1):
+        zz = np.linspace(z[j], z[j + 1], rings + 1)
+        R = fpsm.radius_at(th[None, :], zz[:, None])
+        V.append(np.stack([R * c, R * s, np.broadcast_to(zz[:, None], R.shape)], -1)
+                 .reshape(-1, 3))
+        idx = nv + np.arange((rings + 1) * angles).reshape(rings + 1, angles)
+        a, b = idx[:-1], np.roll(idx[:-1], -1, axis=1)
+        cc, d = idx[1:], np.roll(idx[1:], -1, axis=1)
+        F += [np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, cc], -1).reshape(-1, 3)]
+        nv += (rings + 1) * angles
+    for zc, top in ((z[0], False), (z[-1], True)):
+        R = fpsm.radius_at(th, np.full(angles, zc))
+        ring = nv + np.arange(angles)
+        V.append(np.column_stack([R * c, R * s, np.full(angles, zc)]))
+        nv += angles
+        if top:
+            V.append(np.column_stack([outer * c, outer * s, np.full(angles, zc)]))
+            out = nv + np.arange(angles)
+            nv += angles
+            F += [np.stack([ring, out, np.roll(out, -1)], -1),
+                  np.stack([ring, np.roll(out, -1), np.roll(ring, -1)], -1)]
+        else:
+            V.append(np.array([[0.0, 0.0, zc]]))
+            F.append(np.stack([np.full(angles, nv), ring, np.roll(ring, -1)], -1))
+            nv += 1
+    return trimesh.Trimesh(np.concatenate(V), np.concatenate(F), process=False)
+
+
 # -- compiled kernels --------------------------------------------------------------------------
+
+
+@numba.njit(cache=True, inline="always")
+def _trilinear(v000, v100, v010, v110, v001, v101, v011, v111, tx, ty, tz):
+    """The trilinear interpolant of a cell's corner values at fractional coordinates t."""
+    c00 = v000 + tx * (v100 - v000)
+    c10 = v010 + tx * (v110 - v010)
+    c01 = v001 + tx * (v101 - v001)
+    c11 = v011 + tx * (v111 - v011)
+    c0 = c00 + ty * (c10 - c00)
+    c1 = c01 + ty * (c11 - c01)
+    return c0 + tz * (c1 - c0)
 
 
 @numba.njit(cache=True)
@@ -454,15 +521,23 @@ def _grid_bound(V, ox, oy, oz, g, x, y, z, refine):
     tx = fx - i
     ty = fy - j
     tz = fz - k
-    c00 = V[i, j, k] + tx * (V[i + 1, j, k] - V[i, j, k])
-    c10 = V[i, j + 1, k] + tx * (V[i + 1, j + 1, k] - V[i, j + 1, k])
-    c01 = V[i, j, k + 1] + tx * (V[i + 1, j, k + 1] - V[i, j, k + 1])
-    c11 = V[i, j + 1, k + 1] + tx * (V[i + 1, j + 1, k + 1] - V[i, j + 1, k + 1])
-    c0 = c00 + ty * (c10 - c00)
-    c1 = c01 + ty * (c11 - c01)
-    val = c0 + tz * (c1 - c0)
-    err = g * np.sqrt(tx * (1.0 - tx) + ty * (1.0 - ty) + tz * (1.0 - tz))
-    best = val - err
+    v000, v100 = V[i, j, k], V[i + 1, j, k]
+    v010, v110 = V[i, j + 1, k], V[i + 1, j + 1, k]
+    v001, v101 = V[i, j, k + 1], V[i + 1, j, k + 1]
+    v011, v111 = V[i, j + 1, k + 1], V[i + 1, j + 1, k + 1]
+    spread = tx * (1.0 - tx) + ty * (1.0 - ty) + tz * (1.0 - tz)
+    # the squared distance: d^2 - |q|^2 is concave, so d(q)^2 >= sum_c w_c L_c^2 - g^2 spread
+    # (module notes); where the linear bound below is >= 0 this one is at least as large
+    s000, s100 = max(v000, 0.0) ** 2, max(v100, 0.0) ** 2
+    s010, s110 = max(v010, 0.0) ** 2, max(v110, 0.0) ** 2
+    s001, s101 = max(v001, 0.0) ** 2, max(v101, 0.0) ** 2
+    s011, s111 = max(v011, 0.0) ** 2, max(v111, 0.0) ** 2
+    sq = _trilinear(s000, s100, s010, s110, s001, s101, s011, s111, tx, ty, tz) - g * g * spread
+    if sq > ROUNDING * ROUNDING:
+        best = np.sqrt(sq) - ROUNDING
+    else:  # near or beyond the wall: the trilinear interpolant less its Jensen term
+        val = _trilinear(v000, v100, v010, v110, v001, v101, v011, v111, tx, ty, tz)
+        best = val - g * np.sqrt(spread)
     if not refine:
         return best
     # the cone bound of each corner, L_c - |q - c|, is valid too: keep the larger
@@ -492,10 +567,13 @@ def _point_bound(V, ox, oy, oz, g, z_top, x, y, z, refine=True):
 
 
 @numba.njit(cache=True)
-def _segment_min(V, ox, oy, oz, g, z_top, cap, step, level, ax, ay, az, bx, by, bz):
+def _segment_min(V, ox, oy, oz, g, z_top, cap, step, rho, slice_z, level, ax, ay, az, bx, by,
+                 bz, stop=-np.inf):
     """Lower bound of min f over the segment a-b (adaptive march, module notes): distances up
     to ``level`` are resolved to the step; where the bound is far above both the running
-    minimum and ``level`` the march takes long steps (the interval bound stays >= either)."""
+    minimum and ``level`` the march takes long steps (the interval bound stays >= either).
+    Once the running minimum is below ``stop`` the march ends and returns it (then only "below
+    ``stop``" is certain: the verdict-only path)."""
     dx = bx - ax
     dy = by - ay
     dz = bz - az
@@ -503,8 +581,15 @@ def _segment_min(V, ox, oy, oz, g, z_top, cap, step, level, ax, ay, az, bx, by, 
     b_prev = _point_bound(V, ox, oy, oz, g, z_top, ax, ay, az)
     if b_prev <= OUTSIDE:
         return OUTSIDE
+    if az <= z_top:
+        # the squared-distance bound is one of the unsigned distance: the march certifies that
+        # the axis never meets the boundary, so it stays on the side of its start; whether the
+        # start is in F is decided exactly (the curve at its height, Eq. 10-11)
+        d0 = _point_d_safe(rho, slice_z, 0.0, ax, ay, az, 0.0)
+        if not d0 > 0.0:
+            return min(d0, 0.0)
     m = min(b_prev, cap)
-    if length <= 0.0:
+    if length <= 0.0 or m < stop:
         return m
     ux = dx / length
     uy = dy / length
@@ -526,43 +611,58 @@ def _segment_min(V, ox, oy, oz, g, z_top, cap, step, level, ax, ay, az, bx, by, 
             m = lo
         if b < m:
             m = b
+        if m < stop:
+            return m
         b_prev = b
     return m
 
 
 @numba.njit(cache=True, parallel=True)
-def _capsules_kernel(V, ox, oy, oz, g, z_top, cap, step, resolve, A, B, r, out):
+def _capsules_kernel(V, ox, oy, oz, g, z_top, cap, step, resolve, rho, slice_z, A, B, r, out,
+                     verdict=-np.inf):
+    """out[k] = the capsules' certified clearances; with a finite ``verdict`` the march of a
+    capsule stops as soon as its clearance is certain to be <= verdict (out[k] is then only
+    known to be <= verdict: the verdict-only path)."""
     for k in numba.prange(A.shape[0]):
         out[k] = (
             _segment_min(
-                V, ox, oy, oz, g, z_top, cap, step, r[k] + resolve,
-                A[k, 0], A[k, 1], A[k, 2], B[k, 0], B[k, 1], B[k, 2],
+                V, ox, oy, oz, g, z_top, cap, step, rho, slice_z, r[k] + resolve,
+                A[k, 0], A[k, 1], A[k, 2], B[k, 0], B[k, 1], B[k, 2], r[k] + verdict,
             )
             - r[k]
         )
 
 
 @numba.njit(cache=True)
-def _tool_kernel(V, ox, oy, oz, g, z_top, cap, step, resolve, X, a, b, r, out):
+def _tool_one(V, ox, oy, oz, g, z_top, cap, step, resolve, rho, slice_z, X, a, b, r):
+    """The tool's clearance at one pose X ((4, 4) or (3, 4), Tool in Center): the smallest of
+    its capsules' (a, b (C, 3) in T, radii r (C,))."""
+    best = np.inf
+    for c in range(a.shape[0]):
+        px = X[0, 3] + X[0, 0] * a[c, 0] + X[0, 1] * a[c, 1] + X[0, 2] * a[c, 2]
+        py = X[1, 3] + X[1, 0] * a[c, 0] + X[1, 1] * a[c, 1] + X[1, 2] * a[c, 2]
+        pz = X[2, 3] + X[2, 0] * a[c, 0] + X[2, 1] * a[c, 1] + X[2, 2] * a[c, 2]
+        qx = X[0, 3] + X[0, 0] * b[c, 0] + X[0, 1] * b[c, 1] + X[0, 2] * b[c, 2]
+        qy = X[1, 3] + X[1, 0] * b[c, 0] + X[1, 1] * b[c, 1] + X[1, 2] * b[c, 2]
+        qz = X[2, 3] + X[2, 0] * b[c, 0] + X[2, 1] * b[c, 1] + X[2, 2] * b[c, 2]
+        v = (
+            _segment_min(
+                V, ox, oy, oz, g, z_top, cap, step, rho, slice_z, r[c] + resolve, px, py, pz,
+                qx, qy, qz,
+            )
+            - r[c]
+        )
+        if v < best:
+            best = v
+    return best
+
+
+@numba.njit(cache=True)
+def _tool_kernel(V, ox, oy, oz, g, z_top, cap, step, resolve, rho, slice_z, X, a, b, r, out):
     """out[k] = min over the tool's capsules (a, b (C, 3) in T, radii r (C,)) at pose X[k]."""
     for k in range(X.shape[0]):
-        best = np.inf
-        for c in range(a.shape[0]):
-            px = X[k, 0, 3] + X[k, 0, 0] * a[c, 0] + X[k, 0, 1] * a[c, 1] + X[k, 0, 2] * a[c, 2]
-            py = X[k, 1, 3] + X[k, 1, 0] * a[c, 0] + X[k, 1, 1] * a[c, 1] + X[k, 1, 2] * a[c, 2]
-            pz = X[k, 2, 3] + X[k, 2, 0] * a[c, 0] + X[k, 2, 1] * a[c, 1] + X[k, 2, 2] * a[c, 2]
-            qx = X[k, 0, 3] + X[k, 0, 0] * b[c, 0] + X[k, 0, 1] * b[c, 1] + X[k, 0, 2] * b[c, 2]
-            qy = X[k, 1, 3] + X[k, 1, 0] * b[c, 0] + X[k, 1, 1] * b[c, 1] + X[k, 1, 2] * b[c, 2]
-            qz = X[k, 2, 3] + X[k, 2, 0] * b[c, 0] + X[k, 2, 1] * b[c, 1] + X[k, 2, 2] * b[c, 2]
-            v = (
-                _segment_min(
-                    V, ox, oy, oz, g, z_top, cap, step, r[c] + resolve, px, py, pz, qx, qy, qz
-                )
-                - r[c]
-            )
-            if v < best:
-                best = v
-        out[k] = best
+        out[k] = _tool_one(V, ox, oy, oz, g, z_top, cap, step, resolve, rho, slice_z, X[k], a,
+                           b, r)
 
 
 # -- public API --------------------------------------------------------------------------------
@@ -589,13 +689,14 @@ MAX_FEED = 0.2  # longest feed (m) checked when the rod axis does not rise out o
 RESOLVE = 0.005  # clearances up to this (m) are resolved to the step; larger ones: >= about it
 
 
-def _field_args(field: ClearanceField, step: float | None):
+def _field_args(field: ClearanceField, step: float | None, fpsm: Fpsm):
     o = field.origin
     st = field.spacing / 2 if step is None else float(step)
     if not np.isfinite(st) or st <= 0:
         raise InputError("step", f"expected a positive step (m), got {step}")
     return (field.values, float(o[0]), float(o[1]), float(o[2]), field.spacing, field.z_top,
-            field.cap, st, RESOLVE)
+            field.cap, st, RESOLVE, np.ascontiguousarray(fpsm.rho, dtype=float),
+            np.ascontiguousarray(fpsm.slice_z, dtype=float))
 
 
 def rod_clearance(
@@ -613,13 +714,43 @@ def rod_clearance(
             smallest safe distance of the axis against the model shrunk by r at the slice
             crossings and the end points (not a bound; for comparison).
         step: axis sampling step near the wall for ``sound`` (m), default half the grid
-            spacing (each step costs at most half of it in the bound).
+            spacing (each step costs at most half of it in the bound; a quarter cuts the
+            rejected free rods by about a third at twice the cost).
 
     Returns:
         (n,) clearances (a (1,) array for a single capsule).
     """
     if method not in METHODS:
         raise InputError("method", f"expected one of {METHODS}, got {method!r}")
+    A, B, r = _capsule_batch(p0, p1, radius)
+    if method == "paper":
+        d = B - A
+        L = np.linalg.norm(d, axis=1)
+        u = np.where(L[:, None] > 0, d / np.where(L > 0, L, 1.0)[:, None], [0.0, 0.0, 1.0])
+        ls = fpsm.line_safety_batch(A, u, np.maximum(L, 1e-12), np.ascontiguousarray(r))
+        out = ls.d_safe_min
+        return out
+    out = np.empty(A.shape[0])
+    _capsules_kernel(*_field_args(clearance_field(fpsm), step, fpsm), A, B, r, out)
+    return out
+
+
+def rod_safe(fpsm: Fpsm, p0, p1, radius, *, clearance: float = 0.0,
+             step: float | None = None) -> np.ndarray:
+    """The verdict only: (n,) True where the sound clearance of :func:`rod_clearance` is above
+    ``clearance`` (m), the same verdict as ``rod_clearance(...) > clearance``, faster: a
+    capsule's march stops as soon as its bound is certain to be at or below ``clearance``."""
+    A, B, r = _capsule_batch(p0, p1, radius)
+    clearance = float(clearance)
+    if not np.isfinite(clearance):
+        raise InputError("clearance", f"expected a finite clearance (m), got {clearance}")
+    out = np.empty(A.shape[0])
+    _capsules_kernel(*_field_args(clearance_field(fpsm), step, fpsm), A, B, r, out, clearance)
+    return out > clearance
+
+
+def _capsule_batch(p0, p1, radius):
+    """Checked, contiguous (n, 3) starts and ends and (n,) radii (m) of a batch of capsules."""
     A = np.atleast_2d(_points(p0, "p0"))
     B = np.atleast_2d(_points(p1, "p1"))
     try:
@@ -634,18 +765,7 @@ def rod_clearance(
                          f"got {radius!r}") from None
     if not np.all(np.isfinite(r)) or np.any(r < 0):
         raise InputError("radius", "expected radii >= 0 m")
-    if method == "paper":
-        d = B - A
-        L = np.linalg.norm(d, axis=1)
-        u = np.where(L[:, None] > 0, d / np.where(L > 0, L, 1.0)[:, None], [0.0, 0.0, 1.0])
-        ls = fpsm.line_safety_batch(A, u, np.maximum(L, 1e-12), np.ascontiguousarray(r))
-        out = ls.d_safe_min
-        return out
-    out = np.empty(A.shape[0])
-    _capsules_kernel(*_field_args(clearance_field(fpsm), step),
-                     np.ascontiguousarray(A), np.ascontiguousarray(B),
-                     np.ascontiguousarray(r), out)
-    return out
+    return np.ascontiguousarray(A), np.ascontiguousarray(B), np.ascontiguousarray(r)
 
 
 def _tool_capsules(X_CT: np.ndarray, tool: ToolGeometry):
@@ -710,10 +830,9 @@ class ToolClearance:
         self.fpsm = fpsm
         self.tool = tool or ToolGeometry()
         self.field = clearance_field(fpsm)
-        self._args = _field_args(self.field, step)
+        self._args = _field_args(self.field, step, fpsm)
         a, b, r = self.tool.capsules_T()
         self._a, self._b, self._r = a, b, np.ascontiguousarray(r, dtype=float)
-        self._out1 = np.empty(1)
 
     def __call__(self, X_CTool) -> np.ndarray:
         X = np.ascontiguousarray(_poses(X_CTool))
@@ -723,9 +842,8 @@ class ToolClearance:
 
     def one(self, X_CTool: np.ndarray) -> float:
         """Clearance (m) at one (4, 4) pose, without input checks."""
-        X = np.ascontiguousarray(X_CTool, dtype=float).reshape(1, 4, 4)
-        _tool_kernel(*self._args, X, self._a, self._b, self._r, self._out1)
-        return float(self._out1[0])
+        return _tool_one(*self._args, np.ascontiguousarray(X_CTool, dtype=float), self._a,
+                         self._b, self._r)
 
 
 def feed_poses(X_CTool, depth: float, step: float) -> tuple[np.ndarray, float]:
@@ -821,7 +939,7 @@ def feed_clearance(
     field = clearance_field(fpsm)
     C = A.shape[1]
     vals = np.empty(n * S * C)
-    _capsules_kernel(*_field_args(field, None), np.ascontiguousarray(A.reshape(-1, 3)),
+    _capsules_kernel(*_field_args(field, None, fpsm), np.ascontiguousarray(A.reshape(-1, 3)),
                      np.ascontiguousarray(B.reshape(-1, 3)), np.tile(r, n * S), vals)
     vals = vals.reshape(n, S, C)
     loss = lateral + angle * tool.reach_T()

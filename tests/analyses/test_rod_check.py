@@ -27,6 +27,17 @@ def test_no_rod_called_safe_is_in_tissue(variants):
         assert res["paper"]["false_safe_below_0"] > 0
 
 
+def test_breakdown_of_the_rejected_rods(variants):
+    """Every exactly-free rod the bound rejects is in one class; no rod is certified above its
+    exact clearance to the FPSM boundary (the independent reference of the bound)."""
+    res = rod_check.compare(variants[0], 2000, seed=2, breakdown=True)
+    b = res["breakdown"]
+    assert b["throat"] + b["fpsm"] + b["slack"] == b["rejected"] > 0
+    assert b["bound_above_fpsm_exact"] == 0
+    assert b["free_in_both"] > 50
+    assert b["free_in_both_called_unsafe_share"] < res["sound"]["free_called_unsafe_share"]
+
+
 def test_same_seed_same_rods(variants):
     a = rod_check.random_rods(variants[0].fpsm, 100, seed=3)
     b = rod_check.random_rods(variants[0].fpsm, 100, seed=3)

@@ -14,6 +14,7 @@ from implantplan.systems.tool_clearance import (
     curve_bounds,
     feed_clearance,
     rod_clearance,
+    rod_safe,
     tool_clearance,
 )
 
@@ -79,6 +80,48 @@ def test_sound_never_exceeds_exact_on_random_rods(cylinder):
     assert free.sum() > 500
     # conservative but not useless: most rods free by 1.5 mm are certified free
     assert np.mean(c[exact > 0.0015] > 0) > 0.9
+
+
+@pytest.mark.parametrize("threshold", [0.0, 0.001, -0.002])
+def test_verdict_path_gives_the_signed_bounds_verdict(cylinder, threshold):
+    """rod_safe stops a capsule's march once it is certain to fail: the verdict is still exactly
+    rod_clearance > threshold, on random rods that pass and fail."""
+    rng = np.random.default_rng(11)
+    n = 4000
+    p0 = np.column_stack([rng.uniform(-0.045, 0.045, n), rng.uniform(-0.045, 0.045, n),
+                          rng.uniform(0.005, 0.095, n)])
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    p1 = p0 + rng.uniform(0.0, 0.3, n)[:, None] * d
+    r = rng.uniform(0.0, 0.008, n)
+    c = rod_clearance(cylinder, p0, p1, r)
+    safe = rod_safe(cylinder, p0, p1, r, clearance=threshold)
+    np.testing.assert_array_equal(safe, c > threshold)
+    assert 0 < safe.sum() < n
+    # the cylinder by hand: an axial rod 40 mm off the axis, radius 6 mm, is 50 - 40 - 6 = 4 mm
+    # free (the bound is within a grid cell of it and never above it)
+    rod = ([0.04, 0, 0.05], [0.04, 0, 0.5], 0.006)
+    assert rod_safe(cylinder, *rod, clearance=0.002)[0]
+    assert not rod_safe(cylinder, *rod, clearance=0.0041)[0]
+
+
+def test_a_start_just_outside_the_wall_is_never_certified(cylinder):
+    """The squared-distance bound is one of the unsigned distance (module notes), so whether a
+    start is in F is decided separately: a rod starting in tissue, 0.01-1.5 mm beyond the wall
+    (inside the grid box, in cells with corner nodes inside the cylinder), is not free, whatever
+    its radius and direction; the same points moved 5 mm inside are."""
+    rng = np.random.default_rng(5)
+    n = 2000
+    th = rng.uniform(0, 2 * np.pi, n)
+    rr = RHO + rng.uniform(1e-5, 1.5e-3, n)
+    p0 = np.column_stack([rr * np.cos(th), rr * np.sin(th), rng.uniform(0.01, 0.09, n)])
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    p1 = p0 + rng.uniform(0.0, 0.01, n)[:, None] * d
+    assert np.all(rod_clearance(cylinder, p0, p1, 0.0) <= 0)
+    assert not rod_safe(cylinder, p0, p1, 0.0).any()
+    inside = p0 * np.array([0.9, 0.9, 1.0])  # 5 mm and more inside the wall
+    assert np.mean(rod_clearance(cylinder, inside, inside, 0.0) > 0) > 0.99
 
 
 def test_leaving_through_the_side_or_throat_is_a_collision(cylinder):
