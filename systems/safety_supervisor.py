@@ -38,7 +38,7 @@ tissue. The estimator's alarm stays as the second line of defence.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numba
 import numpy as np
@@ -317,6 +317,8 @@ class SafetySupervisor(LeafSystem):
         barrier: the filter's settings.
         period: update period (s).
         enabled: False integrates the command unfiltered (experiments without the supervisor).
+        margin_input: declare a vector input port ``margin_extra`` (1, m) added to the
+            barrier's margin at every update (the awake patient: tracking lag and error).
     """
 
     def __init__(
@@ -330,6 +332,7 @@ class SafetySupervisor(LeafSystem):
         barrier: Barrier | None = None,
         period: float = 0.005,
         enabled: bool = True,
+        margin_input: bool = False,
     ):
         super().__init__()
         if not np.isfinite(period) or period <= 0:
@@ -347,6 +350,7 @@ class SafetySupervisor(LeafSystem):
         self._X_ET[:3, :3] = R_ET
         self._X_TE = invert(self._X_ET)
         self._V_in = self.DeclareVectorInputPort("V_WE_corrected", 6)
+        self._margin_in = self.DeclareVectorInputPort("margin_extra", 1) if margin_input else None
         # state: [p_CT (3), R_CT row-major (9), V filtered in World (6), h, scale, active,
         #         p_WE (3), R_WE row-major (9), gradient (6), its age in steps]
         self.DeclareDiscreteState(self._state_of(np.asarray(X_WE_initial, dtype=float)))
@@ -386,6 +390,8 @@ class SafetySupervisor(LeafSystem):
         if self._enabled:
             h = self._clear.one(X1)
             bar = self._barrier
+            if self._margin_in is not None:  # the awake patient: tracking lag and error
+                bar = replace(bar, margin=bar.margin + float(self._margin_in.Eval(context)[0]))
             # barrier_holds, on floats (the common case must be cheap)
             b = min(-bar.alpha * (h0 - bar.margin), 0.0) if h0 < np.inf else -np.inf
             if h0 < np.inf and not h >= h0 + self._period * b - TOLERANCE:  # the slow path
@@ -393,7 +399,7 @@ class SafetySupervisor(LeafSystem):
                 X0[:3, :3], X0[:3, 3] = x[3:12].reshape(3, 3), x[:3]
                 V = np.concatenate([w_C, self._R_CW @ V_W[3:]])
                 age = int(x[39])
-                res = supervise(self._clear, X0[None], V[None], self._barrier, self._period,
+                res = supervise(self._clear, X0[None], V[None], bar, self._period,
                                 h=[h0], g=x[None, 33:39] if age < GRADIENT_REUSE else None)
                 new[33:39] = res.g[0]
                 new[39] = age + 1 if age < GRADIENT_REUSE else 1
