@@ -143,7 +143,7 @@ class Tracker(LeafSystem):
     newest available sample is missing (marker occluded), else 0.0.
 
     State: a ring of the last ``RING`` samples [time, good, p (3), R (9)], written at the
-    camera's rate.
+    camera's rate, and the newest good available sample (held through long dropouts).
     """
 
     def __init__(self, params: TrackerParams, X_WHead0):
@@ -152,8 +152,8 @@ class Tracker(LeafSystem):
         X0 = np.asarray(X_WHead0, dtype=float)
         self._X0 = X0
         row = np.concatenate([[-np.inf, 1.0], X0[:3, 3], X0[:3, :3].ravel()])
-        # [ring (RING x 14), next slot]
-        self.DeclareDiscreteState(np.concatenate([np.tile(row, RING), [0.0]]))
+        # [ring (RING x 14), next slot, held: the newest good available sample (14)]
+        self.DeclareDiscreteState(np.concatenate([np.tile(row, RING), [0.0], row]))
         self.DeclarePeriodicDiscreteUpdateEvent(params.period, 0.0, self._update)
         self._X_in = self.DeclareAbstractInputPort("X_WHead",
                                                    AbstractValue.Make(RigidTransform()))
@@ -174,19 +174,22 @@ class Tracker(LeafSystem):
     def _update(self, context, discrete_state):
         x = context.get_discrete_state(0).get_value().copy()
         t = context.get_time()
+        good = self._good(context)
+        if good.shape[0]:  # held through dropouts longer than the ring
+            x[-14:] = good[-1]
         tick = int(round(t * self._p.rate))
         X = self._X_in.Eval(context).GetAsMatrix4()
         Xm = camera_samples(self._p, X[None], [tick])[0]
-        slot = int(x[-1]) % RING
+        slot = int(x[14 * RING]) % RING
         good = 0.0 if self._p.missing(t)[0] else 1.0
         x[14 * slot:14 * slot + 14] = np.concatenate([[t, good], Xm[:3, 3], Xm[:3, :3].ravel()])
-        x[-1] = (slot + 1) % RING
+        x[14 * RING] = (slot + 1) % RING
         discrete_state.get_mutable_vector(0).SetFromVector(x)
 
     def _available(self, context) -> np.ndarray:
         """Rows of the available samples (taken >= latency ago), oldest first."""
         x = context.get_discrete_state(0).get_value()
-        ring = x[:-1].reshape(RING, 14)
+        ring = x[:14 * RING].reshape(RING, 14)
         ring = ring[np.argsort(ring[:, 0], kind="stable")]
         return ring[ring[:, 0] <= context.get_time() - self._p.latency + 1e-9]
 
@@ -197,10 +200,9 @@ class Tracker(LeafSystem):
     def estimate(self, context) -> np.ndarray:
         """(4, 4) the current estimate of the head pose."""
         good = self._good(context)
-        if good.shape[0] == 0:
-            return self._X0.copy()
+        row = good[-1] if good.shape[0] else context.get_discrete_state(0).get_value()[-14:]
         X = np.eye(4)
-        X[:3, 3], X[:3, :3] = good[-1, 2:5], good[-1, 5:14].reshape(3, 3)
+        X[:3, 3], X[:3, :3] = row[2:5], row[5:14].reshape(3, 3)
         return X
 
     def _calc_pose(self, context, value):
