@@ -63,12 +63,11 @@ def cylinder_cavity(fpsm, sections: int = 256) -> ExactCavity:
 
 
 def default_case(seed: int = 0, scenario: str = "lying"):
-    """(case, instrument) of the default feeding case (analyses.simulate's selected layout)."""
-    from implantplan.analyses.simulate import select_layout
-
+    """(case, instrument) of the default feeding case (the layout ``simulate feeding`` selects
+    without a robot placement: the knee of the random feasible bases)."""
     inst = F.default_instrument(seed)
     sc, sc_plant = F.load_scenario(scenario)
-    xyz, branch, _ = select_layout(sc, seed=seed)
+    xyz, branch, _ = F.knee_layout(sc, seed=seed)
     name = sc.posture if sc.posture in ("lying", "sitting") else "arm"
     return F.make_case(name, sc_plant, xyz, branch, inst, label="selected"), inst
 

@@ -87,9 +87,10 @@ class TrackerParams:
 
 
 def velocity_fit(rows: np.ndarray) -> np.ndarray:
-    """(6,) [w; v] least-squares slope of samples ``rows`` (n, 14) [t, good, p, R] (zero for
-    fewer than two)."""
-    if rows.shape[0] < 2:
+    """(6,) [w; v] least-squares slope of samples ``rows`` (n, 14) [t, good, p, R]; zero for
+    fewer than ``VELOCITY_WINDOW`` (a slope of two or three noisy samples reads tens of mm/s of
+    noise as head speed)."""
+    if rows.shape[0] < VELOCITY_WINDOW:
         return np.zeros(6)
     t = rows[:, 0] - rows[-1, 0]
     R = rows[:, 5:14].reshape(-1, 3, 3)
