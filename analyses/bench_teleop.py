@@ -221,6 +221,8 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--case", choices=("default", "cylinder"), default="default",
                         help="default: site 36 of the bundled case; cylinder: seed 000's check")
+    parser.add_argument("--head-motion", help="also time the kinematic diagram with this head "
+                        "motion on (breathing|swallow|startle|drift; issue 16: target >= 5x)")
     args = parser.parse_args(argv)
 
     if args.case == "default":
@@ -247,6 +249,14 @@ def main(argv=None) -> int:
             kin_run = run
         seconds = sim / len(motions)
         rows.append((mode, sim / wall, bare_loop(case, mode, seconds)))
+    if args.head_motion:  # the awake patient: tracker, guard, moving patient (kinematic only)
+        from implantplan.systems.head_motion import HeadMotion
+
+        hm = HeadMotion.make(args.head_motion, seed=args.seed, pivot=case.X_WCenter[:3, 3])
+        head = T.build_teleop(case, head_motion=hm)
+        runs = [T.simulate(head, m.duration + S.FINISH_SECONDS, motion=m) for m in motions]
+        rows.append((f"kin+{args.head_motion}", sum(r.sim_seconds for r in runs)
+                     / sum(r.wall_seconds for r in runs), rows[0][2]))
     kin = diagrams["kinematic"]
     calm = safety_layer_cost(kin, kin_run, motions[-1])
     # the push with the fixture off, so that the supervisor's barrier does the stopping (its

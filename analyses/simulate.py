@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from implantplan.analyses.figures.simulation import plot_circle, plot_feeding, plot_layouts
+from implantplan.analyses.head_study import register_analysis as register_head_analysis
 from implantplan.analyses.moprp_fidelity import gii_units, register_analysis
 from implantplan.analyses.progress import Progress
 from implantplan.diagrams.feeding import (  # the case and the runs (bench_teleop reads them here)
@@ -254,6 +255,9 @@ def register(subparsers) -> None:
     p.add_argument("--meshcat-html", type=Path, help="write a static HTML replay of run 0")
     p.add_argument("--csv", type=Path, help="replay a studio recording (MasterDevice CSV with "
                    "its <name>.json case beside it) instead of scripted feeds")
+    p.add_argument("--head-motion", help="the awake patient: breathing|swallow|startle|drift or "
+                   "a CSV of head displacements (t_s,x_m,y_m,z_m,rx_rad,ry_rad,rz_rad); seeded "
+                   "by --seed; kinematic mode; the arm follows the tracked mouth")
     _operator_options(p)
     p.set_defaults(func=cmd_feeding)
     p = sub.add_parser("circle", help="circle r 25 mm at 10 mm/s with injected joint error")
@@ -271,6 +275,7 @@ def register(subparsers) -> None:
     _operator_options(p)
     p.set_defaults(func=cmd_layouts)
     register_analysis(sub)
+    register_head_analysis(sub)
 
 
 def _check_count(value: int, name: str, lo: int = 1) -> None:
@@ -338,6 +343,13 @@ def cmd_feeding(args) -> int:
         meshcat = Meshcat()
     t0 = time.perf_counter()
     operator = _operator(args)
+    head = None
+    if args.head_motion is not None:
+        from implantplan.systems.head_motion import HeadMotion
+
+        if args.mode != "kinematic":
+            raise InputError("--head-motion", "expected --mode kinematic with a head motion")
+        head = HeadMotion.make(args.head_motion, seed=args.seed, pivot=case.X_WCenter[:3, 3])
     result = run_feeding(
         case,
         runs=args.runs,
@@ -346,6 +358,7 @@ def cmd_feeding(args) -> int:
         operator=operator,
         meshcat=meshcat,
         progress=progress,
+        head_motion=head,
     )
     if meshcat is not None:
         write_text_atomic(args.meshcat_html, meshcat.StaticHtml())
@@ -361,6 +374,8 @@ def cmd_feeding(args) -> int:
         "operator": dataclasses.asdict(operator),
         "runs": runs,
         "realtime_factor": result["realtime_factor"],
+        "head_motion": None if head is None else {"profile": head.profile, "seed": head.seed,
+                                                  "params": head.params},
         "summary": {
             "joint_travel_mean": float(np.mean([r["joint_travel"] for r in runs])),
             "joint_travel_std": float(np.std([r["joint_travel"] for r in runs])),

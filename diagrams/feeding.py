@@ -149,25 +149,39 @@ def run_feeding(
     operator: Operator | None = None,
     meshcat=None,
     progress=None,
+    head_motion=None,
 ) -> dict:
     """K scripted feeds on one case; per-run figures and the overall realtime factor. The runs
     share one diagram (a motion is a context parameter); with ``meshcat`` the first run is shown
     and recorded on a second diagram that has the visualizer.
 
     ``progress``: anything with ``step(i, n, text)`` (analyses.progress.Progress), or None.
+    ``head_motion``: a systems.head_motion.HeadMotion (the awake patient, every run; the arm
+    follows the tracked mouth): the errors are then relative to the moving head, and each run
+    says whether the head guard stopped it.
     """
     start = case.X_WE(case.q_start)[:3, 3]
     target = case.X_WTarget[:3, 3]
     motions = feeding_runs(start, target, runs=runs, seed=seed, operator=operator)
-    teleop = build_teleop(case, mode=mode)  # one diagram for every run; each sets its motion
-    shown = build_teleop(case, mode=mode, meshcat=meshcat) if meshcat is not None else teleop
+    head = {} if head_motion is None else {"head_motion": head_motion}
+    teleop = build_teleop(case, mode=mode, **head)  # one diagram for every run; each its motion
+    shown = build_teleop(case, mode=mode, meshcat=meshcat, **head) if meshcat is not None else (
+        teleop)
+    target_C = (invert(case.X_WCenter) @ case.X_WTarget)[:3, 3]
     out = []
     for i, motion in enumerate(motions):
         run = simulate(shown if i == 0 else teleop, motion.duration + FINISH_SECONDS,
                        motion=motion, recording=i == 0 and meshcat is not None)
-        err = float(np.linalg.norm(run.p_WE[-1] - target))
+        err = float(np.linalg.norm(run.p_WE[-1] - target)) if head_motion is None else float(
+            np.linalg.norm(run.X_CT[-1, :3, 3] - target_C))  # relative to the moving head
+        extra = {} if run.guard is None else {
+            "head_guard_stopped": bool(run.guard[-1, 0] > 0.5),
+            "head_guard_time": float(run.guard[-1, 2]),
+            "max_margin_extra": float(np.max(run.margin_extra)),
+        }
         out.append(
             {
+                **extra,
                 "joint_travel": run.joint_travel,
                 "min_d_safe": float(np.min(run.min_d_safe)),
                 "max_vf_violation": float(np.max(run.violation)),

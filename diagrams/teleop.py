@@ -29,6 +29,24 @@ out of the mouth, z along the implant axis) is End rotated by R_ET = R_OE^T (sys
 = Tool, and End's axes in Oral are R_OE). The FPSM and the virtual fixture live in the Center
 frame, placed in World by ``X_WCenter``.
 
+The awake patient (``head_motion``, kinematic mode; DESIGN.md section 7): a HeadMotionSource
+moves the patient body (all of the scenario's patient and chair geometry, rigidly with the head)
+in the scene; a Tracker estimates the head pose; TrackedHeadFrame gives the fixture, the
+estimator and the master the measured tool pose in the tracked head (X_WCenter0 X_WHead^-1
+X_WE: the constant X_WCenter composed with the tracked head displacement) and sends DiffIK the
+supervisor's desired pose carried with the tracked head, so the arm follows the mouth; a
+HeadGuard between the fixture and the supervisor grows the supervisor's margin with the tracked
+head speed and backs the tool out on lost tracking or a head too fast to follow. With
+``follow=False`` the head moves but the arm ignores it (the comparison run).
+
+```
+HeadMotion --X_WHead--> Tracker --X_WHead_est, V, lost--> TrackedHeadFrame, HeadGuard
+HeadMotion --D_W--> MovePatient (plant's geometry poses, patient body displaced) --> SceneGraph
+tool_pose --X_WE--> TrackedHeadFrame --X_WE_head--> fixture, estimator, master
+fixture --> HeadGuard --V, margin_extra--> supervisor --X_WE_desired_head--> TrackedHeadFrame
+TrackedHeadFrame --X_WE_desired--> DiffIK
+```
+
 The scene (arm, actuator, cart, chair and patient) is diagrams.plant's: build_plant returns a
 finished diagram, so this module adds the same model directives and the same scenario geometry
 (diagrams.plant.add_scenario_geometry, the MOPRP scenario's patient/chair/cart) to its own
@@ -43,12 +61,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.geometry import (
+    FramePoseVector,
     MeshcatVisualizer,
     MeshcatVisualizerParams,
     Role,
     SceneGraph,
 )
-from pydrake.math import RigidTransform
+from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.multibody.inverse_kinematics import (
     DifferentialInverseKinematicsIntegrator,
     DifferentialInverseKinematicsParameters,
@@ -66,11 +85,14 @@ from implantplan.systems import kinematics as kin
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm import Fpsm
 from implantplan.systems.fpsm_estimator import FpsmEstimator, ToolLines
-from implantplan.systems.frames import transform
+from implantplan.systems.frames import invert, transform
+from implantplan.systems.head_guard import GuardSettings, HeadGuard
+from implantplan.systems.head_motion import HeadMotion, HeadMotionSource
 from implantplan.systems.master_device import IncrementalMapping, MasterDevice, MasterMotion
 from implantplan.systems.moprp import R_OE
 from implantplan.systems.safety_supervisor import Barrier, SafetySupervisor
 from implantplan.systems.tool_clearance import ToolGeometry
+from implantplan.systems.tracker import Tracker, TrackerParams
 from implantplan.systems.vf_system import VirtualFixtureForceLaw
 from implantplan.systems.virtual_fixture import VirtualFixture
 
@@ -184,6 +206,9 @@ class Teleop:
     visualizer: object = None
     interpolator: object = None
     keep: list = field(default_factory=list)
+    head: HeadMotionSource | None = None
+    tracker: Tracker | None = None
+    guard: HeadGuard | None = None
 
     def initialize(self, context) -> None:
         """Put the arm, DiffIK and the fixture's desired pose at the case's start."""
@@ -200,6 +225,86 @@ class Teleop:
         self.supervisor.set_desired_pose(
             self.supervisor.GetMyMutableContextFromRoot(context), self.case.X_WE(q0)
         )
+
+
+def _rt(X) -> RigidTransform:
+    return RigidTransform(RotationMatrix.ProjectToRotationMatrix(X[:3, :3]), X[:3, 3])
+
+
+class TrackedHeadFrame(LeafSystem):
+    """The tool in the tracked head and the desired pose carried with it (the awake patient).
+
+    .. pydrake_system::
+
+        name: TrackedHeadFrame
+        input_ports:
+        - X_WHead_estimated
+        - X_WE_measured
+        - X_WE_desired_head
+        output_ports:
+        - X_WE_head
+        - X_WE_desired
+
+    With H = X_WHead_estimated X_WHead0^-1 (the tracked displacement of the head):
+    ``X_WE_head`` = H^-1 X_WE_measured, the measured tool pose in the head-fixed World (where the
+    constant X_WCenter holds: the fixture, the estimator and the master work there), and
+    ``X_WE_desired`` = H X_WE_desired_head, the supervisor's desired pose carried with the head,
+    for DiffIK. All abstract RigidTransforms.
+    """
+
+    def __init__(self, X_WHead0):
+        super().__init__()
+        self._X0_inv = invert(np.asarray(X_WHead0, dtype=float))
+        make = lambda: AbstractValue.Make(RigidTransform())  # noqa: E731
+        self._head = self.DeclareAbstractInputPort("X_WHead_estimated", make())
+        self._meas = self.DeclareAbstractInputPort("X_WE_measured", make())
+        self._des = self.DeclareAbstractInputPort("X_WE_desired_head", make())
+        self.DeclareAbstractOutputPort("X_WE_head", make, self._calc_head)
+        self.DeclareAbstractOutputPort("X_WE_desired", make, self._calc_desired)
+
+    def _H(self, context) -> np.ndarray:
+        return self._head.Eval(context).GetAsMatrix4() @ self._X0_inv
+
+    def _calc_head(self, context, value):
+        value.set_value(_rt(invert(self._H(context)) @ self._meas.Eval(context).GetAsMatrix4()))
+
+    def _calc_desired(self, context, value):
+        value.set_value(_rt(self._H(context) @ self._des.Eval(context).GetAsMatrix4()))
+
+
+class MovePatient(LeafSystem):
+    """The plant's geometry poses with the patient body displaced by the head motion.
+
+    .. pydrake_system::
+
+        name: MovePatient
+        input_ports:
+        - geometry_pose
+        - D_W
+        output_ports:
+        - geometry_pose
+
+    ``geometry_pose`` (FramePoseVector) in: the plant's frames (MultibodyPositionToGeometryPose);
+    out: the same with the patient body's frame pre-multiplied by ``D_W`` (abstract
+    RigidTransform, the head's displacement in World).
+    """
+
+    def __init__(self, patient_frame_id):
+        super().__init__()
+        self._id = patient_frame_id
+        self._in = self.DeclareAbstractInputPort("geometry_pose",
+                                                 AbstractValue.Make(FramePoseVector()))
+        self._D = self.DeclareAbstractInputPort("D_W", AbstractValue.Make(RigidTransform()))
+        self.DeclareAbstractOutputPort("geometry_pose",
+                                       lambda: AbstractValue.Make(FramePoseVector()), self._calc)
+
+    def _calc(self, context, value):
+        poses = self._in.Eval(context)
+        out = value.get_mutable_value()
+        out.clear()
+        D = self._D.Eval(context)
+        for i in poses.ids():
+            out.set_value(i, D.multiply(poses.value(i)) if i == self._id else poses.value(i))
 
 
 def _add_scene(builder, case: TeleopCase, mode: str, plant_step: float):
@@ -254,6 +359,10 @@ def build_teleop(
     gains: tuple[float, float, float] = (900.0, 1.0, 60.0),
     meshcat=None,
     master=None,
+    head_motion: HeadMotion | None = None,
+    tracker: TrackerParams | None = None,
+    follow: bool = True,
+    guard: GuardSettings | None = None,
 ) -> Teleop:
     """Wire the feeding diagram of one case; it replays any master motion.
 
@@ -281,9 +390,17 @@ def build_teleop(
         master: a master system to use instead of MasterDevice (a LeafSystem with the output
             port ``V_WE_command``, e.g. systems.master_input.LiveMasterDevice); ``motion``,
             ``mapping`` and ``finish`` are then its business (no finishing input is wired).
+        head_motion: the awake patient's head motion (kinematic mode only; module notes);
+            None: the patient is still and the diagram is today's.
+        tracker: the camera's settings (TrackerParams() if None) when ``head_motion`` is set.
+        follow: with ``head_motion``, False lets the arm ignore the head (no tracker, no guard).
+        guard: the HeadGuard's settings (GuardSettings() if None).
     """
     if mode not in MODES:
         raise InputError("mode", f"expected kinematic or dynamic, got {mode!r}")
+    if head_motion is not None and mode != "kinematic":
+        raise InputError("head_motion", "expected mode kinematic with a head motion")
+    tracking = head_motion is not None and follow
     builder = DiagramBuilder()
     plant, scene_graph = _add_scene(builder, case, mode, plant_step)
     tcp = plant.GetFrameByName("tcp")
@@ -317,6 +434,7 @@ def build_teleop(
             barrier=barrier,
             period=period,
             enabled=supervisor_enabled,
+            margin_input=tracking,
         )
     )
     supervisor.set_name("safety_supervisor")
@@ -345,12 +463,48 @@ def build_teleop(
     tool_pose.set_name("tool_pose")
 
     builder.Connect(master.GetOutputPort("V_WE_command"), vf.GetInputPort("V_WE_command"))
-    builder.Connect(vf.GetOutputPort("V_WE_corrected"), supervisor.GetInputPort("V_WE_corrected"))
-    builder.Connect(supervisor.GetOutputPort("X_WE_desired"), diffik.GetInputPort("X_AE_desired"))
-    builder.Connect(tool_pose.GetOutputPort("X_WE"), vf.GetInputPort("X_WE_measured"))
-    builder.Connect(tool_pose.GetOutputPort("X_WE"), estimator.GetInputPort("X_WT"))
+    head = trk = head_guard = None
+    measured = tool_pose.GetOutputPort("X_WE")
+    if head_motion is not None:
+        head = builder.AddSystem(HeadMotionSource(head_motion, case.X_WCenter))
+        head.set_name("head_motion")
+    if tracking:
+        params = tracker or TrackerParams()
+        trk = builder.AddSystem(Tracker(params, case.X_WCenter))
+        trk.set_name("tracker")
+        builder.Connect(head.GetOutputPort("X_WHead"), trk.GetInputPort("X_WHead"))
+        frame = builder.AddSystem(TrackedHeadFrame(case.X_WCenter))
+        frame.set_name("tracked_head_frame")
+        builder.Connect(trk.GetOutputPort("X_WHead_estimated"),
+                        frame.GetInputPort("X_WHead_estimated"))
+        builder.Connect(measured, frame.GetInputPort("X_WE_measured"))
+        builder.Connect(supervisor.GetOutputPort("X_WE_desired"),
+                        frame.GetInputPort("X_WE_desired_head"))
+        builder.Connect(frame.GetOutputPort("X_WE_desired"), diffik.GetInputPort("X_AE_desired"))
+        measured = frame.GetOutputPort("X_WE_head")
+        axis_W = case.X_WCenter[:3, :3] @ case.vf.direction
+        head_guard = builder.AddSystem(HeadGuard(
+            axis_W, lag=params.latency + params.period + period,
+            error_bound=params.error_bound(), settings=guard, period=period))
+        head_guard.set_name("head_guard")
+        builder.Connect(vf.GetOutputPort("V_WE_corrected"),
+                        head_guard.GetInputPort("V_WE_corrected"))
+        builder.Connect(trk.GetOutputPort("V_WHead_estimated"),
+                        head_guard.GetInputPort("V_WHead_estimated"))
+        builder.Connect(trk.GetOutputPort("lost"), head_guard.GetInputPort("lost"))
+        builder.Connect(head_guard.GetOutputPort("V_WE_guarded"),
+                        supervisor.GetInputPort("V_WE_corrected"))
+        builder.Connect(head_guard.GetOutputPort("margin_extra"),
+                        supervisor.GetInputPort("margin_extra"))
+    else:
+        builder.Connect(vf.GetOutputPort("V_WE_corrected"),
+                        supervisor.GetInputPort("V_WE_corrected"))
+        builder.Connect(supervisor.GetOutputPort("X_WE_desired"),
+                        diffik.GetInputPort("X_AE_desired"))
+    builder.Connect(measured, vf.GetInputPort("X_WE_measured"))
+    builder.Connect(measured, estimator.GetInputPort("X_WT"))
     if finish:
-        builder.Connect(tool_pose.GetOutputPort("X_WE"), master.GetInputPort("X_WE_measured"))
+        builder.Connect(measured, master.GetInputPort("X_WE_measured"))
 
     arm = plant.GetModelInstanceByName("aubo")
     keep, interp = [], None
@@ -358,9 +512,15 @@ def build_teleop(
         q_port = diffik.GetOutputPort("joint_positions")
         to_pose = builder.AddSystem(MultibodyPositionToGeometryPose(plant))
         builder.Connect(q_port, to_pose.get_input_port())
-        builder.Connect(
-            to_pose.get_output_port(), scene_graph.get_source_pose_port(plant.get_source_id())
-        )
+        poses = to_pose.get_output_port()
+        if head is not None and plant.HasBodyNamed(scene.PATIENT):
+            move = builder.AddSystem(MovePatient(
+                plant.GetBodyFrameIdOrThrow(plant.GetBodyByName(scene.PATIENT).index())))
+            move.set_name("move_patient")
+            builder.Connect(poses, move.GetInputPort("geometry_pose"))
+            builder.Connect(head.GetOutputPort("D_W"), move.GetInputPort("D_W"))
+            poses = move.GetOutputPort("geometry_pose")
+        builder.Connect(poses, scene_graph.get_source_pose_port(plant.get_source_id()))
         keep.append(plant)  # not owned by the diagram in this mode
         builder.Connect(q_port, tool_pose.GetInputPort("q"))
     else:
@@ -386,6 +546,11 @@ def build_teleop(
         "safety": LogVectorOutput(estimator.GetOutputPort("safety"), builder, estimator_period),
         "alarm": LogVectorOutput(estimator.GetOutputPort("alarm"), builder, estimator_period),
     }
+    if head_guard is not None:
+        loggers["guard"] = LogVectorOutput(head_guard.GetOutputPort("mode"), builder, period)
+        loggers["margin_extra"] = LogVectorOutput(head_guard.GetOutputPort("margin_extra"),
+                                                  builder, period)
+        loggers["lost"] = LogVectorOutput(trk.GetOutputPort("lost"), builder, period)
     visualizer = None
     if meshcat is not None:
         visualizer = MeshcatVisualizer.AddToBuilder(
@@ -410,6 +575,9 @@ def build_teleop(
         visualizer=visualizer,
         interpolator=interp,
         keep=keep,
+        head=head,
+        tracker=trk,
+        guard=head_guard,
     )
 
 
@@ -431,6 +599,10 @@ class FeedRun:
     X_CT: np.ndarray | None = None  # (n, 4, 4) the measured Tool pose in Center
     angle_violation: np.ndarray | None = None  # (n,) the fixture's orientation violation (rad)
     barrier: np.ndarray | None = None  # (n, 3) the supervisor's [h, scale, active]
+    head_D: np.ndarray | None = None  # (n, 4, 4) the head's true displacement (head motion)
+    guard: np.ndarray | None = None  # (n, 4) the HeadGuard's [mode, backed out, t, cause]
+    margin_extra: np.ndarray | None = None  # (n,) what the guard added to the margin (m)
+    lost: np.ndarray | None = None  # (n,) bool: the tracker's lost flag
 
     @property
     def joint_travel(self) -> float:
@@ -470,10 +642,21 @@ def simulate(teleop: Teleop, duration: float, *, motion: MasterMotion | None = N
     # the fixture's violation at every logged pose, offline (one batched call, not in the loop)
     case = teleop.case
     X_WE = case.X_WE(q)  # the tool's poses from the logged joints (no pose logger in the loop)
-    X_CT = np.linalg.inv(case.X_WCenter) @ X_WE @ X_ET
+    t_log = logs["q"].sample_times().copy()
+    head_D = None
+    if teleop.head is not None:  # the tool in the TRUE (moving) head: Center = D(t) X_WCenter
+        head_D = teleop.head.motion.D(t_log)
+        X_CT = np.linalg.inv(case.X_WCenter) @ invert(head_D) @ X_WE @ X_ET
+    else:
+        X_CT = np.linalg.inv(case.X_WCenter) @ X_WE @ X_ET
     violation, angle_violation = case.vf.body_violation(X_CT)
+    extra = {}
+    if "guard" in logs:
+        extra = {"guard": logs["guard"].data().T.copy(),
+                 "margin_extra": logs["margin_extra"].data()[0].copy(),
+                 "lost": logs["lost"].data()[0] > 0.5}
     return FeedRun(
-        t=logs["q"].sample_times().copy(),
+        t=t_log,
         q=q,
         p_WE=X_WE[:, :3, 3].copy(),
         violation=violation,
@@ -487,4 +670,7 @@ def simulate(teleop: Teleop, duration: float, *, motion: MasterMotion | None = N
         X_CT=X_CT,
         angle_violation=angle_violation,
         barrier=logs["barrier"].data().T.copy(),
+        head_D=head_D,
+        **extra,
     )
+

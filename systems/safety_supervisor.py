@@ -39,7 +39,7 @@ tissue. The estimator's alarm stays as the second line of defence.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numba
 import numpy as np
@@ -434,6 +434,8 @@ class SafetySupervisor(LeafSystem):
         barrier: the filter's settings.
         period: update period (s).
         enabled: False integrates the command unfiltered (experiments without the supervisor).
+        margin_input: declare a vector input port ``margin_extra`` (1, m) added to the
+            barrier's margin at every update (the awake patient: tracking lag and error).
     """
 
     def __init__(
@@ -447,6 +449,7 @@ class SafetySupervisor(LeafSystem):
         barrier: Barrier | None = None,
         period: float = 0.005,
         enabled: bool = True,
+        margin_input: bool = False,
     ):
         super().__init__()
         if not np.isfinite(period) or period <= 0:
@@ -467,6 +470,7 @@ class SafetySupervisor(LeafSystem):
         self._X0, self._Xn, self._work = np.eye(4), np.eye(4), np.eye(4)
         self._Vc, self._Vo, self._g = np.zeros(6), np.zeros(6), np.zeros(6)
         self._V_in = self.DeclareVectorInputPort("V_WE_corrected", 6)
+        self._margin_in = self.DeclareVectorInputPort("margin_extra", 1) if margin_input else None
         # state: [p_CT (3), R_CT row-major (9), V filtered in World (6), h, scale, active,
         #         p_WE (3), R_WE row-major (9), gradient (6), its age in steps]
         self.DeclareDiscreteState(self._state_of(np.asarray(X_WE_initial, dtype=float)))
@@ -506,6 +510,8 @@ class SafetySupervisor(LeafSystem):
         if self._enabled:
             h = self._clear.one(X1)
             bar = self._barrier
+            if self._margin_in is not None:  # the awake patient: tracking lag and error
+                bar = replace(bar, margin=bar.margin + float(self._margin_in.Eval(context)[0]))
             # barrier_holds, on floats (the common case must be cheap)
             b = min(-bar.alpha * (h0 - bar.margin), 0.0) if h0 < np.inf else -np.inf
             if h0 < np.inf and not h >= h0 + self._period * b - TOLERANCE:  # the slow path

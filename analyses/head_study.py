@@ -1,0 +1,269 @@
+"""The awake patient study (issue 16; DESIGN.md section 7): seeded feeds under head motion.
+
+    implantplan analyze head-motion --out DIR [--runs 50] [--profiles breathing,swallow,...]
+
+Per profile, ``runs`` seeded runs (run i: operator motion i of ``feeding_runs(seed)``, head
+motion seed ``seed + i``, tracker noise seed ``seed + i``) on the default case, each three ways:
+
+- *still*: the patient does not move (the reference path);
+- *following*: head motion on, tracker, the arm following the tracked mouth, the HeadGuard;
+- *ignoring*: head motion on, the arm ignoring the head (``follow=False``).
+
+Measured per run, all relative to the TRUE (moving) head:
+
+- the tool's path error: |p_CenterT(t) - p_CenterT_still(t)| at every logged step (mean, max),
+  up to the guard's trigger (after it the tool backs out on purpose);
+- the exact clearance: FCL (systems.exact_clearance) of the whole tool against the cavity mesh,
+  the tool transformed into the moving head's Center frame at every logged step (2 000 steps of
+  a 10 s run); the default case's cavity is the cylinder of its FPSM, triangulated;
+- the feed's completion: final distance to the target in the head frame <= 1 mm;
+- after a startle: the time from its onset to the guard's stop (detection) and to the end of
+  the back-out (the tool moved 90% of the back-out distance along the fixture's axis, measured
+  on the tool itself in the true head frame);
+- lost tracking (a dropout window mid-feed under breathing): the stop, the back-out and the
+  clearance.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from implantplan.diagrams import feeding as F
+from implantplan.diagrams.teleop import TeleopCase, build_teleop, simulate
+from implantplan.systems.errors import InputError
+from implantplan.systems.exact_clearance import ExactCavity
+from implantplan.systems.head_guard import GuardSettings
+from implantplan.systems.head_motion import PROFILES, HeadMotion
+from implantplan.systems.master_device import feeding_runs
+from implantplan.systems.tracker import TrackerParams
+
+STUDY_PROFILES = PROFILES[1:]  # breathing, swallow, startle, drift
+BACKED_OUT_SHARE = 0.9  # the back-out counts as done when the tool moved 90% of the distance
+
+
+def cylinder_cavity(fpsm, sections: int = 256) -> ExactCavity:
+    """The exact reference of a cylinder FPSM (Fpsm.cylinder): the triangulated cylinder wall
+    and floor in Center, open at the top slice (its vertices lie on the circle, so the mesh is
+    inside the FPSM by at most r (1 - cos(pi / sections)), 4 um here)."""
+    s = fpsm.settings or {}
+    if s.get("method") != "cylinder":
+        raise InputError("fpsm", "the head-motion study's exact reference needs the default case's "
+                         "cylinder FPSM (no scan mesh travels with a plan)")
+    z0, z1 = s["z_range_m"]
+    over = 0.01  # built 10 mm taller and cut at the top slice: no lid left on the cut plane
+    mesh = trimesh.creation.cylinder(radius=s["radius_m"], height=z1 - z0 + over,
+                                     sections=sections)
+    mesh.apply_translation([0.0, 0.0, 0.5 * (z0 + z1 + over)])
+    return ExactCavity(mesh, z_top=z1)
+
+
+def default_case(seed: int = 0, scenario: str = "lying"):
+    """(case, instrument) of the default feeding case (the layout ``simulate feeding`` selects
+    without a robot placement: the knee of the random feasible bases)."""
+    inst = F.default_instrument(seed)
+    sc, sc_plant = F.load_scenario(scenario)
+    xyz, branch, _ = F.knee_layout(sc, seed=seed)
+    name = sc.posture if sc.posture in ("lying", "sitting") else "arm"
+    return F.make_case(name, sc_plant, xyz, branch, inst, label="selected"), inst
+
+
+def _target_C(case: TeleopCase) -> np.ndarray:
+    return (np.linalg.inv(case.X_WCenter) @ case.X_WTarget)[:3, 3]
+
+
+def measure(run, still, case: TeleopCase, cavity: ExactCavity) -> dict:
+    """The figures of one head-motion run against its still reference (module notes)."""
+    p = run.X_CT[:, :3, 3]
+    err = np.linalg.norm(p - still.X_CT[: len(p), :3, 3], axis=1)
+    trig = -1.0
+    if run.guard is not None and run.guard[-1, 0] > 0.5:
+        trig = float(run.guard[-1, 2])
+    upto = run.t < trig if trig >= 0 else np.ones(len(p), dtype=bool)
+    clear = cavity.tool_clearance(run.X_CT, case.tool)
+    out = {
+        "path_error_mean": float(err[upto].mean()) if upto.any() else 0.0,
+        "path_error_max": float(err[upto].max()) if upto.any() else 0.0,
+        "exact_clearance_min": float(clear.min()),
+        "final_error": float(np.linalg.norm(p[-1] - _target_C(case))),
+        "trigger_time": trig,
+        "trigger_cause": int(run.guard[-1, 3]) if run.guard is not None else 0,
+        "realtime_factor": run.sim_seconds / run.wall_seconds,
+    }
+    out["reached_target"] = out["final_error"] <= F.TARGET_TOLERANCE
+    out["_clearance"], out["_error"] = clear, err
+    if trig >= 0:
+        k = int(np.searchsorted(run.t, trig))
+        axis = case.vf.direction
+        s = (p - p[k]) @ axis
+        dist = GuardSettings().retreat_distance
+        done = np.flatnonzero((run.t >= trig) & (s >= BACKED_OUT_SHARE * dist))
+        out["backed_out_time"] = float(run.t[done[0]]) if done.size else -1.0
+        out["backed_out_m"] = float(s[k:].max())
+    return out
+
+
+def _public(m: dict) -> dict:
+    return {k: v for k, v in m.items() if not k.startswith("_")}
+
+
+def head_study(case: TeleopCase, inst, *, profiles=STUDY_PROFILES, runs: int = 50, seed: int = 0,
+               tracker: TrackerParams | None = None, progress=None, keep_traces: int = 1) -> dict:
+    """The study over ``runs`` seeded runs per profile (module notes); returns the JSON dict and,
+    under ``"_traces"``, the time series of the first ``keep_traces`` runs per profile."""
+    if runs < 1:
+        raise InputError("--runs", f"expected an integer >= 1, got {runs}")
+    for p in profiles:
+        if p not in STUDY_PROFILES:
+            raise InputError("--profiles", f"expected names from {', '.join(STUDY_PROFILES)}, "
+                             f"got {p!r}")
+    cavity = cylinder_cavity(inst.fpsm)
+    start = case.X_WE(case.q_start)[:3, 3]
+    motions = feeding_runs(start, case.X_WTarget[:3, 3], runs=runs, seed=seed)
+    pivot = case.X_WCenter[:3, 3]
+    still_tel = build_teleop(case)
+    stills = []
+    t0 = time.perf_counter()
+    for m in motions:
+        stills.append(simulate(still_tel, m.duration + F.FINISH_SECONDS, motion=m))
+    margin = 0.001  # Barrier().margin, the supervisor's default
+    out = {"runs": runs, "seed": seed, "profiles": {}, "margin": margin}
+    traces = {}
+    base = tracker or TrackerParams()
+    for prof in profiles:
+        rows = []
+        for i, m in enumerate(motions):
+            hm = HeadMotion.make(prof, seed=seed + i, pivot=pivot)
+            T = m.duration + F.FINISH_SECONDS
+            trk = dataclasses.replace(base, seed=seed + i)
+            fol = simulate(build_teleop(case, head_motion=hm, tracker=trk), T, motion=m)
+            ign = simulate(build_teleop(case, head_motion=hm, follow=False), T, motion=m)
+            a, b = measure(fol, stills[i], case, cavity), measure(ign, stills[i], case, cavity)
+            row = {"head": {k: (v.tolist() if isinstance(v, np.ndarray) else v)
+                            for k, v in hm.params.items()},
+                   "following": _public(a), "ignoring": _public(b)}
+            if prof in ("swallow", "startle"):
+                on = hm.params["onset_s"]
+                dur = 0.2 if prof == "startle" else 1.0
+                outside = (fol.t < on) | (fol.t > on + dur + 0.5)
+                row["following"]["exact_clearance_min_outside_event"] = float(
+                    a["_clearance"][outside].min())
+                if prof == "startle" and a["trigger_time"] >= 0:
+                    row["following"]["stop_after_onset_s"] = a["trigger_time"] - on
+                    if a.get("backed_out_time", -1) >= 0:
+                        row["following"]["backed_out_after_onset_s"] = a["backed_out_time"] - on
+            rows.append(row)
+            if i < keep_traces:
+                traces.setdefault(prof, []).append({
+                    "t": fol.t, "head_mm": 1000 * np.linalg.norm(
+                        hm.displacement(fol.t)[0], axis=1),
+                    "clearance_following": a["_clearance"], "clearance_ignoring": b["_clearance"],
+                    "error_following": a["_error"], "error_ignoring": b["_error"],
+                    "trigger_time": a["trigger_time"], "margin": margin,
+                    "margin_extra": fol.margin_extra})
+            if progress is not None:
+                progress.step(i, runs, f"{prof}: error {1000 * a['path_error_max']:.2f} mm "
+                              f"following, {1000 * b['path_error_max']:.2f} mm ignoring")
+        out["profiles"][prof] = {"summary": summarize(rows, prof, margin), "runs": rows}
+    out["lost_tracking"] = lost_tracking(case, inst, motions[0], seed=seed, cavity=cavity,
+                                         still=stills[0], tracker=base)
+    out["wall_seconds"] = time.perf_counter() - t0
+    out["_traces"] = traces
+    return out
+
+
+def summarize(rows: list, prof: str, margin: float) -> dict:
+    fol = [r["following"] for r in rows]
+    ign = [r["ignoring"] for r in rows]
+    s = {
+        "runs": len(rows),
+        "path_error_mean_following": float(np.mean([r["path_error_mean"] for r in fol])),
+        "path_error_max_following": float(np.max([r["path_error_max"] for r in fol])),
+        "path_error_mean_ignoring": float(np.mean([r["path_error_mean"] for r in ign])),
+        "path_error_max_ignoring": float(np.max([r["path_error_max"] for r in ign])),
+        "exact_clearance_min_following": float(min(r["exact_clearance_min"] for r in fol)),
+        "exact_clearance_min_ignoring": float(min(r["exact_clearance_min"] for r in ign)),
+        "runs_below_zero_following": int(sum(r["exact_clearance_min"] < 0 for r in fol)),
+        "runs_below_margin_minus_0p2mm_following": int(sum(
+            r.get("exact_clearance_min_outside_event", r["exact_clearance_min"])
+            < margin - 0.0002 for r in fol)),
+        "reached_target_following": int(sum(r["reached_target"] for r in fol)),
+        "guard_triggered_following": int(sum(r["trigger_time"] >= 0 for r in fol)),
+        "realtime_factor_min_following": float(min(r["realtime_factor"] for r in fol)),
+    }
+    if prof == "startle":
+        stops = [r["stop_after_onset_s"] for r in fol if "stop_after_onset_s" in r]
+        backs = [r["backed_out_after_onset_s"] for r in fol if "backed_out_after_onset_s" in r]
+        s["stop_after_onset_max_s"] = float(max(stops)) if stops else None
+        s["backed_out_after_onset_max_s"] = float(max(backs)) if backs else None
+        s["backed_out_runs"] = len(backs)
+    return s
+
+
+def lost_tracking(case: TeleopCase, inst, motion, *, seed: int, cavity: ExactCavity, still,
+                  tracker: TrackerParams, start_share: float = 0.5, seconds: float = 1.0) -> dict:
+    """Breathing with the marker occluded from ``start_share`` of the operator's script for
+    ``seconds``: the guard must stop the feed and back out; the exact clearance stays >= 0."""
+    t_drop = start_share * motion.duration
+    trk = dataclasses.replace(tracker, seed=seed, dropouts=((t_drop, t_drop + seconds),))
+    hm = HeadMotion.make("breathing", seed=seed, pivot=case.X_WCenter[:3, 3])
+    run = simulate(build_teleop(case, head_motion=hm, tracker=trk),
+                   motion.duration + F.FINISH_SECONDS, motion=motion)
+    m = measure(run, still, case, cavity)
+    return {"dropout_s": [t_drop, t_drop + seconds], **_public(m),
+            "stop_after_dropout_s": m["trigger_time"] - t_drop if m["trigger_time"] >= 0
+            else None}
+
+
+def cmd_head_motion(args) -> int:
+    from implantplan.analyses.figures.head import plot_head
+    from implantplan.analyses.progress import Progress
+    from implantplan.systems.files import write_json
+
+    progress = Progress("analyze head-motion", quiet=args.quiet)
+    profiles = tuple(p.strip() for p in args.profiles.split(",") if p.strip())
+    case, inst = default_case(args.seed)
+    result = head_study(case, inst, profiles=profiles, runs=args.runs, seed=args.seed,
+                        progress=progress)
+    traces = result.pop("_traces")
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_json(Path(args.out) / "head_motion.json", result, kind="head_motion")
+    plot_head(traces, args.out)
+    for prof, entry in result["profiles"].items():
+        s = entry["summary"]
+        mm = {k: 1000 * v for k, v in s.items() if isinstance(v, float) and "error" in k
+              or k.startswith("exact")}
+        line = (f"{prof}: {s['runs']} runs, path error mean/max "
+                f"{mm['path_error_mean_following']:.2f}/{mm['path_error_max_following']:.2f} mm "
+                f"following vs {mm['path_error_mean_ignoring']:.2f}/"
+                f"{mm['path_error_max_ignoring']:.2f} mm ignoring; exact clearance min "
+                f"{mm['exact_clearance_min_following']:.2f} mm "
+                f"({s['runs_below_zero_following']} runs < 0); reached "
+                f"{s['reached_target_following']}; guard {s['guard_triggered_following']}")
+        if prof == "startle" and s["stop_after_onset_max_s"] is not None:
+            line += (f"; stop <= {s['stop_after_onset_max_s']:.3f} s, backed out <= "
+                     f"{s['backed_out_after_onset_max_s']} s after onset")
+        print(line)
+    lt = result["lost_tracking"]
+    print(f"lost tracking: stop {lt['stop_after_dropout_s']} s after the dropout, backed out "
+          f"{1000 * lt.get('backed_out_m', 0.0):.1f} mm, exact clearance min "
+          f"{1000 * lt['exact_clearance_min']:.2f} mm")
+    return 0
+
+
+def register_analysis(sub) -> None:
+    """Add ``head-motion`` to the ``analyze`` subcommands (analyses.simulate)."""
+    p = sub.add_parser("head-motion", help="the awake patient: seeded feeds under head motion, "
+                       "following vs ignoring the head, exact clearance (issue 16)")
+    p.add_argument("--runs", type=int, default=50, help="seeded runs per profile (default 50)")
+    p.add_argument("--profiles", default=",".join(STUDY_PROFILES),
+                   help="comma-separated profiles (default all four)")
+    p.add_argument("--seed", type=int, default=0, help="seed of every random choice (default 0)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--out", type=Path, required=True,
+                   help="output folder (head_motion.json and head_<profile>.png)")
+    p.set_defaults(func=cmd_head_motion)

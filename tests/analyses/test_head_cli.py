@@ -1,0 +1,40 @@
+"""The awake patient on the command line: simulate feeding --head-motion, analyze head-motion."""
+
+import json
+
+from implantplan.analyses.cli import main
+
+
+def test_feeding_with_head_motion_writes_the_profile(tmp_path, capsys):
+    out = tmp_path / "feed"
+    code = main(["simulate", "feeding", "--runs", "1", "--head-motion", "breathing", "--seed",
+                 "2", "--out", str(out), "--quiet"])
+    assert code == 0, capsys.readouterr()
+    data = json.loads((out / "feeding.json").read_text())
+    assert data["head_motion"]["profile"] == "breathing" and data["head_motion"]["seed"] == 2
+    run = data["runs"][0]
+    assert run["reached_target"] and not run["head_guard_stopped"]
+    assert 0 < run["max_margin_extra"] < 0.003
+
+
+def test_bad_head_motion_is_a_user_error(tmp_path, capsys):
+    code = main(["simulate", "feeding", "--runs", "1", "--head-motion", "sneeze", "--out",
+                 str(tmp_path / "x"), "--quiet"])
+    assert code == 2
+    assert "--head-motion" in capsys.readouterr().err
+    code = main(["simulate", "feeding", "--runs", "1", "--head-motion", "drift", "--mode",
+                 "dynamic", "--out", str(tmp_path / "y"), "--quiet"])
+    assert code == 2
+
+
+def test_head_motion_study_small(tmp_path, capsys):
+    out = tmp_path / "study"
+    code = main(["analyze", "head-motion", "--runs", "1", "--profiles", "startle", "--out",
+                 str(out), "--quiet"])
+    assert code == 0, capsys.readouterr()
+    data = json.loads((out / "head_motion.json").read_text())
+    s = data["profiles"]["startle"]["summary"]
+    assert s["runs"] == 1 and s["runs_below_zero_following"] == 0
+    assert data["lost_tracking"]["trigger_cause"] == 1
+    assert (out / "head_startle.png").is_file()
+    assert "startle: 1 runs" in capsys.readouterr().out

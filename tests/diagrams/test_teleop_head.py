@@ -1,0 +1,145 @@
+"""The awake patient in the feeding diagram: following the tracked mouth, the guard, the exact
+clearance against the moving cavity (a few seeded runs; the 50-run study is analyze head-motion)."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from pydrake.systems.analysis import Simulator
+
+from implantplan.analyses.head_study import cylinder_cavity, measure
+from implantplan.diagrams import feeding as S
+from implantplan.diagrams.teleop import X_ET, build_teleop, simulate
+from implantplan.systems.errors import InputError
+from implantplan.systems.head_guard import GuardSettings, guard_step, head_speed
+from implantplan.systems.head_motion import HeadMotion
+from implantplan.systems.master_device import feeding_runs
+from implantplan.systems.safety_supervisor import SafetySupervisor
+from implantplan.systems.tracker import TrackerParams
+
+
+@pytest.fixture(scope="module")
+def setup():
+    sc, sc_plant = S.load_scenario("lying")
+    xyz, branch, _ = S.knee_layout(sc, seed=0, candidates=100)
+    inst = S.default_instrument()
+    case = S.make_case("lying", sc_plant, xyz, branch, inst)
+    motions = feeding_runs(case.X_WE(case.q_start)[:3, 3], case.X_WTarget[:3, 3], runs=2, seed=4)
+    stills = [simulate(build_teleop(case), m.duration + S.FINISH_SECONDS, motion=m)
+              for m in motions]
+    return case, inst, motions, stills, cylinder_cavity(inst.fpsm)
+
+
+def _head(case, profile, seed):
+    return HeadMotion.make(profile, seed=seed, pivot=case.X_WCenter[:3, 3])
+
+
+@pytest.mark.parametrize("profile", ["breathing", "drift"])
+def test_feed_completes_following_the_mouth(setup, profile):
+    case, inst, motions, stills, cavity = setup
+    for i, m in enumerate(motions):
+        hm = _head(case, profile, 10 + i)
+        T = m.duration + S.FINISH_SECONDS
+        fol = measure(simulate(build_teleop(case, head_motion=hm,
+                                            tracker=TrackerParams(seed=i)), T, motion=m),
+                      stills[i], case, cavity)
+        ign = measure(simulate(build_teleop(case, head_motion=hm, follow=False), T, motion=m),
+                      stills[i], case, cavity)
+        assert fol["trigger_time"] < 0, "the guard must not stop a feed under " + profile
+        assert fol["reached_target"]
+        assert fol["exact_clearance_min"] >= 0.001 - 0.0002
+        assert ign["exact_clearance_min"] >= 0.0
+        if profile == "breathing":  # 1-2 mm of head motion: following tracks within noise
+            assert fol["path_error_max"] < ign["path_error_max"]
+            assert fol["path_error_max"] < 0.001
+
+
+def test_startle_stops_and_backs_out_without_entering_tissue(setup):
+    case, inst, motions, stills, cavity = setup
+    m = motions[0]
+    hm = _head(case, "startle", 3)
+    on = hm.params["onset_s"]
+    run = simulate(build_teleop(case, head_motion=hm), m.duration + S.FINISH_SECONDS, motion=m)
+    r = measure(run, stills[0], case, cavity)
+    assert r["trigger_cause"] == 2  # the head moved faster than the arm follows
+    assert on < r["trigger_time"] < on + 0.2
+    assert r["backed_out_m"] >= 0.9 * GuardSettings().retreat_distance
+    assert 0 < r["backed_out_time"] - on < 1.0
+    assert r["exact_clearance_min"] >= 0.0
+    # the supervisor's margin grew with the tracked head speed during the startle
+    during = (run.t > on) & (run.t < on + 0.3)
+    assert run.margin_extra[during].max() > run.margin_extra[run.t < on].max() + 0.001
+
+
+def test_lost_tracking_mid_feed_stops_and_backs_out(setup):
+    case, inst, motions, stills, cavity = setup
+    m = motions[1]
+    t_drop = 0.5 * m.duration
+    trk = TrackerParams(seed=1, dropouts=((t_drop, t_drop + 1.0),))
+    run = simulate(build_teleop(case, head_motion=_head(case, "breathing", 5), tracker=trk),
+                   m.duration + S.FINISH_SECONDS, motion=m)
+    r = measure(run, stills[1], case, cavity)
+    assert r["trigger_cause"] == 1
+    assert t_drop < r["trigger_time"] <= t_drop + trk.latency + trk.period + 0.01
+    assert r["backed_out_m"] >= 0.9 * GuardSettings().retreat_distance
+    assert r["exact_clearance_min"] >= 0.0
+    assert run.lost.any()
+
+
+def test_guard_core_latches_and_backs_out_the_set_distance():
+    s = GuardSettings(retreat_speed=0.02, retreat_distance=0.01)
+    axis = np.array([0.0, 0.0, 1.0])
+    V = np.array([0, 0, 0, 0.01, 0, 0.0])
+    st = np.array([0.0, 0.0, -1.0, 0.0])
+    st, out = guard_step(st, V, 0.01, False, 0.0, s, axis, 0.005)
+    np.testing.assert_array_equal(out, V)  # slow head: the command passes
+    st, out = guard_step(st, V, 0.05, False, 0.005, s, axis, 0.005)
+    assert st[0] == 1 and st[3] == 2 and st[2] == 0.005
+    total = out[5] * 0.005
+    for k in range(200):  # latched even once the head is still again
+        st, out = guard_step(st, V, 0.0, False, 0.01 + k * 0.005, s, axis, 0.005)
+        total += out[5] * 0.005
+        assert np.all(out[:5] == 0)
+    assert total == pytest.approx(0.01)
+    assert head_speed(np.array([[0, 0, 1.0, 0.03, 0, 0]]), 0.1)[0] == pytest.approx(0.13)
+
+
+def test_supervisor_margin_input_tightens_the_barrier(setup):
+    """27 mm off the feeding target towards the cylinder wall (a few mm of sound clearance) a
+    slow push into the wall passes with the plain margin and is cut with a grown one."""
+    case = setup[0]
+    X_CT = np.linalg.inv(case.X_WCenter) @ case.X_WE_target @ X_ET
+    X_CT[:3, 3] += [0.0, 0.027, 0.0]
+    X_WE = case.X_WCenter @ X_CT @ np.linalg.inv(X_ET)
+    V = np.concatenate([np.zeros(3), case.X_WCenter[:3, :3] @ [0.0, 0.01, 0.0]])
+
+    def step(extra):
+        sup = SafetySupervisor(case.fpsm, case.X_WCenter, X_WE, case.tool,
+                               R_ET=X_ET[:3, :3], margin_input=True)
+        ctx = sup.CreateDefaultContext()
+        sup.GetInputPort("V_WE_corrected").FixValue(ctx, V)
+        sup.GetInputPort("margin_extra").FixValue(ctx, [extra])
+        sim = Simulator(sup, ctx)
+        sim.AdvanceTo(0.001)  # the update at t = 0
+        return ctx.get_discrete_state(0).get_value()[18:21]  # h, scale, active
+
+    h, scale, active = step(0.0)
+    assert 0.0015 < h < 0.008 and scale == 1.0 and active == 0.0
+    h, scale, active = step(0.02)  # the margin beyond h: no approach allowed
+    assert active == 1.0 and scale < 1.0
+
+
+def test_head_motion_needs_kinematic_mode(setup):
+    case = setup[0]
+    with pytest.raises(InputError, match="head_motion"):
+        build_teleop(case, head_motion=_head(case, "breathing", 0), mode="dynamic")
+
+
+def test_seeded_runs_repeat(setup):
+    case, inst, motions, stills, cavity = setup
+    m = motions[0]
+    hm = _head(case, "swallow", 2)
+    trk = dataclasses.replace(TrackerParams(), seed=9)
+    a = simulate(build_teleop(case, head_motion=hm, tracker=trk), 3.0, motion=m)
+    b = simulate(build_teleop(case, head_motion=hm, tracker=trk), 3.0, motion=m)
+    np.testing.assert_array_equal(a.q, b.q)
