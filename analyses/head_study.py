@@ -15,7 +15,8 @@ Measured per run, all relative to the TRUE (moving) head:
   up to the guard's trigger (after it the tool backs out on purpose);
 - the exact clearance: FCL (systems.exact_clearance) of the whole tool against the cavity mesh,
   the tool transformed into the moving head's Center frame at every logged step (2 000 steps of
-  a 10 s run); the default case's cavity is the cylinder of its FPSM, triangulated;
+  a 10 s run); on the bundled default case (``--case scan``, the default) the opened scan per
+  site (analyses.adversarial.exact_for), on ``--case cylinder`` the cylinder of its FPSM;
 - the feed's completion: final distance to the target in the head frame <= 1 mm;
 - after a startle: the time from its onset to the guard's stop (detection) and to the end of
   the back-out (the tool moved 90% of the back-out distance along the fixture's axis, measured
@@ -111,8 +112,32 @@ def _public(m: dict) -> dict:
     return {k: v for k, v in m.items() if not k.startswith("_")}
 
 
+class ScanCavity:
+    """The bundled default case's exact reference for a site (analyses.adversarial.exact_for:
+    the opened scan, FCL, the whole tool) taking poses in the head's Center frame."""
+
+    def __init__(self, tc: TeleopCase, mesh):
+        from implantplan.analyses.adversarial import exact_for
+
+        self._exact = exact_for(tc, mesh)
+        self._X_MC = tc.fpsm.X_WC  # the FPSM's X_WC is Center in the mesh frame
+
+    def tool_clearance(self, X_CT: np.ndarray, tool=None) -> np.ndarray:
+        return self._exact(self._X_MC @ np.asarray(X_CT, dtype=float))
+
+
+def scan_cases(*, progress=None) -> list:
+    """[(teleop case, exact cavity)] per site of the bundled default case (the scan, sites 36
+    and 46), planned as ``implantplan plan`` does."""
+    from implantplan.analyses.adversarial import default_case_sites
+
+    cases, mesh = default_case_sites(progress=progress)
+    return [(tc, ScanCavity(tc, mesh)) for tc in cases]
+
+
 def head_study(case: TeleopCase, inst, *, profiles=STUDY_PROFILES, runs: int = 50, seed: int = 0,
-               tracker: TrackerParams | None = None, progress=None, keep_traces: int = 1) -> dict:
+               tracker: TrackerParams | None = None, progress=None, keep_traces: int = 1,
+               cavity=None) -> dict:
     """The study over ``runs`` seeded runs per profile (module notes); returns the JSON dict and,
     under ``"_traces"``, the time series of the first ``keep_traces`` runs per profile."""
     if runs < 1:
@@ -121,7 +146,8 @@ def head_study(case: TeleopCase, inst, *, profiles=STUDY_PROFILES, runs: int = 5
         if p not in STUDY_PROFILES:
             raise InputError("--profiles", f"expected names from {', '.join(STUDY_PROFILES)}, "
                              f"got {p!r}")
-    cavity = cylinder_cavity(inst.fpsm)
+    if cavity is None:
+        cavity = cylinder_cavity(inst.fpsm)
     start = case.X_WE(case.q_start)[:3, 3]
     motions = feeding_runs(start, case.X_WTarget[:3, 3], runs=runs, seed=seed)
     pivot = case.X_WCenter[:3, 3]
@@ -219,25 +245,12 @@ def lost_tracking(case: TeleopCase, inst, motion, *, seed: int, cavity: ExactCav
             else None}
 
 
-def cmd_head_motion(args) -> int:
-    from implantplan.analyses.figures.head import plot_head
-    from implantplan.analyses.progress import Progress
-    from implantplan.systems.files import write_json
-
-    progress = Progress("analyze head-motion", quiet=args.quiet)
-    profiles = tuple(p.strip() for p in args.profiles.split(",") if p.strip())
-    case, inst = default_case(args.seed)
-    result = head_study(case, inst, profiles=profiles, runs=args.runs, seed=args.seed,
-                        progress=progress)
-    traces = result.pop("_traces")
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_json(Path(args.out) / "head_motion.json", result, kind="head_motion")
-    plot_head(traces, args.out)
+def _print_summary(result: dict, prefix: str = "") -> None:
     for prof, entry in result["profiles"].items():
         s = entry["summary"]
         mm = {k: 1000 * v for k, v in s.items() if isinstance(v, float) and "error" in k
               or k.startswith("exact")}
-        line = (f"{prof}: {s['runs']} runs, path error mean/max "
+        line = (f"{prefix}{prof}: {s['runs']} runs, path error mean/max "
                 f"{mm['path_error_mean_following']:.2f}/{mm['path_error_max_following']:.2f} mm "
                 f"following vs {mm['path_error_mean_ignoring']:.2f}/"
                 f"{mm['path_error_max_ignoring']:.2f} mm ignoring; exact clearance min "
@@ -249,9 +262,41 @@ def cmd_head_motion(args) -> int:
                      f"{s['backed_out_after_onset_max_s']} s after onset")
         print(line)
     lt = result["lost_tracking"]
-    print(f"lost tracking: stop {lt['stop_after_dropout_s']} s after the dropout, backed out "
-          f"{1000 * lt.get('backed_out_m', 0.0):.1f} mm, exact clearance min "
+    print(f"{prefix}lost tracking: stop {lt['stop_after_dropout_s']} s after the dropout, backed "
+          f"out {1000 * lt.get('backed_out_m', 0.0):.1f} mm, exact clearance min "
           f"{1000 * lt['exact_clearance_min']:.2f} mm")
+
+
+def cmd_head_motion(args) -> int:
+    from implantplan.analyses.figures.head import plot_head
+    from implantplan.analyses.progress import Progress
+    from implantplan.systems.files import write_json
+
+    progress = Progress("analyze head-motion", quiet=args.quiet)
+    profiles = tuple(p.strip() for p in args.profiles.split(",") if p.strip())
+    out = Path(args.out)
+    if args.case == "cylinder":
+        case, inst = default_case(args.seed)
+        result = head_study(case, inst, profiles=profiles, runs=args.runs, seed=args.seed,
+                            progress=progress)
+        traces = result.pop("_traces")
+        out.mkdir(parents=True, exist_ok=True)
+        write_json(out / "head_motion.json", {"case": "cylinder", **result}, kind="head_motion")
+        plot_head(traces, out)
+        _print_summary(result)
+        return 0
+    # the bundled default case: the scan, each site, FCL against the moving opened scan
+    progress.say("planning the bundled default case (scan, sites 36 and 46)")
+    sites = {}
+    for tc, cavity in scan_cases():
+        result = head_study(tc, None, profiles=profiles, runs=args.runs, seed=args.seed,
+                            progress=progress, cavity=cavity)
+        traces = result.pop("_traces")
+        (out / tc.label).mkdir(parents=True, exist_ok=True)
+        plot_head(traces, out / tc.label)
+        sites[tc.label] = result
+        _print_summary(result, prefix=f"{tc.label} ")
+    write_json(out / "head_motion.json", {"case": "scan", "sites": sites}, kind="head_motion")
     return 0
 
 
@@ -263,6 +308,10 @@ def register_analysis(sub) -> None:
     p.add_argument("--profiles", default=",".join(STUDY_PROFILES),
                    help="comma-separated profiles (default all four)")
     p.add_argument("--seed", type=int, default=0, help="seed of every random choice (default 0)")
+    p.add_argument("--case", choices=("scan", "cylinder"), default="scan",
+                   help="scan: the bundled default case (opened scan, each site, FCL against the "
+                   "moving scan; figures in a folder per site); cylinder: seed 000's cylinder "
+                   "feeding case of `simulate feeding` (default scan)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--out", type=Path, required=True,
                    help="output folder (head_motion.json and head_<profile>.png)")

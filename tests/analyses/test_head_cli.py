@@ -29,8 +29,8 @@ def test_bad_head_motion_is_a_user_error(tmp_path, capsys):
 
 def test_head_motion_study_small(tmp_path, capsys):
     out = tmp_path / "study"
-    code = main(["analyze", "head-motion", "--runs", "1", "--profiles", "startle", "--out",
-                 str(out), "--quiet"])
+    code = main(["analyze", "head-motion", "--runs", "1", "--profiles", "startle", "--case",
+                 "cylinder", "--out", str(out), "--quiet"])
     assert code == 0, capsys.readouterr()
     data = json.loads((out / "head_motion.json").read_text())
     s = data["profiles"]["startle"]["summary"]
@@ -38,3 +38,19 @@ def test_head_motion_study_small(tmp_path, capsys):
     assert data["lost_tracking"]["trigger_cause"] == 1
     assert (out / "head_startle.png").is_file()
     assert "startle: 1 runs" in capsys.readouterr().out
+
+
+def test_head_motion_study_on_the_scan(tmp_path, capsys):
+    """The bundled default case: every site, FCL against the moving opened scan."""
+    out = tmp_path / "scan"
+    code = main(["analyze", "head-motion", "--runs", "1", "--profiles", "breathing", "--out",
+                 str(out), "--quiet"])
+    assert code == 0, capsys.readouterr()
+    data = json.loads((out / "head_motion.json").read_text())
+    assert data["case"] == "scan" and len(data["sites"]) == 2
+    for label, site in data["sites"].items():
+        s = site["profiles"]["breathing"]["summary"]
+        assert s["runs"] == 1 and s["runs_below_zero_following"] == 0
+        # the scan is near: a few mm, not the cylinder's 30 mm
+        assert 0.0 < s["exact_clearance_min_following"] < 0.01
+        assert (out / label / "head_breathing.png").is_file()
