@@ -66,32 +66,34 @@ class ExactClearance:
         model.addSubModel(np.asarray(vertices, dtype=float), np.asarray(faces, dtype=np.int64))
         model.endModel()
         self._mesh = fcl.CollisionObject(model, fcl.Transform())
-        self._parts = []  # (shape, X_T_shape)
+        self._parts = []  # (the part's axis as a zero-radius shape, X_T_axis, radius)
         for a, b, r in zip(*tool.capsules_T(), strict=True):
             r = max(float(r), IMPLANT_AXIS_RADIUS)
             length = float(np.linalg.norm(b - a))
             if length < 1e-12:
-                self._parts.append((fcl.Sphere(r), transform(np.eye(3), a)))
+                self._parts.append((fcl.Sphere(0.0), transform(np.eye(3), a), r))
             else:  # fcl capsules lie along their local z, centred
-                self._parts.append((fcl.Capsule(r, length), frame_from_z((a + b) / 2, b - a)))
+                self._parts.append((fcl.Capsule(0.0, length), frame_from_z((a + b) / 2, b - a), r))
 
     def __call__(self, X_MT: np.ndarray) -> np.ndarray:
         """(K,) clearance (m) of the tool at poses X_MT (K, 4, 4) of its Tool frame in the mesh
-        frame: the smallest over its parts; minus the largest contact depth where it collides."""
+        frame: the smallest over its parts of (the axis's FCL distance to the mesh - r), exact
+        for a part whose axis is free; -r where the axis itself touches the mesh (collide), a
+        value at or below the true one (FCL's contact depths of a capsule in a mesh are not
+        reliable: zero or denormal depths were seen for real contacts)."""
         out = np.empty(X_MT.shape[0])
         dreq = fcl.DistanceRequest()
-        creq = fcl.CollisionRequest(num_max_contacts=16, enable_contact=True)
+        creq = fcl.CollisionRequest()
         for k, X in enumerate(np.asarray(X_MT, dtype=float)):
             best = np.inf
-            for shape, X_TS in self._parts:
+            for shape, X_TS, r in self._parts:
                 X_MS = X @ X_TS
                 obj = fcl.CollisionObject(shape, fcl.Transform(X_MS[:3, :3], X_MS[:3, 3]))
-                d = fcl.distance(obj, self._mesh, dreq, fcl.DistanceResult())
-                if d <= 0.0:
-                    res = fcl.CollisionResult()
-                    fcl.collide(obj, self._mesh, creq, res)
-                    depth = max((c.penetration_depth for c in res.contacts), default=0.0)
-                    d = -abs(depth)
+                if fcl.collide(obj, self._mesh, creq, fcl.CollisionResult()) > 0:
+                    d = -r
+                else:
+                    d = max(float(fcl.distance(obj, self._mesh, dreq, fcl.DistanceResult())),
+                            0.0) - r
                 best = min(best, d)
             out[k] = best
         return out
