@@ -18,8 +18,7 @@ At every logged pose (200 Hz) of every run:
   which the case takes as retracted: :func:`exact_for`), the tool as the capsules of
   systems.tool_clearance.ToolGeometry (the body the supervisor bounds: the handle rod, radius
   r, from P1 = [r, 0, 0] along Tool x for 0.2 m; the head, a sphere of radius r at the TCP; the
-  implant from [r, 0, 0] to [r, 0, -d12], its axis, here of radius 0.1 mm); a colliding pose
-  gets minus the largest contact depth;
+  implant from [r, 0, 0] to [r, 0, -d12], its axis, here of radius 0.1 mm): analyses.scan_reference;
 - the fixture's body violation (the TCP and the rod's entry crossing against delta);
 - the supervisor's barrier h (the FPSM clearance at the desired pose).
 
@@ -33,92 +32,23 @@ from __future__ import annotations
 import argparse
 import time
 
-import fcl
 import numpy as np
 
-from implantplan.analyses import pipeline
-from implantplan.analyses.case import default_case_path, load_case
+from implantplan.analyses.scan_reference import (  # noqa: F401  (the study's reference, re-exported)
+    IMPLANT_AXIS_RADIUS,
+    ExactClearance,
+    default_case_sites,
+    exact_for,
+)
 from implantplan.diagrams.feeding import FINISH_SECONDS, TARGET_TOLERANCE
 from implantplan.diagrams.teleop import TeleopCase, build_teleop, simulate
 from implantplan.systems.adversarial_operator import KINDS, Directions, adversarial_motion
 from implantplan.systems.files import write_json
-from implantplan.systems.frames import frame_from_z, transform
 from implantplan.systems.master_device import feeding_runs
 from implantplan.systems.safety_supervisor import Barrier
-from implantplan.systems.tool_clearance import ToolGeometry
 
 MARGIN_SLACK = 0.0002  # m: the exact clearance may dip this far below the margin
 MAX_VIOLATION = 0.0005  # m: the fixture's body violation must stay below this
-IMPLANT_AXIS_RADIUS = 1e-4  # m: the implant as its axis (a thin capsule for FCL)
-
-
-class ExactClearance:
-    """FCL distance of the tool's capsules to a triangle mesh (both in the mesh frame, m).
-
-    The tool is systems.tool_clearance's :class:`ToolGeometry` (the body the barrier bounds):
-    each of its capsules (segment a-b in Tool, radius r) as an FCL capsule, a sphere where the
-    segment is a point; a radius-0 segment (the implant's axis) gets ``IMPLANT_AXIS_RADIUS``.
-    """
-
-    def __init__(self, vertices, faces, tool: ToolGeometry):
-        model = fcl.BVHModel()
-        model.beginModel(len(vertices), len(faces))
-        model.addSubModel(np.asarray(vertices, dtype=float), np.asarray(faces, dtype=np.int64))
-        model.endModel()
-        self._mesh = fcl.CollisionObject(model, fcl.Transform())
-        self._parts = []  # (the part's axis as a zero-radius shape, X_T_axis, radius)
-        for a, b, r in zip(*tool.capsules_T(), strict=True):
-            r = max(float(r), IMPLANT_AXIS_RADIUS)
-            length = float(np.linalg.norm(b - a))
-            if length < 1e-12:
-                self._parts.append((fcl.Sphere(0.0), transform(np.eye(3), a), r))
-            else:  # fcl capsules lie along their local z, centred
-                self._parts.append((fcl.Capsule(0.0, length), frame_from_z((a + b) / 2, b - a), r))
-
-    def __call__(self, X_MT: np.ndarray) -> np.ndarray:
-        """(K,) clearance (m) of the tool at poses X_MT (K, 4, 4) of its Tool frame in the mesh
-        frame: the smallest over its parts of (the axis's FCL distance to the mesh - r), exact
-        for a part whose axis is free; -r where the axis itself touches the mesh (collide), a
-        value at or below the true one (FCL's contact depths of a capsule in a mesh are not
-        reliable: zero or denormal depths were seen for real contacts)."""
-        out = np.empty(X_MT.shape[0])
-        dreq = fcl.DistanceRequest()
-        creq = fcl.CollisionRequest()
-        for k, X in enumerate(np.asarray(X_MT, dtype=float)):
-            best = np.inf
-            for shape, X_TS, r in self._parts:
-                X_MS = X @ X_TS
-                obj = fcl.CollisionObject(shape, fcl.Transform(X_MS[:3, :3], X_MS[:3, 3]))
-                if fcl.collide(obj, self._mesh, creq, fcl.CollisionResult()) > 0:
-                    d = -r
-                else:
-                    d = max(float(fcl.distance(obj, self._mesh, dreq, fcl.DistanceResult())),
-                            0.0) - r
-                best = min(best, d)
-            out[k] = best
-        return out
-
-
-def default_case_sites(*, progress=None):
-    """(teleop cases per site, the opened scan mesh) of the bundled default case, planned as
-    ``implantplan plan`` does."""
-    case = load_case(default_case_path())
-    fit = pipeline.fit_stage(case)
-    placements = pipeline.placement_stage(case, fit.fpsm)
-    robot = pipeline.robot_stage(case, placements)
-    return pipeline.teleop_cases(case, fit, placements, robot), fit.opened
-
-
-def exact_for(tc: TeleopCase, mesh) -> ExactClearance:
-    """The exact reference for a site: the opened scan without the tissue in front of the
-    mouth opening (faces with a vertex beyond the FPSM's top slice plane: the lips and cheeks
-    there are retracted in surgery, the case's own assumption), the tool of ``tc``."""
-    V = np.asarray(mesh.vertices, dtype=float)
-    X_CM = np.linalg.inv(tc.fpsm.X_WC)  # mesh frame -> Center
-    z = V @ X_CM[2, :3] + X_CM[2, 3]
-    faces = np.asarray(mesh.faces)
-    keep = np.all(z[faces] <= tc.fpsm.z_range[1], axis=1)
-    return ExactClearance(V, faces[keep], tc.tool)
 
 
 def run_one(teleop, tc: TeleopCase, motion, exact: ExactClearance, *, finish_seconds=None):

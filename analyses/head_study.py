@@ -16,7 +16,7 @@ Measured per run, all relative to the TRUE (moving) head:
 - the exact clearance: FCL (systems.exact_clearance) of the whole tool against the cavity mesh,
   the tool transformed into the moving head's Center frame at every logged step (2 000 steps of
   a 10 s run); on the bundled default case (``--case scan``, the default) the opened scan per
-  site (analyses.adversarial.exact_for), on ``--case cylinder`` the cylinder of its FPSM;
+  site (analyses.scan_reference.exact_for), on ``--case cylinder`` the cylinder of its FPSM;
 - the feed's completion: final distance to the target in the head frame <= 1 mm;
 - after a startle: the time from its onset to the guard's stop (detection) and to the end of
   the back-out (the tool moved 90% of the back-out distance along the fixture's axis, measured
@@ -113,11 +113,11 @@ def _public(m: dict) -> dict:
 
 
 class ScanCavity:
-    """The bundled default case's exact reference for a site (analyses.adversarial.exact_for:
+    """The bundled default case's exact reference for a site (analyses.scan_reference.exact_for:
     the opened scan, FCL, the whole tool) taking poses in the head's Center frame."""
 
     def __init__(self, tc: TeleopCase, mesh):
-        from implantplan.analyses.adversarial import exact_for
+        from implantplan.analyses.scan_reference import exact_for
 
         self._exact = exact_for(tc, mesh)
         self._X_MC = tc.fpsm.X_WC  # the FPSM's X_WC is Center in the mesh frame
@@ -129,7 +129,7 @@ class ScanCavity:
 def scan_cases(*, progress=None) -> list:
     """[(teleop case, exact cavity)] per site of the bundled default case (the scan, sites 36
     and 46), planned as ``implantplan plan`` does."""
-    from implantplan.analyses.adversarial import default_case_sites
+    from implantplan.analyses.scan_reference import default_case_sites
 
     cases, mesh = default_case_sites(progress=progress)
     return [(tc, ScanCavity(tc, mesh)) for tc in cases]
