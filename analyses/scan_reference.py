@@ -11,63 +11,43 @@ were seen for real contacts, which made a 0.61 mm contact read as 0.
 
 from __future__ import annotations
 
-import fcl
 import numpy as np
+import trimesh
 
 from implantplan.analyses import pipeline
 from implantplan.analyses.case import default_case_path, load_case
 from implantplan.diagrams.teleop import TeleopCase
-from implantplan.systems.frames import frame_from_z, transform
-from implantplan.systems.tool_clearance import ToolGeometry
+from implantplan.systems.exact_clearance import ExactCavity
+from implantplan.systems.tool_clearance import ToolGeometry, _tool_capsules
 
 IMPLANT_AXIS_RADIUS = 1e-4  # m: the implant as its axis (a thin capsule for FCL)
 
 
 class ExactClearance:
-    """FCL distance of the tool's capsules to a triangle mesh (both in the mesh frame, m).
-
-    The tool is systems.tool_clearance's :class:`ToolGeometry` (the body the barrier bounds):
-    each of its capsules (segment a-b in Tool, radius r) as an FCL capsule, a sphere where the
-    segment is a point; a radius-0 segment (the implant's axis) gets ``IMPLANT_AXIS_RADIUS``.
+    """FCL clearance of the tool's capsules to a triangle mesh (both in the mesh frame, m):
+    systems.exact_clearance.ExactCavity's capsule clearance (the axis's distance minus r, -r
+    where the axis touches), each capsule of :class:`ToolGeometry` with a radius of at least
+    ``IMPLANT_AXIS_RADIUS`` (the implant's radius-0 axis as a thin capsule). No start-in-tissue
+    test: the opened scan is not the Center-axis star-shaped cavity that test assumes.
     """
 
     def __init__(self, vertices, faces, tool: ToolGeometry):
-        model = fcl.BVHModel()
-        model.beginModel(len(vertices), len(faces))
-        model.addSubModel(np.asarray(vertices, dtype=float), np.asarray(faces, dtype=np.int64))
-        model.endModel()
-        self._mesh = fcl.CollisionObject(model, fcl.Transform())
-        self._parts = []  # (the part's axis as a zero-radius shape, X_T_axis, radius)
-        for a, b, r in zip(*tool.capsules_T(), strict=True):
-            r = max(float(r), IMPLANT_AXIS_RADIUS)
-            length = float(np.linalg.norm(b - a))
-            if length < 1e-12:
-                self._parts.append((fcl.Sphere(0.0), transform(np.eye(3), a), r))
-            else:  # fcl capsules lie along their local z, centred
-                self._parts.append((fcl.Capsule(0.0, length), frame_from_z((a + b) / 2, b - a), r))
+        mesh = trimesh.Trimesh(np.asarray(vertices, dtype=float), np.asarray(faces), process=False)
+        self._cavity = ExactCavity(mesh)
+        self._tool = tool
+        self._r = np.maximum(tool.capsules_T()[2], IMPLANT_AXIS_RADIUS)
 
     def __call__(self, X_MT: np.ndarray) -> np.ndarray:
         """(K,) clearance (m) of the tool at poses X_MT (K, 4, 4) of its Tool frame in the mesh
-        frame: the smallest over its parts of (the axis's FCL distance to the mesh - r), exact
-        for a part whose axis is free; -r where the axis itself touches the mesh (collide), a
-        value at or below the true one (FCL's contact depths of a capsule in a mesh are not
-        reliable: zero or denormal depths were seen for real contacts)."""
-        out = np.empty(X_MT.shape[0])
-        dreq = fcl.DistanceRequest()
-        creq = fcl.CollisionRequest()
-        for k, X in enumerate(np.asarray(X_MT, dtype=float)):
-            best = np.inf
-            for shape, X_TS, r in self._parts:
-                X_MS = X @ X_TS
-                obj = fcl.CollisionObject(shape, fcl.Transform(X_MS[:3, :3], X_MS[:3, 3]))
-                if fcl.collide(obj, self._mesh, creq, fcl.CollisionResult()) > 0:
-                    d = -r
-                else:
-                    d = max(float(fcl.distance(obj, self._mesh, dreq, fcl.DistanceResult())),
-                            0.0) - r
-                best = min(best, d)
-            out[k] = best
-        return out
+        frame: the smallest over its capsules; exact while a capsule's axis is free, at or
+        below the true value where it touches (FCL's contact depths of a capsule in a mesh are
+        not used: zero or denormal depths were seen for real contacts)."""
+        X = np.asarray(X_MT, dtype=float).reshape(-1, 4, 4)
+        A, B, _ = _tool_capsules(X, self._tool)
+        n, C = A.shape[:2]
+        c = self._cavity.capsule_clearance(A.reshape(-1, 3), B.reshape(-1, 3),
+                                           np.tile(self._r, n), check_start=False)
+        return c.reshape(n, C).min(axis=1)
 
 
 def default_case_sites(*, progress=None):

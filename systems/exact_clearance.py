@@ -130,12 +130,13 @@ class ExactCavity:
                 out[k] = self._collides(self._segment_object(a, p, 0.0))
         return out
 
-    def capsule_clearance(self, p0, p1, radius) -> np.ndarray:
+    def capsule_clearance(self, p0, p1, radius, *, check_start: bool = True) -> np.ndarray:
         """(n,) exact signed clearance (m) of capsules starting in the cavity (module notes):
         d - r with d the axis's distance to the mesh; -r when the axis touches the mesh or p0
-        is in tissue."""
+        is in tissue. ``check_start=False`` skips the start's test (a mesh that is not the
+        Center-axis star-shaped cavity, e.g. the opened scan of the teleop studies)."""
         A, B, r = self._batch(p0, p1, radius)
-        tissue = self.start_in_tissue(A)
+        tissue = self.start_in_tissue(A) if check_start else np.zeros(len(A), dtype=bool)
         out = np.empty(len(A))
         for k in range(len(A)):
             if tissue[k]:
