@@ -11,8 +11,13 @@ motion seed ``seed + i``, tracker noise seed ``seed + i``) on the default case, 
 
 Measured per run, all relative to the TRUE (moving) head:
 
-- the tool's path error: |p_CenterT(t) - p_CenterT_still(t)| at every logged step (mean, max),
-  up to the guard's trigger (after it the tool backs out on purpose);
+- the tool's path deviation: the distance from p_CenterT(t) to the still run's path (the
+  polyline of its logged positions) at every logged step (mean, max), up to the guard's trigger
+  (after it the tool backs out on purpose): how far the head motion pushes the tool off its
+  path in the mouth;
+- the time-indexed path error |p_CenterT(t) - p_CenterT_still(t)| over the same steps (keys
+  ``path_error_*``): the deviation plus any delay along the path (the supervisor holding the
+  feed while the head moves, which the ignoring arm, with no guard, never does);
 - the exact clearance: FCL (systems.exact_clearance) of the whole tool against the cavity mesh,
   the tool transformed into the moving head's Center frame at every logged step (2 000 steps of
   a 10 s run); on the bundled default case (``--case scan``, the default) the opened scan per
@@ -77,16 +82,35 @@ def _target_C(case: TeleopCase) -> np.ndarray:
     return (np.linalg.inv(case.X_WCenter) @ case.X_WTarget)[:3, 3]
 
 
+def path_distance(p: np.ndarray, path: np.ndarray, chunk: int = 256) -> np.ndarray:
+    """(n,) distance of points ``p`` (n, 3) to the polyline ``path`` (m, 3) (exact, by
+    segments; a one-point path is that point)."""
+    p, path = np.atleast_2d(p), np.atleast_2d(path)
+    if path.shape[0] == 1:
+        return np.linalg.norm(p - path[0], axis=1)
+    a, d = path[:-1], np.diff(path, axis=0)
+    dd = np.maximum(np.einsum("ij,ij->i", d, d), 1e-300)
+    out = np.empty(p.shape[0])
+    for i in range(0, p.shape[0], chunk):
+        q = p[i:i + chunk, None, :] - a[None]  # (c, m-1, 3)
+        u = np.clip(np.einsum("cmj,mj->cm", q, d) / dd, 0.0, 1.0)
+        out[i:i + chunk] = np.linalg.norm(q - u[..., None] * d, axis=2).min(axis=1)
+    return out
+
+
 def measure(run, still, case: TeleopCase, cavity: ExactCavity) -> dict:
     """The figures of one head-motion run against its still reference (module notes)."""
     p = run.X_CT[:, :3, 3]
     err = np.linalg.norm(p - still.X_CT[: len(p), :3, 3], axis=1)
+    dev = path_distance(p, still.X_CT[:, :3, 3])
     trig = -1.0
     if run.guard is not None and run.guard[-1, 0] > 0.5:
         trig = float(run.guard[-1, 2])
     upto = run.t < trig if trig >= 0 else np.ones(len(p), dtype=bool)
     clear = cavity.tool_clearance(run.X_CT, case.tool)
     out = {
+        "path_deviation_mean": float(dev[upto].mean()) if upto.any() else 0.0,
+        "path_deviation_max": float(dev[upto].max()) if upto.any() else 0.0,
         "path_error_mean": float(err[upto].mean()) if upto.any() else 0.0,
         "path_error_max": float(err[upto].max()) if upto.any() else 0.0,
         "exact_clearance_min": float(clear.min()),
@@ -96,7 +120,7 @@ def measure(run, still, case: TeleopCase, cavity: ExactCavity) -> dict:
         "realtime_factor": run.sim_seconds / run.wall_seconds,
     }
     out["reached_target"] = out["final_error"] <= F.TARGET_TOLERANCE
-    out["_clearance"], out["_error"] = clear, err
+    out["_clearance"], out["_error"], out["_deviation"] = clear, err, dev
     if trig >= 0:
         k = int(np.searchsorted(run.t, trig))
         axis = case.vf.direction
@@ -189,11 +213,14 @@ def head_study(case: TeleopCase, inst, *, profiles=STUDY_PROFILES, runs: int = 5
                         hm.displacement(fol.t)[0], axis=1),
                     "clearance_following": a["_clearance"], "clearance_ignoring": b["_clearance"],
                     "error_following": a["_error"], "error_ignoring": b["_error"],
+                    "deviation_following": a["_deviation"],
+                    "deviation_ignoring": b["_deviation"],
                     "trigger_time": a["trigger_time"], "margin": margin,
                     "margin_extra": fol.margin_extra})
             if progress is not None:
-                progress.step(i, runs, f"{prof}: error {1000 * a['path_error_max']:.2f} mm "
-                              f"following, {1000 * b['path_error_max']:.2f} mm ignoring")
+                progress.step(i, runs, f"{prof}: deviation {1000 * a['path_deviation_max']:.2f}"
+                              f" mm following, {1000 * b['path_deviation_max']:.2f} mm ignoring;"
+                              f" clearance {1000 * a['exact_clearance_min']:.2f} mm")
         out["profiles"][prof] = {"summary": summarize(rows, prof, margin), "runs": rows}
     out["lost_tracking"] = lost_tracking(case, inst, motions[0], seed=seed, cavity=cavity,
                                          still=stills[0], tracker=base)
@@ -207,6 +234,10 @@ def summarize(rows: list, prof: str, margin: float) -> dict:
     ign = [r["ignoring"] for r in rows]
     s = {
         "runs": len(rows),
+        "path_deviation_mean_following": float(np.mean([r["path_deviation_mean"] for r in fol])),
+        "path_deviation_max_following": float(np.max([r["path_deviation_max"] for r in fol])),
+        "path_deviation_mean_ignoring": float(np.mean([r["path_deviation_mean"] for r in ign])),
+        "path_deviation_max_ignoring": float(np.max([r["path_deviation_max"] for r in ign])),
         "path_error_mean_following": float(np.mean([r["path_error_mean"] for r in fol])),
         "path_error_max_following": float(np.max([r["path_error_max"] for r in fol])),
         "path_error_mean_ignoring": float(np.mean([r["path_error_mean"] for r in ign])),
@@ -248,12 +279,16 @@ def lost_tracking(case: TeleopCase, inst, motion, *, seed: int, cavity: ExactCav
 def _print_summary(result: dict, prefix: str = "") -> None:
     for prof, entry in result["profiles"].items():
         s = entry["summary"]
-        mm = {k: 1000 * v for k, v in s.items() if isinstance(v, float) and "error" in k
-              or k.startswith("exact")}
-        line = (f"{prefix}{prof}: {s['runs']} runs, path error mean/max "
-                f"{mm['path_error_mean_following']:.2f}/{mm['path_error_max_following']:.2f} mm "
-                f"following vs {mm['path_error_mean_ignoring']:.2f}/"
-                f"{mm['path_error_max_ignoring']:.2f} mm ignoring; exact clearance min "
+        mm = {k: 1000 * v for k, v in s.items() if isinstance(v, float) and (
+            "error" in k or "deviation" in k) or k.startswith("exact")}
+        line = (f"{prefix}{prof}: {s['runs']} runs, path deviation mean/max "
+                f"{mm['path_deviation_mean_following']:.2f}/"
+                f"{mm['path_deviation_max_following']:.2f} mm following vs "
+                f"{mm['path_deviation_mean_ignoring']:.2f}/"
+                f"{mm['path_deviation_max_ignoring']:.2f} mm ignoring (time-indexed "
+                f"{mm['path_error_mean_following']:.2f}/{mm['path_error_max_following']:.2f} vs "
+                f"{mm['path_error_mean_ignoring']:.2f}/{mm['path_error_max_ignoring']:.2f} mm); "
+                f"exact clearance min "
                 f"{mm['exact_clearance_min_following']:.2f} mm "
                 f"({s['runs_below_zero_following']} runs < 0); reached "
                 f"{s['reached_target_following']}; guard {s['guard_triggered_following']}")
@@ -267,37 +302,80 @@ def _print_summary(result: dict, prefix: str = "") -> None:
           f"{1000 * lt['exact_clearance_min']:.2f} mm")
 
 
+def tracker_from_args(args) -> TrackerParams:
+    """The camera of ``--tracker-rate-hz``, ``--tracker-latency-ms``, ``--prediction-samples``
+    (errors name the flag)."""
+    flags = (("--tracker-rate-hz", "rate", args.tracker_rate_hz, 1.0),
+             ("--tracker-latency-ms", "latency", args.tracker_latency_ms, 1e-3),
+             ("--prediction-samples", "predict_samples", args.prediction_samples, 1))
+    kw = {}
+    for flag, name, value, scale in flags:
+        if value is None:
+            continue
+        try:
+            kw[name] = value * scale if scale != 1 else value
+            TrackerParams(**kw)
+        except InputError as e:
+            raise InputError(flag, str(e).split(': ', 1)[-1]) from None
+    return TrackerParams(**kw)
+
+
 def cmd_head_motion(args) -> int:
     from implantplan.analyses.figures.head import plot_head
     from implantplan.analyses.progress import Progress
-    from implantplan.systems.files import write_json
+    from implantplan.analyses.report import render_head_motion
+    from implantplan.systems.files import write_json, write_text_atomic
 
     progress = Progress("analyze head-motion", quiet=args.quiet)
     profiles = tuple(p.strip() for p in args.profiles.split(",") if p.strip())
+    tracker = tracker_from_args(args)
+    trk = {"rate": tracker.rate, "latency": tracker.latency,
+           "predict_samples": tracker.predict_samples,
+           "noise_position": tracker.noise_position, "noise_angle": tracker.noise_angle}
     out = Path(args.out)
     if args.case == "cylinder":
         case, inst = default_case(args.seed)
         result = head_study(case, inst, profiles=profiles, runs=args.runs, seed=args.seed,
-                            progress=progress)
+                            progress=progress, tracker=tracker)
         traces = result.pop("_traces")
         out.mkdir(parents=True, exist_ok=True)
-        write_json(out / "head_motion.json", {"case": "cylinder", **result}, kind="head_motion")
-        plot_head(traces, out)
+        figs = {"cylinder": [p.name for p in plot_head(traces, out)]}
+        study = {"case": "cylinder", "tracker": trk, **result}
+        study["passed"] = _never_below_zero({"cylinder": result})
+        write_json(out / "head_motion.json", study, kind="head_motion")
         _print_summary(result)
-        return 0
-    # the bundled default case: the scan, each site, FCL against the moving opened scan
-    progress.say("planning the bundled default case (scan, sites 36 and 46)")
-    sites = {}
-    for tc, cavity in scan_cases():
-        result = head_study(tc, None, profiles=profiles, runs=args.runs, seed=args.seed,
-                            progress=progress, cavity=cavity)
-        traces = result.pop("_traces")
-        (out / tc.label).mkdir(parents=True, exist_ok=True)
-        plot_head(traces, out / tc.label)
-        sites[tc.label] = result
-        _print_summary(result, prefix=f"{tc.label} ")
-    write_json(out / "head_motion.json", {"case": "scan", "sites": sites}, kind="head_motion")
+    else:
+        # the bundled default case: the scan, each site, FCL against the moving opened scan
+        progress.say("planning the bundled default case (scan, sites 36 and 46)")
+        sites, figs = {}, {}
+        for tc, cavity in scan_cases():
+            result = head_study(tc, None, profiles=profiles, runs=args.runs, seed=args.seed,
+                                progress=progress, cavity=cavity, tracker=tracker)
+            traces = result.pop("_traces")
+            (out / tc.label).mkdir(parents=True, exist_ok=True)
+            figs[tc.label] = [f"{tc.label}/{p.name}"
+                              for p in plot_head(traces, out / tc.label)]
+            sites[tc.label] = result
+            _print_summary(result, prefix=f"{tc.label} ")
+        study = {"case": "scan", "tracker": trk, "sites": sites,
+                 "passed": _never_below_zero(sites)}
+        write_json(out / "head_motion.json", study, kind="head_motion")
+    from implantplan.systems.files import to_jsonable
+
+    write_text_atomic(out / "report.html", render_head_motion(to_jsonable(study), figs))
+    print(f"exact clearance never below 0 in any run: {'yes' if study['passed'] else 'NO'}; "
+          f"wrote {out / 'head_motion.json'} and {out / 'report.html'}")
     return 0
+
+
+def _never_below_zero(sites: dict) -> bool:
+    """True when no run of any profile, nor the lost-tracking run, went below 0 clearance."""
+    for res in sites.values():
+        if any(e["summary"]["runs_below_zero_following"] for e in res["profiles"].values()):
+            return False
+        if res["lost_tracking"]["exact_clearance_min"] < 0:
+            return False
+    return True
 
 
 def register_analysis(sub) -> None:
@@ -312,7 +390,14 @@ def register_analysis(sub) -> None:
                    help="scan: the bundled default case (opened scan, each site, FCL against the "
                    "moving scan; figures in a folder per site); cylinder: seed 000's cylinder "
                    "feeding case of `simulate feeding` (default scan)")
+    p.add_argument("--tracker-rate-hz", type=float, default=None,
+                   help="the camera's rate, 30-60 Hz (default 60)")
+    p.add_argument("--tracker-latency-ms", type=float, default=None,
+                   help="the camera's latency, 0-100 ms (default 20)")
+    p.add_argument("--prediction-samples", type=int, default=None,
+                   help="samples of the latency-compensating prediction, 0 (off) or 2-6 "
+                   "(default 2)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--out", type=Path, required=True,
-                   help="output folder (head_motion.json and head_<profile>.png)")
+                   help="output folder (head_motion.json, report.html and head_<profile>.png)")
     p.set_defaults(func=cmd_head_motion)

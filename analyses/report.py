@@ -263,3 +263,67 @@ def write_report(path: Path, plan: dict, figs: dict) -> Path:
     from implantplan.systems.files import to_jsonable
 
     return write_text_atomic(path, render(to_jsonable(plan), figs))
+
+
+def render_head_motion(study: dict, figs: dict) -> str:
+    """``report.html`` of the awake-patient study (analyses.head_study): per site, the summary
+    per profile (path deviation and time-indexed error following vs ignoring the head, exact
+    clearance, completion, the startle's stop and back-out), lost tracking, and the figures
+    (``figs``: {site: [PNG paths relative to the page]})."""
+    sites = study["sites"] if "sites" in study else {"cylinder": study}
+    trk = study.get("tracker", {})
+    verdict = study.get("passed")
+    parts = [
+        "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"
+        "<link rel='icon' href='data:,'><title>implantplan: the awake patient</title>"
+        f"<style>{_CSS}</style></head><body>",
+        "<h1>The awake patient: head motion, tracking and following</h1>",
+        f"<p class='muted'>case {html.escape(str(study.get('case', '')))}; runs per profile "
+        f"{html.escape(str(next(iter(sites.values()))['runs']))}; seed "
+        f"{html.escape(str(next(iter(sites.values()))['seed']))}; tracker "
+        f"{html.escape(str(trk.get('rate', '')))} Hz, latency "
+        f"{html.escape(str(1000 * trk.get('latency', float('nan'))))} ms, prediction over "
+        f"{html.escape(str(trk.get('predict_samples', '')))} samples"
+        + ("" if verdict is None else "; exact clearance never below 0: "
+           + str(_badge(bool(verdict))))
+        + "</p>",
+    ]
+    mm = 1000.0
+    for name, res in sites.items():
+        rows = []
+        for prof, entry in res["profiles"].items():
+            s = entry["summary"]
+            stop = s.get("stop_after_onset_max_s")
+            back = s.get("backed_out_after_onset_max_s")
+            rows.append([
+                prof, s["runs"],
+                f"{mm * s['path_deviation_mean_following']:.2f} / "
+                f"{mm * s['path_deviation_max_following']:.2f}",
+                f"{mm * s['path_deviation_mean_ignoring']:.2f} / "
+                f"{mm * s['path_deviation_max_ignoring']:.2f}",
+                f"{mm * s['path_error_mean_following']:.2f} / "
+                f"{mm * s['path_error_max_following']:.2f}",
+                f"{mm * s['path_error_mean_ignoring']:.2f} / "
+                f"{mm * s['path_error_max_ignoring']:.2f}",
+                f"{mm * s['exact_clearance_min_following']:.2f}",
+                s["runs_below_zero_following"], s["runs_below_margin_minus_0p2mm_following"],
+                f"{s['reached_target_following']}/{s['runs']}",
+                "" if stop is None else f"{stop:.3f}", "" if back is None else f"{back:.3f}"])
+        parts += [f"<h2>Site {html.escape(str(name))}</h2>", _table(
+            ["profile", "runs", "deviation following (mm, mean / max)",
+             "deviation ignoring (mm)", "time-indexed error following (mm)",
+             "time-indexed error ignoring (mm)", "min exact clearance following (mm)",
+             "runs < 0", "runs < margin - 0.2 mm outside the event", "feeds completed",
+             "stop after onset, max (s)", "backed out after onset, max (s)"], rows, left=1)]
+        lt = res.get("lost_tracking")
+        if lt:
+            stop = lt.get("stop_after_dropout_s")
+            parts.append(_table(
+                ["lost tracking (1 s dropout mid-feed)", "stop after the dropout (s)",
+                 "backed out (mm)", "min exact clearance (mm)"],
+                [["breathing, run 0", "" if stop is None else f"{stop:.3f}",
+                  f"{mm * lt.get('backed_out_m', 0.0):.1f}",
+                  f"{mm * lt['exact_clearance_min']:.2f}"]], left=1))
+        parts.append(_figs(figs.get(name, [])))
+    parts.append("</body></html>")
+    return "\n".join(parts)

@@ -475,7 +475,7 @@ def build_teleop(
         builder.Connect(head.GetOutputPort("X_WHead"), trk.GetInputPort("X_WHead"))
         frame = builder.AddSystem(TrackedHeadFrame(case.X_WCenter))
         frame.set_name("tracked_head_frame")
-        builder.Connect(trk.GetOutputPort("X_WHead_estimated"),
+        builder.Connect(trk.GetOutputPort("X_WHead_predicted"),
                         frame.GetInputPort("X_WHead_estimated"))
         builder.Connect(measured, frame.GetInputPort("X_WE_measured"))
         builder.Connect(supervisor.GetOutputPort("X_WE_desired"),

@@ -54,3 +54,20 @@ def test_head_motion_study_on_the_scan(tmp_path, capsys):
         # the scan is near: a few mm, not the cylinder's 30 mm
         assert 0.0 < s["exact_clearance_min_following"] < 0.01
         assert (out / label / "head_breathing.png").is_file()
+    # the study's report: a table per site and its figures
+    page = (out / "report.html").read_text()
+    assert data["passed"] is True and data["tracker"]["predict_samples"] == 2
+    for label in data["sites"]:
+        assert f"Site {label}" in page and f"{label}/head_breathing.png" in page
+    assert "deviation following" in page
+
+
+def test_tracker_flags_are_checked_and_named(tmp_path, capsys):
+    for flags, name in ((["--tracker-rate-hz", "90"], "--tracker-rate-hz"),
+                        (["--tracker-latency-ms", "-5"], "--tracker-latency-ms"),
+                        (["--prediction-samples", "1"], "--prediction-samples")):
+        code = main(["analyze", "head-motion", "--runs", "1", "--case", "cylinder", *flags,
+                     "--out", str(tmp_path / "x"), "--quiet"])
+        assert code == 2
+        assert name in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
