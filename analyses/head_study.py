@@ -222,7 +222,7 @@ def head_study(case: TeleopCase, inst, *, profiles=STUDY_PROFILES, runs: int = 5
                               f" mm following, {1000 * b['path_deviation_max']:.2f} mm ignoring;"
                               f" clearance {1000 * a['exact_clearance_min']:.2f} mm")
         out["profiles"][prof] = {"summary": summarize(rows, prof, margin), "runs": rows}
-    out["lost_tracking"] = lost_tracking(case, inst, motions[0], seed=seed, cavity=cavity,
+    out["lost_tracking"] = lost_tracking(case, motions[0], seed=seed, cavity=cavity,
                                          still=stills[0], tracker=base)
     out["wall_seconds"] = time.perf_counter() - t0
     out["_traces"] = traces
@@ -261,7 +261,7 @@ def summarize(rows: list, prof: str, margin: float) -> dict:
     return s
 
 
-def lost_tracking(case: TeleopCase, inst, motion, *, seed: int, cavity: ExactCavity, still,
+def lost_tracking(case: TeleopCase, motion, *, seed: int, cavity: ExactCavity, still,
                   tracker: TrackerParams, start_share: float = 0.5, seconds: float = 1.0) -> dict:
     """Breathing with the marker occluded from ``start_share`` of the operator's script for
     ``seconds``: the guard must stop the feed and back out; the exact clearance stays >= 0."""

@@ -1,6 +1,7 @@
 """Figures of the awake-patient study (analyses.head_study): per profile, against time, the
-head's motion, the tool's path error relative to the mouth (following vs ignoring the head) and
-the exact clearance against the moving cavity with the margin."""
+head's motion, the tool's deviation from its path relative to the mouth (following vs ignoring
+the head; dotted: the time-indexed error, which also counts the supervisor's holds) and the
+exact clearance against the moving cavity with the margin."""
 
 from __future__ import annotations
 
@@ -25,9 +26,18 @@ def plot_head(traces: dict, out_dir) -> list[Path]:
         fig, axes = plt.subplots(3, 1, figsize=(9, 7.5), sharex=True)
         axes[0].plot(t, tr["head_mm"], color="tab:purple")
         axes[0].set_ylabel("head displacement (mm)")
-        axes[1].plot(t, 1000 * np.asarray(tr["error_following"]), label="following the mouth")
-        axes[1].plot(t, 1000 * np.asarray(tr["error_ignoring"]), label="ignoring the head")
-        axes[1].set_ylabel("path error rel. mouth (mm)")
+        dev_f, dev_i = tr.get("deviation_following"), tr.get("deviation_ignoring")
+        if dev_f is not None:
+            axes[1].plot(t, 1000 * np.asarray(dev_f), label="following the mouth")
+            axes[1].plot(t, 1000 * np.asarray(dev_i), label="ignoring the head")
+            axes[1].plot(t, 1000 * np.asarray(tr["error_following"]), color="tab:blue",
+                         ls=":", lw=0.8, label="following, time-indexed (incl. holds)")
+            axes[1].set_ylabel("deviation from path\nrel. mouth (mm)")
+        else:
+            axes[1].plot(t, 1000 * np.asarray(tr["error_following"]),
+                         label="following the mouth")
+            axes[1].plot(t, 1000 * np.asarray(tr["error_ignoring"]), label="ignoring the head")
+            axes[1].set_ylabel("path error rel. mouth (mm)")
         axes[1].legend(loc="upper left")
         axes[2].plot(t, 1000 * np.asarray(tr["clearance_following"]), label="following")
         axes[2].plot(t, 1000 * np.asarray(tr["clearance_ignoring"]), label="ignoring")
