@@ -24,8 +24,8 @@ Measured per run, all relative to the TRUE (moving) head:
   site (analyses.scan_reference.exact_for), on ``--case cylinder`` the cylinder of its FPSM;
 - the feed's completion: final distance to the target in the head frame <= 1 mm;
 - after a startle: the time from its onset to the guard's stop (detection) and to the end of
-  the back-out (the tool moved 90% of the back-out distance along the fixture's axis, measured
-  on the tool itself in the true head frame);
+  the back-out (the tool moved 90% of the back-out distance along the fixture's axis from its
+  pose at the startle's onset, measured on the tool itself in the true head frame);
 - lost tracking (a dropout window mid-feed under breathing): the stop, the back-out and the
   clearance.
 """
@@ -98,8 +98,12 @@ def path_distance(p: np.ndarray, path: np.ndarray, chunk: int = 256) -> np.ndarr
     return out
 
 
-def measure(run, still, case: TeleopCase, cavity: ExactCavity) -> dict:
-    """The figures of one head-motion run against its still reference (module notes)."""
+def measure(run, still, case: TeleopCase, cavity: ExactCavity, *,
+            event_time: float | None = None) -> dict:
+    """The figures of one head-motion run against its still reference (module notes).
+    ``event_time``: when the head's event began (a startle's onset); the back-out is measured
+    from the tool's pose then (default: the guard's trigger), since at the trigger the tool
+    already lags the moving head by the tracking error."""
     p = run.X_CT[:, :3, 3]
     err = np.linalg.norm(p - still.X_CT[: len(p), :3, 3], axis=1)
     dev = path_distance(p, still.X_CT[:, :3, 3])
@@ -122,7 +126,8 @@ def measure(run, still, case: TeleopCase, cavity: ExactCavity) -> dict:
     out["reached_target"] = out["final_error"] <= F.TARGET_TOLERANCE
     out["_clearance"], out["_error"], out["_deviation"] = clear, err, dev
     if trig >= 0:
-        k = int(np.searchsorted(run.t, trig))
+        ref = trig if event_time is None else min(trig, float(event_time))
+        k = int(np.searchsorted(run.t, ref))
         axis = case.vf.direction
         s = (p - p[k]) @ axis
         dist = GuardSettings().retreat_distance
@@ -192,7 +197,9 @@ def head_study(case: TeleopCase, inst, *, profiles=STUDY_PROFILES, runs: int = 5
             trk = dataclasses.replace(base, seed=seed + i)
             fol = simulate(build_teleop(case, head_motion=hm, tracker=trk), T, motion=m)
             ign = simulate(build_teleop(case, head_motion=hm, follow=False), T, motion=m)
-            a, b = measure(fol, stills[i], case, cavity), measure(ign, stills[i], case, cavity)
+            on = hm.params.get("onset_s") if prof == "startle" else None
+            a = measure(fol, stills[i], case, cavity, event_time=on)
+            b = measure(ign, stills[i], case, cavity)
             row = {"head": {k: (v.tolist() if isinstance(v, np.ndarray) else v)
                             for k, v in hm.params.items()},
                    "following": _public(a), "ignoring": _public(b)}
@@ -293,8 +300,10 @@ def _print_summary(result: dict, prefix: str = "") -> None:
                 f"({s['runs_below_zero_following']} runs < 0); reached "
                 f"{s['reached_target_following']}; guard {s['guard_triggered_following']}")
         if prof == "startle" and s["stop_after_onset_max_s"] is not None:
-            line += (f"; stop <= {s['stop_after_onset_max_s']:.3f} s, backed out <= "
-                     f"{s['backed_out_after_onset_max_s']} s after onset")
+            back = s["backed_out_after_onset_max_s"]
+            line += (f"; stop <= {s['stop_after_onset_max_s']:.3f} s after onset, backed out "
+                     f"{s['backed_out_runs']}/{s['runs']} runs"
+                     + ("" if back is None else f" (<= {back:.3f} s after onset)"))
         print(line)
     lt = result["lost_tracking"]
     print(f"{prefix}lost tracking: stop {lt['stop_after_dropout_s']} s after the dropout, backed "

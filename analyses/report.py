@@ -309,7 +309,8 @@ def render_head_motion(study: dict, figs: dict) -> str:
                 s["runs_below_zero_following"], s["runs_below_margin_minus_0p2mm_following"],
                 f"{s['reached_target_following']}/{s['runs']}",
                 "" if stop is None else f"{stop:.3f}", "" if back is None else f"{back:.3f}"])
-        parts += [f"<h2>Site {html.escape(str(name))}</h2>", _table(
+        title = str(name) if str(name).startswith("site") else f"Site {name}"
+        parts += [f"<h2>{html.escape(title)}</h2>", _table(
             ["profile", "runs", "deviation following (mm, mean / max)",
              "deviation ignoring (mm)", "time-indexed error following (mm)",
              "time-indexed error ignoring (mm)", "min exact clearance following (mm)",

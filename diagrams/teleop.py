@@ -492,6 +492,7 @@ def build_teleop(
         builder.Connect(trk.GetOutputPort("V_WHead_estimated"),
                         head_guard.GetInputPort("V_WHead_estimated"))
         builder.Connect(trk.GetOutputPort("lost"), head_guard.GetInputPort("lost"))
+        builder.Connect(measured, head_guard.GetInputPort("X_WE"))
         builder.Connect(head_guard.GetOutputPort("V_WE_guarded"),
                         supervisor.GetInputPort("V_WE_corrected"))
         builder.Connect(head_guard.GetOutputPort("margin_extra"),

@@ -11,8 +11,12 @@ Two things the tracked head changes for the supervisor:
 2. **Stop and back out.** When tracking is lost, or the tracked head moves faster than the arm
    can follow (``follow_speed``), the guard latches *retreat*: it drops the operator's command
    and sends the tool back out along the fixture's axis D (out of the mouth) at
-   ``retreat_speed`` for ``retreat_distance``, then holds. The supervisor still filters that
-   twist. The latch lasts until the run ends (the surgeon restarts the feed).
+   ``retreat_speed`` until the *measured* tool (in the tracked head frame) has moved
+   ``retreat_distance`` along D from where it was at the trigger, then holds. The supervisor
+   still filters that twist (near a wall, with the margin grown by a fast head, it may hold
+   the tool for a while): the guard keeps asking until the distance is really backed out,
+   rather than counting what it asked for. The latch lasts until the run ends (the surgeon
+   restarts the feed).
 
 :func:`guard_step` is the core (one step, plain floats); :class:`HeadGuard` the LeafSystem.
 """
@@ -22,6 +26,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, LeafSystem
 
 from implantplan.systems.errors import InputError
@@ -57,22 +63,25 @@ def head_speed(V_head: np.ndarray, reach: float) -> np.ndarray:
 
 
 def guard_step(state: np.ndarray, V_cmd: np.ndarray, speed: float, lost: bool, t: float,
-               settings: GuardSettings, axis_W: np.ndarray, dt: float):
-    """One guard update. ``state`` = [mode (0 feed, 1 retreat), backed out (m), trigger time
-    (s, -1 none), trigger cause (0 none, 1 lost tracking, 2 head too fast)].
+               settings: GuardSettings, axis_W: np.ndarray, dt: float, p_tool: np.ndarray):
+    """One guard update. ``state`` (7) = [mode (0 feed, 1 retreat), backed out (m, measured
+    along ``axis_W`` from the trigger), trigger time (s, -1 none), trigger cause (0 none, 1 lost
+    tracking, 2 head too fast), the tool's position at the trigger (3)]; ``p_tool`` (3): the
+    measured tool position now (tracked head frame).
 
     Returns (new state, the twist to pass on (6,))."""
-    mode, done, t_trig, cause = (float(v) for v in state)
-    if mode < 0.5 and (lost or speed > settings.follow_speed):
-        mode, t_trig, cause = 1.0, t, 1.0 if lost else 2.0
-    if mode < 0.5:
-        return np.array([mode, done, t_trig, cause]), np.asarray(V_cmd, dtype=float)
+    st = np.array(state, dtype=float).reshape(7)
+    p = np.asarray(p_tool, dtype=float).reshape(3)
+    if st[0] < 0.5 and (lost or speed > settings.follow_speed):
+        st[0], st[2], st[3] = 1.0, t, 1.0 if lost else 2.0
+        st[4:7] = p
+    if st[0] < 0.5:
+        return st, np.asarray(V_cmd, dtype=float)
+    st[1] = max(st[1], float((p - st[4:7]) @ axis_W))
     V = np.zeros(6)
-    step = min(settings.retreat_speed * dt, settings.retreat_distance - done)
-    if step > 0:
-        V[3:] = axis_W * (step / dt)
-        done += step
-    return np.array([mode, done, t_trig, cause]), V
+    if st[1] < settings.retreat_distance:  # on at full speed: the tool's lag overshoots the
+        V[3:] = axis_W * settings.retreat_speed  # distance by a period or two (<= 0.2 mm)
+    return st, V
 
 
 class HeadGuard(LeafSystem):
@@ -85,16 +94,19 @@ class HeadGuard(LeafSystem):
         - V_WE_corrected
         - V_WHead_estimated
         - lost
+        - X_WE
         output_ports:
         - V_WE_guarded
         - margin_extra
         - mode
 
     ``V_WE_corrected`` (6): the fixture's twist [w; v] (head-fixed World). ``V_WHead_estimated``
-    (6) and ``lost`` (1): the tracker's. ``V_WE_guarded`` (6): the twist for the supervisor (the
-    input while feeding; the back-out twist in retreat). ``margin_extra`` (1, m): what the
-    supervisor adds to its margin (module notes). ``mode`` (4): [mode (0 feed, 1 retreat), backed
-    out (m), trigger time (s, -1 before), cause (1 lost tracking, 2 head too fast)].
+    (6) and ``lost`` (1): the tracker's. ``X_WE`` (abstract RigidTransform): the measured tool
+    pose in the tracked head frame (the back-out is measured on it). ``V_WE_guarded`` (6): the
+    twist for the supervisor (the input while feeding; the back-out twist in retreat).
+    ``margin_extra`` (1, m): what the supervisor adds to its margin (module notes).
+    ``mode`` (4): [mode (0 feed, 1 retreat), backed out (m, measured), trigger time (s, -1
+    before), cause (1 lost tracking, 2 head too fast)].
 
     Args:
         axis_W: (3,) the fixture's axis D out of the mouth, in (head-fixed) World.
@@ -115,8 +127,11 @@ class HeadGuard(LeafSystem):
         self._V = self.DeclareVectorInputPort("V_WE_corrected", 6)
         self._Vh = self.DeclareVectorInputPort("V_WHead_estimated", 6)
         self._lost = self.DeclareVectorInputPort("lost", 1)
-        # [mode, backed out, trigger time, cause, the twist passed on (6), margin extra]
-        self.DeclareDiscreteState(np.array([0.0, 0.0, -1.0, 0.0, *np.zeros(6), self._err]))
+        self._X = self.DeclareAbstractInputPort("X_WE", AbstractValue.Make(RigidTransform()))
+        # [mode, backed out, trigger time, cause, the twist passed on (6), margin extra,
+        #  the tool's position at the trigger (3)]
+        self.DeclareDiscreteState(np.array([0.0, 0.0, -1.0, 0.0, *np.zeros(6), self._err,
+                                            *np.zeros(3)]))
         self.DeclarePeriodicDiscreteUpdateEvent(self._dt, 0.0, self._update)
         self.DeclareVectorOutputPort("V_WE_guarded", 6, self._calc_V,
                                      prerequisites_of_calc={self.xd_ticket()})
@@ -132,10 +147,11 @@ class HeadGuard(LeafSystem):
         x = context.get_discrete_state(0).get_value()
         speed = float(head_speed(self._Vh.Eval(context), self._s.reach)[0])
         lost = self._lost.Eval(context)[0] > 0.5
-        st, V = guard_step(x[:4], self._V.Eval(context), speed, lost, context.get_time(),
-                           self._s, self._axis, self._dt)
+        state = np.concatenate([x[:4], x[11:14]])
+        st, V = guard_step(state, self._V.Eval(context), speed, lost, context.get_time(),
+                           self._s, self._axis, self._dt, self._X.Eval(context).translation())
         discrete_state.get_mutable_vector(0).SetFromVector(
-            np.concatenate([st, V, [self.margin_extra(speed)]]))
+            np.concatenate([st[:4], V, [self.margin_extra(speed)], st[4:7]]))
 
     def _calc_V(self, context, output: BasicVector):
         output.SetFromVector(context.get_discrete_state(0).get_value()[4:10])

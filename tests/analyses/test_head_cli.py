@@ -58,7 +58,7 @@ def test_head_motion_study_on_the_scan(tmp_path, capsys):
     page = (out / "report.html").read_text()
     assert data["passed"] is True and data["tracker"]["predict_samples"] == 2
     for label in data["sites"]:
-        assert f"Site {label}" in page and f"{label}/head_breathing.png" in page
+        assert f"<h2>{label}</h2>" in page and f"{label}/head_breathing.png" in page
     assert "deviation following" in page
 
 

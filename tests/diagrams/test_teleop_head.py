@@ -86,21 +86,33 @@ def test_lost_tracking_mid_feed_stops_and_backs_out(setup):
     assert run.lost.any()
 
 
-def test_guard_core_latches_and_backs_out_the_set_distance():
+def test_guard_core_latches_and_backs_out_the_measured_distance():
     s = GuardSettings(retreat_speed=0.02, retreat_distance=0.01)
     axis = np.array([0.0, 0.0, 1.0])
     V = np.array([0, 0, 0, 0.01, 0, 0.0])
-    st = np.array([0.0, 0.0, -1.0, 0.0])
-    st, out = guard_step(st, V, 0.01, False, 0.0, s, axis, 0.005)
+    dt = 0.005
+    st = np.array([0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 0.0])
+    p = np.array([0.1, 0.2, 0.3])
+    st, out = guard_step(st, V, 0.01, False, 0.0, s, axis, dt, p)
     np.testing.assert_array_equal(out, V)  # slow head: the command passes
-    st, out = guard_step(st, V, 0.05, False, 0.005, s, axis, 0.005)
-    assert st[0] == 1 and st[3] == 2 and st[2] == 0.005
-    total = out[5] * 0.005
-    for k in range(200):  # latched even once the head is still again
-        st, out = guard_step(st, V, 0.0, False, 0.01 + k * 0.005, s, axis, 0.005)
-        total += out[5] * 0.005
-        assert np.all(out[:5] == 0)
-    assert total == pytest.approx(0.01)
+    st, out = guard_step(st, V, 0.05, False, dt, s, axis, dt, p)
+    assert st[0] == 1 and st[3] == 2 and st[2] == dt
+    np.testing.assert_array_equal(st[4:7], p)  # where the back-out is measured from
+    assert out[5] == pytest.approx(0.02) and np.all(out[:5] == 0)
+    # the tool moves only half of what is asked (a supervisor holding it near a wall): the
+    # guard keeps asking until the measured tool is 10 mm out, then holds
+    steps = 0
+    while out[5] > 0:
+        p = p + 0.5 * out[3:] * dt
+        st, out = guard_step(st, V, 0.0, False, 0.01 + steps * dt, s, axis, dt, p)
+        assert np.all(out[:5] == 0)  # latched even once the head is still again
+        steps += 1
+        assert steps < 10_000
+    assert 0.01 <= st[1] <= 0.01 + 0.5 * 0.02 * dt + 1e-12
+    assert p[2] - 0.3 == pytest.approx(st[1])
+    assert steps > 0.01 / (0.5 * 0.02 * dt)  # twice the steps of an unhindered back-out
+    st, out = guard_step(st, V, 0.0, False, 9.0, s, axis, dt, p)
+    np.testing.assert_array_equal(out, np.zeros(6))
     assert head_speed(np.array([[0, 0, 1.0, 0.03, 0, 0]]), 0.1)[0] == pytest.approx(0.13)
 
 
