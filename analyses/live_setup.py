@@ -27,18 +27,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from pydrake.math import RotationMatrix
 from pydrake.systems.analysis import Simulator
 
 from implantplan.analyses import pipeline
 from implantplan.diagrams.arm_clearance import SceneGraphClearance, confirm_feed
-from implantplan.diagrams.teleop import FeedRun, TeleopCase, build_teleop, simulate
+from implantplan.diagrams.teleop import X_ET, FeedRun, TeleopCase, build_teleop, simulate
 from implantplan.systems import actuator, moprp
 from implantplan.systems import capability_map as cm
 from implantplan.systems import kinematics as kin
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import read_json
 from implantplan.systems.fpsm import Fpsm
-from implantplan.systems.frames import frame_from_z, invert
+from implantplan.systems.frames import frame_from_z, invert, rotation_angle
 from implantplan.systems.master_device import IncrementalMapping, MasterMotion
 from implantplan.systems.master_input import LiveMasterDevice, MasterInput
 from implantplan.systems.virtual_fixture import VirtualFixture
@@ -290,7 +291,8 @@ class CapabilityView:
 
 def feed_mapping(case: TeleopCase) -> IncrementalMapping:
     """The master frame for a live feed: M's +x along the feed (from the start pose's tool
-    position to the target), y and z across it, so "feed in" pushes the tool along the fixture."""
+    position to the target), y and z across it, so "feed in" pushes the tool along the fixture
+    and "roll" turns it about the feed axis."""
     u = case.X_WTarget[:3, 3] - case.X_WE(case.q_start)[:3, 3]
     n = float(np.linalg.norm(u))
     if n < 1e-9:
@@ -309,14 +311,15 @@ class LiveTeleop:
         meshcat: draw the plant there (None: headless).
         realtime_rate: the Simulator's target real-time rate (1.0 in the studio; 0 runs as fast
             as it can, for tests).
+        options: more keyword arguments of diagrams.teleop.build_teleop (e.g. ``vf_enabled``).
     """
 
     def __init__(self, case: TeleopCase, source: MasterInput, *, meshcat=None,
-                 realtime_rate: float = 1.0):
+                 realtime_rate: float = 1.0, **options):
         self.case = case
         self.mapping = feed_mapping(case)
         self.device = LiveMasterDevice(source, self.mapping)
-        self.teleop = build_teleop(case, meshcat=meshcat, master=self.device)
+        self.teleop = build_teleop(case, meshcat=meshcat, master=self.device, **options)
         self.simulator = Simulator(self.teleop.diagram)
         self.simulator.set_target_realtime_rate(realtime_rate)
         self.context = self.simulator.get_mutable_context()
@@ -325,6 +328,7 @@ class LiveTeleop:
         self.teleop.initialize(self.context)
         self.simulator.Initialize()
         self.start_W = case.X_WE(case.q_start)[:3, 3]
+        self.start_R = case.X_WE(case.q_start)[:3, :3]
 
     @property
     def time(self) -> float:
@@ -338,7 +342,9 @@ class LiveTeleop:
 
     def state(self) -> dict:
         """Tool position, feed progress (m along the feed, target = its length), the fixture's
-        force (N, World), the supervisor's barrier [h, scale, active], the estimator's alarm."""
+        force (N, World), the supervisor's barrier [h, scale, active], the estimator's alarm; the
+        tool's turn since the start (rotation vector in World, rad), its roll about the feed axis
+        and its tilt off it (rad), and its angle to the fixture's planned orientation (rad)."""
         t = self.teleop
         X_WE = t.tool_pose.GetOutputPort("X_WE").Eval(
             t.tool_pose.GetMyContextFromRoot(self.context)).GetAsMatrix4()
@@ -350,7 +356,16 @@ class LiveTeleop:
             t.supervisor.GetMyContextFromRoot(self.context))
         alarm = t.estimator.GetOutputPort("alarm").Eval(
             t.estimator.GetMyContextFromRoot(self.context))
+        turn = RotationMatrix.ProjectToRotationMatrix(X_WE[:3, :3] @ self.start_R.T)
+        aa = turn.ToAngleAxis()
+        r_W = aa.angle() * aa.axis()
+        R_CT = invert(self.case.X_WCenter)[:3, :3] @ X_WE[:3, :3] @ X_ET[:3, :3]
+        R_ref = self.case.vf.R_ref
+        to_plan = rotation_angle(R_CT @ R_ref.T) if R_ref is not None else float("nan")
         return {"t": self.time, "p_WE": p, "X_WE": X_WE,
+                "turn_W": r_W, "roll": float(r_W @ u),
+                "tilt": float(np.linalg.norm(r_W - (r_W @ u) * u)),
+                "angle_to_plan": float(to_plan),
                 "feed": float((p - self.start_W) @ u),
                 "feed_length": float(np.linalg.norm(target - self.start_W)),
                 "to_target": float(np.linalg.norm(target - p)),
