@@ -489,7 +489,7 @@ class Studio:
                              "rate_deg_s": np.rad2deg(self.keyboard.rate),
                              "paused": self.keyboard.paused}
             if self.sliders is not None:
-                out["teleop"]["sliders"] = self.sliders.values()
+                out["teleop"]["sliders"] = dict(self.sliders.last)  # any thread may ask
         out["recordings"] = [p.name for p in self.saved]
         return to_jsonable(out)
 

@@ -165,13 +165,15 @@ class SliderMaster:
     about the feed axis +-30 deg/s), read at every sample; a slider at 0 is no motion there.
 
     Args:
-        meshcat: the pydrake.geometry.Meshcat the sliders live on (read on its own thread:
-            the studio steps the diagram from the thread that made it).
+        meshcat: the pydrake.geometry.Meshcat the sliders live on. Meshcat answers only on the
+            thread that made it: call every method there (the studio steps the diagram on it);
+            other threads read :attr:`last`.
         add: add the sliders now (at 0); :meth:`remove` takes them away again.
     """
 
     def __init__(self, meshcat, *, add: bool = True):
         self.meshcat = meshcat
+        self.last = {name: 0.0 for name in SLIDERS}  # the values last read (mm/s, deg/s)
         if add:
             self.add()
 
@@ -191,16 +193,19 @@ class SliderMaster:
         """Every slider back to zero (the studio's pause key with sliders)."""
         for label, *_ in SLIDERS.values():
             self.meshcat.SetSliderValue(label, 0.0)
+        self.last = {name: 0.0 for name in SLIDERS}
 
     def values(self) -> dict:
         """The sliders' values as shown (mm/s, deg/s) by action name."""
-        return {name: float(self.meshcat.GetSliderValue(label))
-                for name, (label, *_) in SLIDERS.items()}
+        self.last = {name: float(self.meshcat.GetSliderValue(label))
+                     for name, (label, *_) in SLIDERS.items()}
+        return dict(self.last)
 
     def sample(self, t: float) -> MasterSample:
         v, w = np.zeros(3), np.zeros(3)
-        for label, _, _, si, axis, turn in SLIDERS.values():
-            (w if turn else v)[axis] += si * self.meshcat.GetSliderValue(label)
+        for name, value in self.values().items():
+            _, _, _, si, axis, turn = SLIDERS[name]
+            (w if turn else v)[axis] += si * value
         return MasterSample(v, frozenset(), w)
 
 
