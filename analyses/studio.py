@@ -506,12 +506,28 @@ class Studio:
                 time.sleep(idle)
 
 
+KEY_HELP = {
+    "feed_in": "along the fixture into the mouth", "feed_out": "back out along it",
+    "lateral_x-": "across the feed", "lateral_x+": "across the feed",
+    "lateral_y+": "across the feed", "lateral_y-": "across the feed",
+    "roll-": "turn about the feed axis (the rod)", "roll+": "turn about the feed axis (the rod)",
+    "tilt_x+": "turn about lateral x", "tilt_x-": "turn about lateral x",
+    "tilt_y-": "turn about lateral y", "tilt_y+": "turn about lateral y",
+    "faster": "speed and turn rate x1.5", "slower": "speed and turn rate /1.5",
+    "pause": "stop every motion (sliders: back to 0)",
+}
+
+
 def help_keys() -> list[str]:
-    """The studio's keys and sliders, one line each (the status page and the command print it)."""
-    lines = [f"{label}: {action.replace('_', ' ')}" for action, (label, _) in KEYS.items()]
-    lines += [f"{TELEOP}", f"{SAVE}", f"{MASTER}", f"{SLICES}"]
-    lines += [f"slider '{label}': -{half:g}..{half:g}, 0 = still (master sliders)"
+    """The studio's keys and sliders, one line each (the status page, ``studio --help`` and the
+    command's start-up lines show them)."""
+    lines = [f"{label}: {KEY_HELP[action]}" for action, (label, _) in KEYS.items()]
+    lines += [f"{TELEOP}: teleop mode on/off (off saves the run)", f"{SAVE}: save the run so far",
+              f"{MASTER}: teleop from the keyboard or the sliders",
+              f"{SLICES}: show/hide the FPSM slices"]
+    lines += [f"slider {label}: -{half:g}..{half:g}, 0 = still (sliders master)"
               for label, half, *_ in SLIDERS.values()]
+    lines.append("the fixture holds roll and tilt within beta (0.5 deg by default) of the plan")
     return lines
 
 
