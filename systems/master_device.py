@@ -469,7 +469,8 @@ class MasterDevice(LeafSystem):
             out[3:] = v if norm <= self._speed else v * (self._speed / norm)
         else:
             k = self._index(context, play)
-            out[:3] = play.w_W[k]
+            if play.motion.r_M is not None:  # (a motion without one: exactly today's zeros)
+                out[:3] = play.w_W[k]
             out[3:] = play.v_W[k]
         output.SetFromVector(out)
 

@@ -301,6 +301,42 @@ def test_without_the_fixture_a_turn_passes_and_the_supervisor_still_filters(stud
     assert not s["alarm"]
 
 
+def test_turning_in_the_mouth_checked_against_the_exact_scan_clearance(studio):
+    """False-safe check of the rotation commands: at both sites, with and without the fixture,
+    feed in and then roll and tilt about every axis (20 deg/s, 1 s each); FCL between the whole
+    tool and the opened scan (analyses.scan_reference, as the adversarial study) at every logged
+    pose never goes below the supervisor's margin, and no pose the barrier passed (h >= margin)
+    is closer than the margin exactly."""
+    from implantplan.analyses.scan_reference import exact_for
+    from implantplan.diagrams.teleop import X_ET
+
+    sp = studio.sp
+    mesh = st._opened_scan(sp)
+    margin = Barrier().margin
+    for site in range(len(sp.names)):
+        case = sp.teleop_case(site)
+        exact = exact_for(case, mesh)
+        for vf in (True, False):
+            kb = KeyboardMaster(speed=0.015, rate=np.deg2rad(20.0))
+            live = ls.LiveTeleop(case, kb, realtime_rate=0.0, vf_enabled=vf)
+            while live.time < 5.0:
+                kb.press("feed_in", live.time)
+                live.advance(0.05)
+            for key in ("tilt_x+", "tilt_y-", "roll+", "tilt_x-", "tilt_y+"):
+                for _ in range(20):
+                    kb.press(key, live.time)
+                    live.advance(0.05)
+            h = live.teleop.loggers["barrier"].FindLog(live.context).data()[0]
+            q = live.teleop.loggers["q"].FindLog(live.context).data().T[:, :6]
+            X_CT = np.linalg.inv(case.X_WCenter) @ case.X_WE(q) @ X_ET
+            d = exact(case.fpsm.X_WC @ X_CT)
+            assert len(d) == len(h) > 1900
+            assert h.min() > margin - 1e-4
+            assert d.min() > margin - 1e-4, (sp.names[site], vf, d.min())
+            assert int(np.sum((h >= margin) & (d < margin))) == 0  # false-safe
+            assert not live.state()["alarm"]
+
+
 def test_slider_master_drives_teleop_and_switches_with_the_keyboard(studio):
     from implantplan.systems.master_input import SLIDERS
 
