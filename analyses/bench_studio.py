@@ -12,9 +12,11 @@ Prints, in one run on the same plan:
   clearance and SceneGraph confirmation (analyses.live_setup.evaluate_layout + confirm_layout),
   median and max; then the whole poll (drawing the arm) and the capability view drawn when the
   slider rests (new voxels built on the way), median and max, and the fast part alone.
-- **teleop headroom**: the live teleop diagram (keyboard master, fixture, supervisor, estimator,
-  diff IK) stepped in 50 ms turns with the feed key held, with no real-time pacing: simulated
-  seconds per wall second (the headroom the loop has at target rate 1.0), after one warm-up run.
+- **teleop headroom**: the live teleop diagram (fixture, supervisor, estimator, diff IK) stepped
+  in 50 ms turns with no real-time pacing: simulated seconds per wall second (the headroom the
+  loop has at target rate 1.0), after one warm-up run, side by side for the keyboard master (the
+  feed key held), the keyboard with the feed and roll keys held, and the sliders master (Meshcat
+  sliders read at every 5 ms sample: feed 5 mm/s, roll 2 deg/s).
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ def main(argv=None) -> int:
 
     from implantplan.analyses import live_setup as ls
     from implantplan.analyses import studio as st
-    from implantplan.systems.master_input import KeyboardMaster
+    from implantplan.systems.master_input import SLIDERS, KeyboardMaster, SliderMaster
 
     studio, meshcat, status = st.open_studio(args.plan, realtime_rate=0.0, scan=False)
     try:
@@ -68,18 +70,33 @@ def main(argv=None) -> int:
               f"max {1e3 * max(fast):.1f} ms")
 
         case = sp.teleop_case(0)
-        for label in ("warm-up", "measured"):
+        sliders = SliderMaster(meshcat, add=False)
+
+        def run(master: str):
             kb = KeyboardMaster()
-            lt = ls.LiveTeleop(case, kb, realtime_rate=0.0)
+            keys = {"keyboard": ("feed_in",), "keyboard + roll": ("feed_in", "roll+")}
+            source = kb
+            if master == "sliders":
+                sliders.add()
+                meshcat.SetSliderValue(SLIDERS["feed"][0], 5.0)
+                meshcat.SetSliderValue(SLIDERS["roll"][0], 2.0)
+                source = sliders
+            lt = ls.LiveTeleop(case, source, realtime_rate=0.0)
             t0 = time.perf_counter()
             while lt.time < args.seconds - 1e-9:
-                kb.press("feed_in", lt.time)
+                for key in keys.get(master, ()):
+                    kb.press(key, lt.time)
                 lt.advance(0.05)
                 lt.state()
             wall = time.perf_counter() - t0
-            if label == "measured":
-                print(f"teleop loop: {lt.time:.1f} s simulated in {wall:.2f} s wall: "
-                      f"{lt.time / wall:.1f}x real time (target >= 5x at rate 1.0)")
+            sliders.remove()
+            return lt.time, wall
+
+        run("keyboard")  # warm-up
+        for master in ("keyboard", "keyboard + roll", "sliders"):
+            sim, wall = run(master)
+            print(f"teleop loop, {master}: {sim:.1f} s simulated in {wall:.2f} s wall: "
+                  f"{sim / wall:.1f}x real time (target >= 5x at rate 1.0)")
     finally:
         status.close()
     return 0

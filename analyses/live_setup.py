@@ -14,8 +14,9 @@ pipeline's own seed and function); then, per base position:
   depend on the base and come from the plan (certified on the FPSM, exact with FCL).
 - :func:`confirm_layout` (slow, ~0.1-0.3 s): SceneGraph's signed distance along every site's
   whole feed at that base (diagrams.arm_clearance.confirm_feed), the verdict the plan keeps.
-- :class:`CapabilityView`: the capability map (seed 004) around every target from that base; the
-  map lives in the base frame, so voxels built once are reused when the base comes back near.
+- :class:`CapabilityView`: the capability map (seed 004) around every target from that base (the
+  plan's verdict and index: certified and centre-sampled maps); the map lives in the base frame,
+  so voxels built once are reused when the base comes back near.
 
 Everything is in SI units; the studio shows mm and deg.
 """
@@ -27,18 +28,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from pydrake.math import RotationMatrix
 from pydrake.systems.analysis import Simulator
 
 from implantplan.analyses import pipeline
 from implantplan.diagrams.arm_clearance import SceneGraphClearance, confirm_feed
-from implantplan.diagrams.teleop import FeedRun, TeleopCase, build_teleop, simulate
+from implantplan.diagrams.teleop import X_ET, FeedRun, TeleopCase, build_teleop, simulate
 from implantplan.systems import actuator, moprp
 from implantplan.systems import capability_map as cm
 from implantplan.systems import kinematics as kin
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import read_json
 from implantplan.systems.fpsm import Fpsm
-from implantplan.systems.frames import frame_from_z, invert
+from implantplan.systems.frames import frame_from_z, invert, rotation_angle
 from implantplan.systems.master_device import IncrementalMapping, MasterMotion
 from implantplan.systems.master_input import LiveMasterDevice, MasterInput
 from implantplan.systems.virtual_fixture import VirtualFixture
@@ -230,46 +232,61 @@ class CapabilityView:
 
     The map is of the arm + actuator in its base frame (seed 004), so the voxels a base position
     needs are the 3x3x3 neighbourhoods of the targets expressed in that base; voxels already built
-    for an earlier position are kept. Resolution and directions are the plan's case's defaults
+    for an earlier position are kept. As in the plan's capability stage (analyses.pipeline): the
+    verdict "reachable" from the certified map (never reachable where exact IK fails), the
+    capability index and the voxel colours from the centre-sampled map (the certified tool map
+    certifies ~0 of these voxels). Resolution and directions are the plan's case's defaults
     (``voxel``, ``directions``)."""
 
     sp: StudioPlan
     voxel: float = 0.05  # m, the case default (analyses.case: capability.voxel_mm 50)
     directions: int = 100
-    _built: dict = field(default_factory=dict)  # voxel id -> (reach row, all-roll row)
-    _tried: set = field(default_factory=set)  # voxel ids built (stored or unreachable)
+    _built: dict = field(default_factory=dict)  # cell -> {voxel id: (reach row, all-roll row)}
+    _tried: dict = field(default_factory=dict)  # cell -> voxel ids built (stored or unreachable)
+
+    CELLS = ("certified", "centre")
 
     def __post_init__(self):
         X_FA = actuator.actuator_map_frame()
         self._X_FA = X_FA
-        self.params = cm.make_params(self.voxel, self.directions, limits=self.sp.sc.limits,
-                                     X_FT=X_FA, tool="actuator")
-        self.grid = cm.make_grid(self.params)
+        self.params = {cell: cm.make_params(self.voxel, self.directions,
+                                            limits=self.sp.sc.limits, X_FT=X_FA,
+                                            tool="actuator", cell=cell) for cell in self.CELLS}
+        self.grid = cm.make_grid(self.params["centre"])
+        for cell in self.CELLS:
+            self._built.setdefault(cell, {})
+            self._tried.setdefault(cell, set())
+
+    def _map(self, cell: str, ids: np.ndarray) -> cm.CapabilityMap:
+        """The ``cell`` map holding at least the voxels ``ids`` (building those not tried)."""
+        params, built, tried = self.params[cell], self._built[cell], self._tried[cell]
+        todo = np.array([i for i in ids if int(i) not in tried], dtype=np.int64)
+        if todo.size:
+            vox, reach, allr = cm.build_block(params, todo)
+            for v, r, a in zip(vox, reach, allr, strict=True):
+                built[int(v)] = (r, a)
+            tried.update(int(i) for i in todo)
+        keys = np.array(sorted(built), dtype=np.int64)
+        width = (params.directions + 7) // 8
+        reach = np.array([built[int(k)][0] for k in keys], dtype=np.uint8).reshape(-1, width)
+        allr = np.array([built[int(k)][1] for k in keys], dtype=np.uint8).reshape(-1, width)
+        return cm.CapabilityMap(params, self.grid, keys, reach, allr)
 
     def at(self, layout: Layout) -> dict:
         """Capability at each target from the layout's base, and the voxels around them.
 
         Returns:
-            dict(index (S,) of the target's voxel, neighbourhood_index (S,), map_reachable (S,),
-            centres_W (V, 3) voxel centres in World, voxel_index (V,), voxel (m)); also set as
-            ``layout.capability``.
+            dict(index (S,) of the target's voxel, neighbourhood_index (S,), map_reachable (S,)
+            (certified), centres_W (V, 3) voxel centres in World, voxel_index (V,), voxel (m));
+            also set as ``layout.capability``.
         """
         X_BE = moprp.target_pose(layout.xyz, self.sp.X_OT)
         X_BA = X_BE @ invert(actuator.X_FT()) @ self._X_FA
         near = self.grid.neighbourhood(X_BA[:, :3, 3])
         ids = np.unique(near[near >= 0])
-        todo = np.array([i for i in ids if int(i) not in self._tried], dtype=np.int64)
-        if todo.size:
-            vox, reach, allr = cm.build_block(self.params, todo)
-            for v, r, a in zip(vox, reach, allr, strict=True):
-                self._built[int(v)] = (r, a)
-            self._tried.update(int(i) for i in todo)
-        keys = np.array(sorted(self._built), dtype=np.int64)
-        width = (self.params.directions + 7) // 8
-        reach = np.array([self._built[int(k)][0] for k in keys], dtype=np.uint8).reshape(-1, width)
-        allr = np.array([self._built[int(k)][1] for k in keys], dtype=np.uint8).reshape(-1, width)
-        cmap = cm.CapabilityMap(self.params, self.grid, keys, reach, allr)
-        map_reach, index = cmap.query(X_BA)
+        map_reach, _ = self._map("certified", ids).query(X_BA)
+        cmap = self._map("centre", ids)
+        _, index = cmap.query(X_BA)
         neigh = cmap.neighbourhood_index(X_BA[:, :3, 3])
         centres_B = self.grid.centres(ids)
         X_WB = self.sp.sc.X_WO @ moprp.base_pose(layout.xyz)
@@ -290,7 +307,8 @@ class CapabilityView:
 
 def feed_mapping(case: TeleopCase) -> IncrementalMapping:
     """The master frame for a live feed: M's +x along the feed (from the start pose's tool
-    position to the target), y and z across it, so "feed in" pushes the tool along the fixture."""
+    position to the target), y and z across it, so "feed in" pushes the tool along the fixture
+    and "roll" turns it about the feed axis."""
     u = case.X_WTarget[:3, 3] - case.X_WE(case.q_start)[:3, 3]
     n = float(np.linalg.norm(u))
     if n < 1e-9:
@@ -309,14 +327,15 @@ class LiveTeleop:
         meshcat: draw the plant there (None: headless).
         realtime_rate: the Simulator's target real-time rate (1.0 in the studio; 0 runs as fast
             as it can, for tests).
+        options: more keyword arguments of diagrams.teleop.build_teleop (e.g. ``vf_enabled``).
     """
 
     def __init__(self, case: TeleopCase, source: MasterInput, *, meshcat=None,
-                 realtime_rate: float = 1.0):
+                 realtime_rate: float = 1.0, **options):
         self.case = case
         self.mapping = feed_mapping(case)
         self.device = LiveMasterDevice(source, self.mapping)
-        self.teleop = build_teleop(case, meshcat=meshcat, master=self.device)
+        self.teleop = build_teleop(case, meshcat=meshcat, master=self.device, **options)
         self.simulator = Simulator(self.teleop.diagram)
         self.simulator.set_target_realtime_rate(realtime_rate)
         self.context = self.simulator.get_mutable_context()
@@ -325,6 +344,7 @@ class LiveTeleop:
         self.teleop.initialize(self.context)
         self.simulator.Initialize()
         self.start_W = case.X_WE(case.q_start)[:3, 3]
+        self.start_R = case.X_WE(case.q_start)[:3, :3]
 
     @property
     def time(self) -> float:
@@ -338,7 +358,9 @@ class LiveTeleop:
 
     def state(self) -> dict:
         """Tool position, feed progress (m along the feed, target = its length), the fixture's
-        force (N, World), the supervisor's barrier [h, scale, active], the estimator's alarm."""
+        force (N, World), the supervisor's barrier [h, scale, active], the estimator's alarm; the
+        tool's turn since the start (rotation vector in World, rad), its roll about the feed axis
+        and its tilt off it (rad), and its angle to the fixture's planned orientation (rad)."""
         t = self.teleop
         X_WE = t.tool_pose.GetOutputPort("X_WE").Eval(
             t.tool_pose.GetMyContextFromRoot(self.context)).GetAsMatrix4()
@@ -350,7 +372,16 @@ class LiveTeleop:
             t.supervisor.GetMyContextFromRoot(self.context))
         alarm = t.estimator.GetOutputPort("alarm").Eval(
             t.estimator.GetMyContextFromRoot(self.context))
+        turn = RotationMatrix.ProjectToRotationMatrix(X_WE[:3, :3] @ self.start_R.T)
+        aa = turn.ToAngleAxis()
+        r_W = aa.angle() * aa.axis()
+        R_CT = invert(self.case.X_WCenter)[:3, :3] @ X_WE[:3, :3] @ X_ET[:3, :3]
+        R_ref = self.case.vf.R_ref
+        to_plan = rotation_angle(R_CT @ R_ref.T) if R_ref is not None else float("nan")
         return {"t": self.time, "p_WE": p, "X_WE": X_WE,
+                "turn_W": r_W, "roll": float(r_W @ u),
+                "tilt": float(np.linalg.norm(r_W - (r_W @ u) * u)),
+                "angle_to_plan": float(to_plan),
                 "feed": float((p - self.start_W) @ u),
                 "feed_length": float(np.linalg.norm(target - self.start_W)),
                 "to_target": float(np.linalg.norm(target - p)),

@@ -61,6 +61,7 @@ from implantplan.systems import kinematics as kin
 from implantplan.systems.errors import InputError, PlanningFailure
 from implantplan.systems.files import read_json, write_json, write_text_atomic
 from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.frames import rotation_angle
 from implantplan.systems.master_device import Operator
 from implantplan.systems.virtual_fixture import VirtualFixture
 
@@ -316,6 +317,7 @@ def cmd_replay(args) -> int:
     data = {"csv": str(args.csv), "site": info["site"], "base_xyz": info["base_xyz"],
             "duration_s": motion.duration, "end_X_WE": end,
             "end_difference_m": float(np.linalg.norm(end[:3, 3] - recorded[:3, 3])),
+            "end_angle_difference_rad": float(rotation_angle(end[:3, :3] @ recorded[:3, :3].T)),
             "to_target_m": float(np.linalg.norm(end[:3, 3] - case.X_WTarget[:3, 3])),
             "max_vf_violation": float(np.max(run.violation)),
             "min_d_safe": float(np.min(run.min_d_safe)),
@@ -324,7 +326,8 @@ def cmd_replay(args) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     write_json(args.out / "feeding.json", data, kind="feeding_replay")
     print(f"replay: {motion.duration:.2f} s, end {np.round(1e3 * end[:3, 3], 3).tolist()} mm, "
-          f"{1e3 * data['end_difference_m']:.4f} mm from the recorded end, "
+          f"{1e3 * data['end_difference_m']:.4f} mm and "
+          f"{np.rad2deg(data['end_angle_difference_rad']):.4f} deg from the recorded end, "
           f"{1e3 * data['to_target_m']:.2f} mm to the target, alarm {data['collision_alarm']}")
     return 0
 

@@ -17,11 +17,18 @@ scenario's margin. "Keep layout" writes the layout into the plan folder's plan.j
 with the layout's checks recomputed.
 
 **Teleop mode** (button or key T): the teleop diagram (fixture, supervisor, estimator, diff IK,
-arm) of the selected site at the current base, driven by the keyboard (:data:`KEYS`) at real
-time; the fixture's force is drawn as an arrow at the tool, the estimator's alarm turns the tool
-marker red. Leaving teleop mode (T) or "Save recording" (V) writes the run as a MasterDevice CSV
-in the plan folder's ``recordings/`` (with ``<name>.json`` naming the case), which
-``implantplan simulate feeding --csv FILE --out DIR`` replays.
+arm) of the selected site at the current base, driven at real time by the keyboard
+(:data:`KEYS`: feed in/out W/S, lateral x A/D, lateral y R/F, roll about the feed axis Z/X, tilt
+about the lateral axes I/K and J/L, faster/slower E/Q, pause P) or by the sliders
+(systems.master_input.SLIDERS: feed, lateral x/y in mm/s and roll in deg/s, zero in the middle;
+"Master keyboard/sliders" or key M switches, also during a run; P then puts the sliders back to
+zero). The fixture holds the tool's orientation within beta (0.5 deg) of the planned one, roll
+and tilt alike. The fixture's force is drawn as an arrow at the tool, the estimator's alarm
+turns the tool marker red. Leaving teleop mode (T) or "Save recording" (V) writes the run as a
+MasterDevice CSV (``t_s,x_m,y_m,z_m,rx_rad,ry_rad,rz_rad``) in the plan folder's
+``recordings/`` (with ``<name>.json`` naming the case), which ``implantplan simulate feeding
+--csv FILE --out DIR`` replays. "FPSM slices on/off" (key G) shows or hides the FPSM's slices
+in either mode.
 
 The event handling is :class:`Studio` (``poll()`` once per loop turn), driven through Meshcat's
 API in the tests.
@@ -29,6 +36,7 @@ API in the tests.
 
 from __future__ import annotations
 
+import argparse
 import colorsys
 import json
 import threading
@@ -42,12 +50,14 @@ from implantplan.analyses import live_setup as ls
 from implantplan.systems import moprp
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import to_jsonable, write_json
-from implantplan.systems.master_input import KeyboardMaster
+from implantplan.systems.master_input import SLIDERS, KeyboardMaster, SliderMaster
 
 BASE_SLIDERS = ("base x (mm)", "base y (mm)", "base z (mm)")
 PARETO_SLIDER = "Pareto member"
 SITE_SLIDER = "site"
 KEEP, QUIT, TELEOP, SAVE = "Keep layout", "Quit", "Teleop on/off [T]", "Save recording [V]"
+MASTER, SLICES = "Master keyboard/sliders [M]", "FPSM slices on/off [G]"
+MASTERS = ("keyboard", "sliders")
 # teleop keys: action -> (button label, key code)
 KEYS = {
     "feed_in": ("Feed in [W]", "KeyW"),
@@ -56,6 +66,12 @@ KEYS = {
     "lateral_x+": ("Lateral x+ [D]", "KeyD"),
     "lateral_y+": ("Lateral y+ [R]", "KeyR"),
     "lateral_y-": ("Lateral y- [F]", "KeyF"),
+    "roll-": ("Roll - [Z]", "KeyZ"),
+    "roll+": ("Roll + [X]", "KeyX"),
+    "tilt_x+": ("Tilt x+ [I]", "KeyI"),
+    "tilt_x-": ("Tilt x- [K]", "KeyK"),
+    "tilt_y-": ("Tilt y- [J]", "KeyJ"),
+    "tilt_y+": ("Tilt y+ [L]", "KeyL"),
     "faster": ("Faster [E]", "KeyE"),
     "slower": ("Slower [Q]", "KeyQ"),
     "pause": ("Pause [P]", "KeyP"),
@@ -82,14 +98,20 @@ class Studio:
         scan: the opened scan (mesh frame) to draw, or None.
         realtime_rate: the teleop Simulator's target real-time rate (1.0; tests use 0).
         teleop_step: simulated seconds per poll in teleop mode.
+        master: the teleop master to start with, "keyboard" or "sliders" (key M switches).
     """
 
     def __init__(self, sp: ls.StudioPlan, meshcat, *, scan=None, realtime_rate: float = 1.0,
-                 teleop_step: float = 0.05):
+                 teleop_step: float = 0.05, master: str = "keyboard"):
+        if master not in MASTERS:
+            raise InputError("--master", f"expected one of {', '.join(MASTERS)}, got {master!r}")
         self.sp = sp
         self.meshcat = meshcat
         self.realtime_rate = realtime_rate
         self.teleop_step = teleop_step
+        self.master = master
+        self.sliders: SliderMaster | None = None
+        self.slices_visible = True
         self.mode = "setup"
         self.site = 0
         self.layout: ls.Layout | None = None
@@ -121,7 +143,8 @@ class Studio:
                 line1=pl["line1"], line2=pl["line2"], vf=VirtualFixture.from_dict(s["vf"]))
             draw_site(self.meshcat, opened=scan, fpsm=self.sp.fpsm,
                       X_WCenter=self.sp.X_WCenter, placement=placement,
-                      prefix=f"/case/{s['name']}", scan=scan is not None and k == 0)
+                      prefix=f"/case/{s['name']}", scan=scan is not None and k == 0,
+                      slices=k == 0)
         target = self.sp.X_WCenter[:3, 3]
         base = self.sp.sc.X_WO @ moprp.base_pose(self.sp.base_xyz)
         away = target - base[:3, 3]
@@ -138,7 +161,8 @@ class Studio:
         P = max(len(self.sp.pareto_xyz), 1)
         m.AddSlider(PARETO_SLIDER, 0, P - 1, 1, self._nearest_member(self.sp.base_xyz))
         m.AddSlider(SITE_SLIDER, 0, len(self.sp.names) - 1, 1, 0)
-        for name, key in ((KEEP, ""), (TELEOP, "KeyT"), (SAVE, "KeyV"), (QUIT, "")):
+        for name, key in ((KEEP, ""), (TELEOP, "KeyT"), (SAVE, "KeyV"), (MASTER, "KeyM"),
+                          (SLICES, "KeyG"), (QUIT, "")):
             m.AddButton(name, key)
         for label, key in KEYS.values():
             m.AddButton(label, key)
@@ -192,6 +216,16 @@ class Studio:
             path = f"/studio/capability/v{i}"
             self.meshcat.SetObject(path, Sphere(0.004), Rgba(*hsv_colour(idx), 0.8))
             self.meshcat.SetTransform(path, RigidTransform(p))
+
+    @property
+    def slices_path(self) -> str:
+        """The Meshcat path of the FPSM slices (drawn with the first site)."""
+        return f"/case/{self.sp.names[0]}/fpsm"
+
+    def show_slices(self, visible: bool) -> None:
+        """Show or hide the FPSM slices."""
+        self.slices_visible = bool(visible)
+        self.meshcat.SetProperty(self.slices_path, "visible", self.slices_visible)
 
     # -- setup ------------------------------------------------------------------------------------
     def update(self, xyz) -> ls.Layout:
@@ -286,12 +320,37 @@ class Studio:
                                     realtime_rate=self.realtime_rate)
         self.meshcat.SetProperty("/drake/visualizer/patient", "visible", False)
         self.mode = "teleop"
-        self.messages.append(f"teleop: site {self.sp.names[self.site]}, keys W/S feed")
+        self.set_master(self.master)
+        self.messages.append(f"teleop: site {self.sp.names[self.site]}, "
+                             + ("keys W/S feed" if self.master == "keyboard" else
+                                "sliders feed/lateral/roll"))
+
+    def set_master(self, kind: str) -> None:
+        """Drive teleop with the keyboard or the sliders (a running run switches at once: the
+        live device asks its new source from the next control period on)."""
+        if kind not in MASTERS:
+            raise InputError("master", f"expected one of {', '.join(MASTERS)}, got {kind!r}")
+        self.master = kind
+        if self.teleop is None:
+            return
+        if kind == "sliders":
+            if self.sliders is None:
+                self.sliders = SliderMaster(self.meshcat)
+            self.teleop.device.source = self.sliders
+        else:
+            if self.sliders is not None:
+                self.sliders.remove()
+                self.sliders = None
+            self.keyboard.release()
+            self.teleop.device.source = self.keyboard
 
     def stop_teleop(self) -> None:
         if self.teleop is not None and self.teleop.time > 0:
             self.save_recording()
         self.teleop = None
+        if self.sliders is not None:
+            self.sliders.remove()
+            self.sliders = None
         self.mode = "setup"
         self.meshcat.Delete("/drake")
         self.meshcat.Delete("/studio/force")
@@ -323,7 +382,10 @@ class Studio:
 
         t = self.teleop
         for action in pressed:
-            self.keyboard.press(action, t.time)
+            if action == "pause" and self.sliders is not None:
+                self.sliders.stop()
+            else:
+                self.keyboard.press(action, t.time)
         t.advance(self.teleop_step)
         st = t.state()
         p = st["p_WE"]
@@ -350,6 +412,10 @@ class Studio:
         clicks = self._new_clicks()
         if QUIT in clicks:
             return False
+        if clicks.get(SLICES, 0) % 2:
+            self.show_slices(not self.slices_visible)
+        if clicks.get(MASTER, 0) % 2:
+            self.set_master(MASTERS[1 - MASTERS.index(self.master)])
         if self.mode == "teleop":
             if TELEOP in clicks:
                 self.stop_teleop()
@@ -386,7 +452,8 @@ class Studio:
         """What the status page shows (mm, deg, %), JSON-able."""
         lay, sp = self.layout, self.sp
         out = {"mode": self.mode, "site": sp.names[self.site], "sites": sp.names,
-               "margin_mm": 1e3 * sp.sc.clearance, "messages": self.messages[-5:]}
+               "margin_mm": 1e3 * sp.sc.clearance, "messages": self.messages[-5:],
+               "master": self.master, "fpsm_slices": self.slices_visible, "keys": help_keys()}
         if lay is not None:
             out["setup"] = {
                 "base_mm": _mm(lay.xyz), "feasible": lay.feasible,
@@ -414,8 +481,15 @@ class Studio:
                              "to_target_mm": 1e3 * st["to_target"],
                              "fixture_force_N": st["F_W_fixture"], "alarm": st["alarm"],
                              "barrier_h_mm": 1e3 * st["barrier"][0],
+                             "roll_deg": np.rad2deg(st["roll"]),
+                             "tilt_deg": np.rad2deg(st["tilt"]),
+                             "angle_to_plan_deg": np.rad2deg(st["angle_to_plan"]),
+                             "master": self.master,
                              "speed_mm_s": 1e3 * self.keyboard.speed,
+                             "rate_deg_s": np.rad2deg(self.keyboard.rate),
                              "paused": self.keyboard.paused}
+            if self.sliders is not None:
+                out["teleop"]["sliders"] = dict(self.sliders.last)  # any thread may ask
         out["recordings"] = [p.name for p in self.saved]
         return to_jsonable(out)
 
@@ -430,6 +504,31 @@ class Studio:
                 return
             if self.mode == "setup":
                 time.sleep(idle)
+
+
+KEY_HELP = {
+    "feed_in": "along the fixture into the mouth", "feed_out": "back out along it",
+    "lateral_x-": "across the feed", "lateral_x+": "across the feed",
+    "lateral_y+": "across the feed", "lateral_y-": "across the feed",
+    "roll-": "turn about the feed axis (the rod)", "roll+": "turn about the feed axis (the rod)",
+    "tilt_x+": "turn about lateral x", "tilt_x-": "turn about lateral x",
+    "tilt_y-": "turn about lateral y", "tilt_y+": "turn about lateral y",
+    "faster": "speed and turn rate x1.5", "slower": "speed and turn rate /1.5",
+    "pause": "stop every motion (sliders: back to 0)",
+}
+
+
+def help_keys() -> list[str]:
+    """The studio's keys and sliders, one line each (the status page, ``studio --help`` and the
+    command's start-up lines show them)."""
+    lines = [f"{label}: {KEY_HELP[action]}" for action, (label, _) in KEYS.items()]
+    lines += [f"{TELEOP}: teleop mode on/off (off saves the run)", f"{SAVE}: save the run so far",
+              f"{MASTER}: teleop from the keyboard or the sliders",
+              f"{SLICES}: show/hide the FPSM slices"]
+    lines += [f"slider {label}: -{half:g}..{half:g}, 0 = still (sliders master)"
+              for label, half, *_ in SLIDERS.values()]
+    lines.append("the fixture holds roll and tilt within beta (0.5 deg by default) of the plan")
+    return lines
 
 
 # -- the status page -------------------------------------------------------------------------------
@@ -451,7 +550,9 @@ async function tick(){try{const s=await (await fetch('status.json')).json();
 let h='<b>mode '+s.mode+'</b>, site '+s.site+', margin '+fmt(s.margin_mm)+' mm';
 if(s.setup)h+='<h4>setup</h4><table>'+rows(s.setup)+'</table>';
 if(s.teleop)h+='<h4>teleop</h4><table>'+rows(s.teleop)+'</table>';
-h+='<h4>messages</h4>'+s.messages.join('<br>');document.getElementById('p').innerHTML=h;
+h+='<h4>messages</h4>'+s.messages.join('<br>');
+h+='<h4>keys (teleop)</h4><small>'+s.keys.join('<br>')+'</small>';
+document.getElementById('p').innerHTML=h;
 window.studioStatus=s;}catch(e){}setTimeout(tick,250);}tick();</script></body></html>"""
 
 
@@ -506,19 +607,23 @@ class StatusServer:
 def register(subparsers) -> None:
     p = subparsers.add_parser("studio", help="the planning studio: live setup planning and "
                               "teleoperation in the browser (Meshcat)",
-                              description=__doc__.split("\n\n")[0])
+                              description=__doc__.split("\n\n")[0],
+                              epilog="teleop keys and sliders:\n  " + "\n  ".join(help_keys()),
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("case", type=Path, nargs="?", help="case YAML to plan first")
     p.add_argument("--plan", type=Path, help="a plan folder (implantplan plan/demo) to open")
     p.add_argument("--out", type=Path, help="where a case is planned (default out/studio-NAME)")
     p.add_argument("--port", type=int, default=None,
                    help="Meshcat's port (default: a free one); the status page takes the next")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1)")
+    p.add_argument("--master", choices=MASTERS, default="keyboard",
+                   help="teleop master to start with (key M switches; default keyboard)")
     p.add_argument("--quiet", action="store_true", help="no planning progress lines")
     p.set_defaults(func=_cmd_studio)
 
 
 def open_studio(plan_dir, *, host: str = "127.0.0.1", port: int | None = None,
-                realtime_rate: float = 1.0, scan: bool = True):
+                realtime_rate: float = 1.0, scan: bool = True, master: str = "keyboard"):
     """(studio, meshcat, status server) on a plan folder, serving on ``host``."""
     from pydrake.geometry import Meshcat, MeshcatParams
 
@@ -529,7 +634,7 @@ def open_studio(plan_dir, *, host: str = "127.0.0.1", port: int | None = None,
     if port is not None:
         params.port = port
     meshcat = Meshcat(params)
-    studio = Studio(sp, meshcat, scan=mesh, realtime_rate=realtime_rate)
+    studio = Studio(sp, meshcat, scan=mesh, realtime_rate=realtime_rate, master=master)
     status = StatusServer(studio, meshcat.web_url(), host=host,
                           port=0 if port is None else port + 1)
     return studio, meshcat, status
@@ -563,10 +668,12 @@ def _cmd_studio(args) -> int:
         print(f"plan: {folder / 'plan.json'}")
     elif not (folder / "plan.json").is_file():
         raise InputError("--plan", f"expected a plan folder with plan.json, got {str(folder)!r}")
-    studio, meshcat, status = open_studio(folder, host=args.host, port=args.port)
+    studio, meshcat, status = open_studio(folder, host=args.host, port=args.port,
+                                          master=args.master)
     print(f"studio: {status.url}  (3D view alone: {meshcat.web_url()})", flush=True)
     print("keys: " + ", ".join(f"{lab}" for lab, _ in KEYS.values())
-          + "; T teleop on/off, V save recording; Quit button or Ctrl-C to stop", flush=True)
+          + "; T teleop on/off, V save recording, M keyboard/sliders, G FPSM slices; "
+          "Quit button or Ctrl-C to stop", flush=True)
     try:
         studio.run(lock=status.lock)
     except KeyboardInterrupt:

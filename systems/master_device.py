@@ -19,11 +19,23 @@ under a different scale.
 
 **Incremental mapping** (one of the strategies seed 001 lists): the slave's tool moves by the
 master handle's increments, scaled and rotated into World: dp_W = scale * R_WM dp_M; as a
-velocity command, v_W = scale * R_WM pdot_M. The operator holds the stylus orientation: the
-angular part of the command is zero (the feed is a translation along the fixture's axis).
+velocity command, v_W = scale * R_WM pdot_M. Rotations are mapped unscaled: the handle's
+angular velocity w_M (in M) commands the tool's w_W = R_WM w_M (rotation scale 1, as in surgical
+teleoperation where the motion scale applies to translation and the tool turns as the hand
+does). The scripted operator holds the stylus orientation (w = 0: the feed is a translation
+along the fixture's axis); live and recorded motions may turn it (the fixture bounds the tool's
+orientation to beta of the planned one, systems.virtual_fixture).
+
+The handle's orientation part is kept as ``r_M`` (n, 3): the running integral of its angular
+velocity in M, r_M[k] = sum_{j<k} w_M[j] dt (rad; r_M[0] = 0 for a recording that starts at
+rest), so w_M[k] = (r_M[k+1] - r_M[k]) / dt, exactly as the velocity is the difference of the
+positions. It equals the rotation vector of the handle's orientation relative to the start when
+the handle turns about one fixed axis of M; in general it is the integral, not a rotation vector
+(the replay needs the angular velocity, which the integral gives back exactly).
 
 Recorded motions are CSV files with a header ``t_s,x_m,y_m,z_m`` (master handle positions, M
-frame, uniform sampling).
+frame, uniform sampling) and optionally the three columns ``rx_rad,ry_rad,rz_rad`` (``r_M``);
+a 4-column file is a motion without rotation.
 
 The :class:`MasterDevice` LeafSystem replays a :class:`MasterMotion` as a zero-order hold: its
 output at time t is the sample at floor(t / dt) (zero velocity after the end). The motion is an
@@ -49,15 +61,18 @@ from implantplan.systems.files import write_text_atomic
 
 @dataclass(frozen=True)
 class MasterMotion:
-    """Master handle positions sampled uniformly.
+    """Master handle positions (and optionally its turning) sampled uniformly.
 
     Attributes:
         dt: sample period (s).
         p_M: (n, 3) handle positions in the master device frame M (m), sample k at t = k dt.
+        r_M: (n, 3) the integral of the handle's angular velocity in M (rad; module docstring),
+            or None: the handle does not turn (w = 0).
     """
 
     dt: float
     p_M: np.ndarray
+    r_M: np.ndarray | None = None
 
     def __post_init__(self):
         dt = float(self.dt)
@@ -70,6 +85,14 @@ class MasterMotion:
             raise InputError("p_M", "expected finite positions (m)")
         object.__setattr__(self, "dt", dt)
         object.__setattr__(self, "p_M", p)
+        if self.r_M is not None:
+            r = np.asarray(self.r_M, dtype=float)
+            if r.shape != p.shape:
+                raise InputError("r_M", f"expected one (3,) angle integral per position "
+                                 f"{p.shape}, got shape {r.shape}")
+            if not np.all(np.isfinite(r)):
+                raise InputError("r_M", "expected finite angles (rad)")
+            object.__setattr__(self, "r_M", r)
 
     @property
     def duration(self) -> float:
@@ -86,6 +109,14 @@ class MasterMotion:
         v = np.zeros_like(self.p_M)
         v[:-1] = np.diff(self.p_M, axis=0) / self.dt
         return v
+
+    def angular_velocity_M(self) -> np.ndarray:
+        """(n, 3) handle angular velocity in M (rad/s), the differences of ``r_M`` held like
+        :meth:`velocity_M` (zero without ``r_M``)."""
+        w = np.zeros_like(self.p_M)
+        if self.r_M is not None:
+            w[:-1] = np.diff(self.r_M, axis=0) / self.dt
+        return w
 
 
 @dataclass(frozen=True)
@@ -115,6 +146,11 @@ class IncrementalMapping:
     def to_master(self, d_W) -> np.ndarray:
         """Inverse of :meth:`to_world`."""
         return np.asarray(d_W, dtype=float) @ self.R_WM / self.scale
+
+    def angular_to_world(self, w_M) -> np.ndarray:
+        """Master angular velocities or angle increments (..., 3) -> the tool's in World,
+        w_W = R_WM w_M (rotations are not scaled)."""
+        return np.asarray(w_M, dtype=float) @ self.R_WM.T
 
 
 @dataclass(frozen=True)
@@ -257,35 +293,51 @@ def feeding_runs(
     ]
 
 
+CSV_COLUMNS = ("t_s", "x_m", "y_m", "z_m")
+CSV_ROTATION_COLUMNS = ("rx_rad", "ry_rad", "rz_rad")
+
+
 def save_csv(path, motion: MasterMotion) -> Path:
-    """Write a motion as CSV (``t_s,x_m,y_m,z_m``), atomically."""
-    lines = ["t_s,x_m,y_m,z_m"]
-    lines += [
-        f"{t!r},{x!r},{y!r},{z!r}"
-        for t, (x, y, z) in zip(motion.t.tolist(), motion.p_M.tolist(), strict=True)
-    ]
+    """Write a motion as CSV, atomically: ``t_s,x_m,y_m,z_m``, and ``rx_rad,ry_rad,rz_rad``
+    (``r_M``) when the motion has an orientation part."""
+    columns = [motion.t[:, None], motion.p_M]
+    header = list(CSV_COLUMNS)
+    if motion.r_M is not None:
+        columns.append(motion.r_M)
+        header += CSV_ROTATION_COLUMNS
+    lines = [",".join(header)]
+    lines += [",".join(repr(v) for v in row) for row in np.hstack(columns).tolist()]
     return write_text_atomic(path, "\n".join(lines) + "\n")
 
 
 def load_csv(path, *, field: str = "csv") -> MasterMotion:
-    """Read a recorded motion (``t_s,x_m,y_m,z_m``, uniform sampling)."""
+    """Read a recorded motion (``t_s,x_m,y_m,z_m[,rx_rad,ry_rad,rz_rad]``, uniform sampling;
+    a 4-column file has no orientation part)."""
     path = Path(path)
     if not path.is_file():
         raise InputError(field, f"file {str(path)!r} does not exist")
     with path.open(newline="", encoding="utf-8") as fh:
         rows = list(csv.reader(fh))
-    if not rows or [c.strip() for c in rows[0]] != ["t_s", "x_m", "y_m", "z_m"]:
-        raise InputError(field, f"{path}: expected the header t_s,x_m,y_m,z_m")
+    header = [c.strip() for c in rows[0]] if rows else []
+    if header not in (list(CSV_COLUMNS), list(CSV_COLUMNS + CSV_ROTATION_COLUMNS)):
+        raise InputError(field, f"{path}: expected the header t_s,x_m,y_m,z_m "
+                         "(optionally followed by rx_rad,ry_rad,rz_rad)")
+    body = [r for r in rows[1:] if r]
+    short = [i + 2 for i, r in enumerate(body) if len(r) != len(header)]
+    if short:
+        raise InputError(field, f"{path}: expected {len(header)} columns in every row "
+                         f"(line {short[0]})")
     try:
-        data = np.array([[float(c) for c in r] for r in rows[1:] if r], dtype=float)
+        data = np.array([[float(c) for c in r] for r in body], dtype=float)
     except ValueError:
         raise InputError(field, f"{path}: expected numbers in every row") from None
-    if data.ndim != 2 or data.shape[0] < 2 or data.shape[1] != 4:
-        raise InputError(field, f"{path}: expected at least 2 rows of 4 columns")
+    if data.ndim != 2 or data.shape[0] < 2:
+        raise InputError(field, f"{path}: expected at least 2 rows of {len(header)} columns")
     dts = np.diff(data[:, 0])
     if np.any(dts <= 0) or not np.allclose(dts, dts[0], rtol=1e-6, atol=1e-9):
         raise InputError(field, f"{path}: expected uniformly increasing t_s")
-    return MasterMotion(dt=float(dts[0]), p_M=data[:, 1:])
+    return MasterMotion(dt=float(dts[0]), p_M=data[:, 1:4],
+                        r_M=data[:, 4:7] if data.shape[1] == 7 else None)
 
 
 @dataclass(frozen=True)
@@ -295,13 +347,15 @@ class _Playback:
     motion: MasterMotion
     v_W: np.ndarray  # (n, 3) commanded velocity per sample
     d_W: np.ndarray  # (n, 3) commanded displacement from the start per sample
+    w_W: np.ndarray  # (n, 3) commanded angular velocity per sample
 
     @classmethod
     def of(cls, motion: MasterMotion, mapping: IncrementalMapping) -> _Playback:
         if not isinstance(motion, MasterMotion):
             raise InputError("motion", f"expected a MasterMotion, got {type(motion).__name__}")
         return cls(motion, mapping.to_world(motion.velocity_M()),
-                   mapping.to_world(motion.p_M - motion.p_M[0]))
+                   mapping.to_world(motion.p_M - motion.p_M[0]),
+                   mapping.angular_to_world(motion.angular_velocity_M()))
 
 
 STILL = MasterMotion(dt=1.0, p_M=np.zeros((2, 3)))  # the hand at rest: the default motion
@@ -317,10 +371,12 @@ class MasterDevice(LeafSystem):
         - V_WE_command
         - p_WE_offset
         - p_M
+        - r_M
 
-    ``V_WE_command`` (6): commanded spatial velocity of the tool, [w; v] in World (w = 0, v =
-    scale R_WM pdot_M). ``p_WE_offset`` (3): the commanded tool displacement from the start,
-    scale R_WM (p_M(t) - p_M(0)). ``p_M`` (3): the handle position. All three are zero-order
+    ``V_WE_command`` (6): commanded spatial velocity of the tool, [w; v] in World (w = R_WM
+    w_M, zero for a motion without ``r_M``; v = scale R_WM pdot_M). ``p_WE_offset`` (3): the
+    commanded tool displacement from the start, scale R_WM (p_M(t) - p_M(0)). ``p_M`` (3): the
+    handle position; ``r_M`` (3): its angle integral (zero without one). All are zero-order
     holds of the samples (the value at floor(t/dt)).
 
     The motion is a context parameter: ``motion`` (default: the hand at rest) goes into the
@@ -342,6 +398,9 @@ class MasterDevice(LeafSystem):
         - V_WE_command
         - p_WE_offset
         - p_M
+        - r_M
+
+    While finishing the hand does not turn (w = 0).
     """
 
     def __init__(
@@ -372,6 +431,7 @@ class MasterDevice(LeafSystem):
         self._V = self.DeclareVectorOutputPort("V_WE_command", 6, self._calc_velocity)
         self._offset = self.DeclareVectorOutputPort("p_WE_offset", 3, self._calc_offset)
         self._p = self.DeclareVectorOutputPort("p_M", 3, self._calc_handle)
+        self._r = self.DeclareVectorOutputPort("r_M", 3, self._calc_turn)
 
     @property
     def motion(self) -> MasterMotion:
@@ -408,7 +468,10 @@ class MasterDevice(LeafSystem):
             norm = float(np.linalg.norm(v))
             out[3:] = v if norm <= self._speed else v * (self._speed / norm)
         else:
-            out[3:] = play.v_W[self._index(context, play)]
+            k = self._index(context, play)
+            if play.motion.r_M is not None:  # (a motion without one: exactly today's zeros)
+                out[:3] = play.w_W[k]
+            out[3:] = play.v_W[k]
         output.SetFromVector(out)
 
     def _calc_offset(self, context, output: BasicVector):
@@ -419,3 +482,8 @@ class MasterDevice(LeafSystem):
         play = self._playback(context)
         output.SetFromVector(play.motion.p_M[self._index(context, play)])
 
+
+    def _calc_turn(self, context, output: BasicVector):
+        play = self._playback(context)
+        r = play.motion.r_M
+        output.SetFromVector(np.zeros(3) if r is None else r[self._index(context, play)])

@@ -117,7 +117,7 @@ def write_site_scene(path: Path, *, fit, placement, robot, site_index: int, feed
 
 
 def draw_site(meshcat, *, opened, fpsm, X_WCenter, placement, prefix: str = "/case",
-              scan: bool = True) -> None:
+              scan: bool = True, slices: bool | None = None) -> None:
     """Draw one site's case under ``prefix`` (the paths of the module docstring): the scan (when
     ``scan``) and FPSM slices, the site, implant path, feeding target, fixture and rod.
 
@@ -125,6 +125,7 @@ def draw_site(meshcat, *, opened, fpsm, X_WCenter, placement, prefix: str = "/ca
         opened: the opened scan (mesh frame); fpsm: the FPSM (its X_WC = Center in the mesh
             frame); X_WCenter: Center in World; placement: anything with the placement's
             X_CH, X_CT, line1, line2 and vf (systems.placement.Placement).
+        slices: draw the FPSM slices (None: with the scan).
     """
     from pydrake.geometry import Capsule, Sphere
 
@@ -134,6 +135,7 @@ def draw_site(meshcat, *, opened, fpsm, X_WCenter, placement, prefix: str = "/ca
         V = apply(X_W_mesh, np.asarray(opened.vertices))
         meshcat.SetTriangleMesh(f"{prefix}/scan", V.T, np.asarray(opened.faces).T,
                                 _rgba(TISSUE))
+    if (scan if slices is None else slices):
         # FPSM slices
         theta = np.linspace(0.0, 2 * np.pi, 121)
         for j, z in enumerate(fpsm.slice_z):

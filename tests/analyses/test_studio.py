@@ -14,7 +14,9 @@ from implantplan.analyses.cli import main
 from implantplan.diagrams.arm_clearance import SceneGraphClearance
 from implantplan.systems import moprp
 from implantplan.systems.files import read_json
+from implantplan.systems.master_device import load_csv
 from implantplan.systems.master_input import KeyboardMaster, LiveMasterDevice
+from implantplan.systems.safety_supervisor import Barrier
 
 
 def _str(s: str) -> bytes:
@@ -57,6 +59,13 @@ def test_layout_at_the_planned_base_is_the_plans(studio):
     status = studio.status()
     assert status["setup"]["feasible"] and status["mode"] == "setup"
     assert len(status["setup"]["capability_index"]) == len(plan["sites"])
+    # the capability view gives the plan's verdict (certified map) and index (centre-sampled)
+    cap = lay.capability
+    for k, s in enumerate(plan["sites"]):
+        assert bool(cap["map_reachable"][k]) == s["capability"]["map_reachable"]
+        assert cap["index"][k] == pytest.approx(s["capability"]["voxel_index"])
+        assert cap["neighbourhood_index"][k] == pytest.approx(
+            s["capability"]["neighbourhood_index"])
 
 
 def test_sliders_move_the_base_and_change_the_indices(studio):
@@ -125,12 +134,21 @@ def test_keyboard_teleop_feeds_to_the_fixture_stop_and_the_recording_replays(stu
     studio.poll()
     assert studio.mode == "setup" and len(studio.saved) == 1
     csv = studio.saved[0]
-    assert csv.read_text().startswith("t_s,x_m,y_m,z_m\n")
+    assert csv.read_text().startswith("t_s,x_m,y_m,z_m,rx_rad,ry_rad,rz_rad\n")
     out = tmp_path / "replay"
     assert main(["simulate", "feeding", "--csv", str(csv), "--out", str(out)]) == 0
     rep = json.loads((out / "feeding.json").read_text())
     assert rep["end_difference_m"] < 1e-6
     assert np.asarray(rep["end_X_WE"])[:3, 3] == pytest.approx(end, abs=1e-6)
+    # the same run written the old way (4 columns, no rotation: none was commanded) replays
+    # to the same end
+    old = csv.with_name("old_format.csv")
+    old.write_text("".join(",".join(line.split(",")[:4]) + "\n"
+                           for line in csv.read_text().splitlines()))
+    shutil.copy(csv.with_suffix(".json"), old.with_suffix(".json"))
+    assert main(["simulate", "feeding", "--csv", str(old), "--out", str(tmp_path / "o4")]) == 0
+    rep4 = json.loads((tmp_path / "o4" / "feeding.json").read_text())
+    assert np.asarray(rep4["end_X_WE"]) == pytest.approx(np.asarray(rep["end_X_WE"]), abs=1e-12)
 
 
 def test_csv_replay_without_its_case_is_an_input_error(tmp_path, capsys):
@@ -184,3 +202,202 @@ def test_studio_command_user_errors_exit_2(tmp_path, capsys):
     assert main(["studio", "--plan", str(tmp_path)]) == 2
     assert "--plan" in capsys.readouterr().err
     assert main(["studio", "--plan", str(tmp_path), "--port", "70000"]) == 2
+
+
+def _press_for(studio, action: str, seconds: float, check=None) -> None:
+    """Press a teleop key every 0.25 s (held) for ``seconds`` of simulated time."""
+    for i in range(int(round(seconds / studio.teleop_step))):
+        if i % 5 == 0:
+            click(studio.meshcat, st.KEYS[action][0])
+        studio.poll()
+        if check is not None:
+            check(studio.teleop.state())
+
+
+def test_rotation_keys_roll_about_the_axis_tilt_held_by_the_fixture_and_replay(studio,
+                                                                               tmp_path):
+    """Roll turns the tool about the fixture's axis, tilt about a lateral one; the fixture holds
+    both near beta of the planned orientation (it bounds the geodesic angle to R_ref), the
+    supervisor keeps its margin, and the recording (7 columns) replays to the same end pose and
+    orientation."""
+    m = studio.meshcat
+    click(m, st.TELEOP)
+    studio.poll()
+    case = studio.teleop.case
+    beta = case.vf.angle_tolerance
+    D_W = case.X_WCenter[:3, :3] @ case.vf.direction
+    angles = []
+    _press_for(studio, "roll+", 1.0, lambda s: angles.append(s["angle_to_plan"]))
+    s = studio.teleop.state()
+    assert s["roll"] == pytest.approx(beta, abs=1e-6)  # 5 deg/s for 1 s, held at beta
+    assert s["tilt"] < 1e-9
+    axis = s["turn_W"] / np.linalg.norm(s["turn_W"])
+    assert abs(axis @ D_W) == pytest.approx(1.0, abs=1e-9)  # about the fixture's axis
+    _press_for(studio, "roll-", 2.0, lambda s: angles.append(s["angle_to_plan"]))
+    assert studio.teleop.state()["roll"] == pytest.approx(-beta, abs=1e-6)
+    for _ in range(3):
+        click(m, st.KEYS["faster"][0])
+    _press_for(studio, "feed_in", 2.0)
+    for action in ("tilt_x+", "tilt_y-"):
+        _press_for(studio, action, 1.0, lambda s: angles.append(s["angle_to_plan"]))
+        s = studio.teleop.state()
+        assert s["tilt"] > 0.5 * beta  # it did tilt, up to the fixture's bound
+    # held to beta, up to one control period of the commanded rate (the fixture corrects the
+    # measured pose, which lags the supervisor's desired pose by one period) and back within
+    # 0.2 s (its return rate k / b = 20 /s)
+    lag = studio.keyboard.rate * studio.teleop.device.dt
+    assert max(angles) <= beta + lag + 1e-6
+    assert max(angles) > beta - 1e-6
+    assert angles[-1] <= beta + 1e-6
+    status = studio.status()["teleop"]
+    assert status["angle_to_plan_deg"] == pytest.approx(np.rad2deg(beta), abs=1e-4)
+    assert not status["alarm"]
+    h = studio.teleop.teleop.loggers["barrier"].FindLog(studio.teleop.context).data()[0]
+    assert h.min() > Barrier().margin - 1e-4
+    end = studio.teleop.state()["X_WE"]
+    click(m, st.SAVE)
+    studio.poll()
+    csv = studio.saved[-1]
+    motion = load_csv(csv)
+    assert np.abs(motion.r_M).max() > 0.1  # the turns were recorded (rad, unbounded by the VF)
+    out = tmp_path / "replay"
+    assert main(["simulate", "feeding", "--csv", str(csv), "--out", str(out)]) == 0
+    rep = json.loads((out / "feeding.json").read_text())
+    assert rep["end_difference_m"] < 1e-6
+    assert rep["end_angle_difference_rad"] < 1e-6
+    assert np.asarray(rep["end_X_WE"]) == pytest.approx(end, abs=1e-6)
+
+
+def test_without_the_fixture_a_turn_passes_and_the_supervisor_still_filters(studio):
+    """The rotation channel is real end to end: without the fixture a roll key turns the tool at
+    the commanded rate; a tilt inside the mouth is stopped by the supervisor at its margin."""
+    sp = studio.sp
+    case = sp.teleop_case(0)
+    kb = KeyboardMaster(speed=0.015, rate=np.deg2rad(20.0))
+    live = ls.LiveTeleop(case, kb, realtime_rate=0.0, vf_enabled=False)
+    for _ in range(10):  # 0.5 s at 20 deg/s outside the mouth
+        kb.press("roll+", live.time)
+        live.advance(0.05)
+    # 20 deg/s for 0.5 s, measured one control period behind the command (DiffIK's output)
+    assert np.rad2deg(live.state()["roll"]) == pytest.approx(20.0 * (0.5 - 0.005), abs=1e-3)
+    kb.press("pause", live.time)
+    kb.press("pause", live.time)
+    for _ in range(10):
+        kb.press("roll-", live.time)
+        live.advance(0.05)
+    while live.time < 5.0:
+        kb.press("feed_in", live.time)
+        live.advance(0.05)
+    assert live.state()["to_target"] < 0.001
+    for _ in range(30):  # 30 deg commanded about a lateral axis, in the mouth
+        kb.press("tilt_x+", live.time)
+        live.advance(0.05)
+    s = live.state()
+    barrier = live.teleop.loggers["barrier"].FindLog(live.context).data()
+    margin = Barrier().margin  # the default the studio builds with
+    assert barrier[2].any()  # the supervisor acted
+    assert barrier[0].min() > margin - 1e-4
+    assert 1.0 < np.rad2deg(s["tilt"]) < 30.0  # it turned, and was stopped before 30 deg
+    assert not s["alarm"]
+
+
+def test_turning_in_the_mouth_checked_against_the_exact_scan_clearance(studio):
+    """False-safe check of the rotation commands: at both sites, with and without the fixture,
+    feed in and then roll and tilt about every axis (20 deg/s, 1 s each); FCL between the whole
+    tool and the opened scan (analyses.scan_reference, as the adversarial study) at every logged
+    pose never goes below the supervisor's margin, and no pose the barrier passed (h >= margin)
+    is closer than the margin exactly."""
+    from implantplan.analyses.scan_reference import exact_for
+    from implantplan.diagrams.teleop import X_ET
+
+    sp = studio.sp
+    mesh = st._opened_scan(sp)
+    margin = Barrier().margin
+    for site in range(len(sp.names)):
+        case = sp.teleop_case(site)
+        exact = exact_for(case, mesh)
+        for vf in (True, False):
+            kb = KeyboardMaster(speed=0.015, rate=np.deg2rad(20.0))
+            live = ls.LiveTeleop(case, kb, realtime_rate=0.0, vf_enabled=vf)
+            while live.time < 5.0:
+                kb.press("feed_in", live.time)
+                live.advance(0.05)
+            for key in ("tilt_x+", "tilt_y-", "roll+", "tilt_x-", "tilt_y+"):
+                for _ in range(20):
+                    kb.press(key, live.time)
+                    live.advance(0.05)
+            h = live.teleop.loggers["barrier"].FindLog(live.context).data()[0]
+            q = live.teleop.loggers["q"].FindLog(live.context).data().T[:, :6]
+            X_CT = np.linalg.inv(case.X_WCenter) @ case.X_WE(q) @ X_ET
+            d = exact(case.fpsm.X_WC @ X_CT)
+            assert len(d) == len(h) > 1900
+            assert h.min() > margin - 1e-4
+            assert d.min() > margin - 1e-4, (sp.names[site], vf, d.min())
+            assert int(np.sum((h >= margin) & (d < margin))) == 0  # false-safe
+            assert not live.state()["alarm"]
+
+
+def test_slider_master_drives_teleop_and_switches_with_the_keyboard(studio):
+    from implantplan.systems.master_input import SLIDERS
+
+    m = studio.meshcat
+    click(m, st.MASTER)
+    studio.poll()
+    assert studio.master == "sliders" and studio.status()["master"] == "sliders"
+    assert SLIDERS["feed"][0] not in m.GetSliderNames()  # sliders appear with teleop
+    click(m, st.TELEOP)
+    studio.poll()
+    assert studio.mode == "teleop" and studio.sliders is not None
+    start = studio.teleop.state()
+    for _ in range(10):  # the sliders at 0: no motion
+        studio.poll()
+    s = studio.teleop.state()
+    assert np.linalg.norm(s["p_WE"] - start["p_WE"]) < 1e-9 and s["tilt"] < 1e-12
+    m.SetSliderValue(SLIDERS["feed"][0], 10.0)
+    m.SetSliderValue(SLIDERS["roll"][0], 2.0)
+    for _ in range(20):  # 1 s at 10 mm/s and 2 deg/s
+        studio.poll()
+    s = studio.teleop.state()
+    assert s["feed"] == pytest.approx(0.010, abs=1e-4)
+    assert s["roll"] == pytest.approx(studio.teleop.case.vf.angle_tolerance, abs=1e-6)
+    assert studio.status()["teleop"]["sliders"]["feed"] == 10.0
+    click(m, st.KEYS["pause"][0])  # P: the sliders back to zero, the tool stops
+    studio.poll()
+    assert m.GetSliderValue(SLIDERS["feed"][0]) == 0.0
+    before = studio.teleop.state()["p_WE"]
+    for _ in range(5):
+        studio.poll()
+    assert np.linalg.norm(studio.teleop.state()["p_WE"] - before) < 1e-9
+    click(m, st.MASTER)  # back to the keyboard during the run
+    studio.poll()
+    assert studio.master == "keyboard" and studio.sliders is None
+    assert SLIDERS["feed"][0] not in m.GetSliderNames()
+    for _ in range(4):
+        click(m, st.KEYS["feed_in"][0])
+        studio.poll()
+    assert studio.teleop.state()["feed"] > s["feed"] + 0.0005
+    click(m, st.TELEOP)
+    studio.poll()
+    motion = load_csv(studio.saved[-1])  # one recording of both masters
+    assert motion.p_M[-1, 0] > 0.0105 and motion.r_M[:, 0].max() > 0.03
+
+
+def test_fpsm_slices_toggle(studio):
+    m = studio.meshcat
+    path = studio.slices_path
+    assert m.HasPath(path + "/slice_0")  # drawn even without the scan
+
+    def visible() -> bool:
+        packed = m._GetPackedProperty(path, "visible")  # msgpack: ... value true/false
+        assert packed, "no visible property set"
+        return {b"\xc3": True, b"\xc2": False}[packed[-1:]]
+
+    click(m, st.SLICES)
+    studio.poll()
+    assert not visible() and studio.status()["fpsm_slices"] is False
+    click(m, st.TELEOP)  # in teleop mode too
+    studio.poll()
+    click(m, st.SLICES)
+    studio.poll()
+    assert visible() and studio.slices_visible
+    assert any("FPSM slices" in line for line in studio.status()["keys"])

@@ -1,7 +1,9 @@
 """The studio in headless Chromium over the DevTools protocol (loopback): the page loads, a base
 slider moved in the page moves the base and changes the indices, the feed keys pressed in the page
-drive the tool along the feed to the fixture's stop, the run is recorded and replays to the same
-end pose; the status page shows the numbers. Assertions on the server side.
+drive the tool along the feed to the fixture's stop, the roll key turns it (held at beta by the
+fixture), G hides the FPSM slices, M hands the master to the sliders and a slider moved in the page
+backs the tool out; the run is recorded and replays to the same end pose and orientation; the
+status page shows the numbers. Assertions on the server side.
 
 Skipped (with the reason) when no Chromium is installed; CI installs Debian's chromium."""
 
@@ -15,6 +17,7 @@ import pytest
 
 from implantplan.analyses import studio as st
 from implantplan.analyses.cli import main
+from implantplan.systems.master_input import SLIDERS
 from tests.analyses.browser import Browser, find_chromium
 
 CHROMIUM = find_chromium()
@@ -82,7 +85,26 @@ def _drive(studio, meshcat_url, status, x0, tmp_path, seen: dict) -> None:
             time.sleep(0.2)
         with status.lock:
             seen["teleop"] = studio.status()["teleop"]
-            seen["end"] = studio.teleop.state()["p_WE"]
+        for _ in range(5):  # roll about the feed axis (the fixture holds it at beta)
+            press(browser, "KeyX", "x")
+            time.sleep(0.2)
+        press(browser, "KeyG", "g")  # hide the FPSM slices
+        wait_for(lambda: not studio.slices_visible, 5.0)
+        with status.lock:
+            seen["rolled"] = studio.teleop.state()
+            seen["slices_visible"] = studio.slices_visible
+        press(browser, "KeyM", "m")  # the sliders drive now
+        wait_for(lambda: studio.sliders is not None, 5.0)
+        time.sleep(1.0)  # the page shows the new sliders
+        seen["feed_slider_found"] = browser.evaluate(
+            SET_SLIDER % (json.dumps(SLIDERS["feed"][0]), json.dumps(-5.0)))
+        time.sleep(1.0)  # 1 s back out at 5 mm/s
+        press(browser, "KeyP", "p")  # the sliders back to zero
+        wait_for(lambda: studio.sliders.last["feed"] == 0.0, 5.0)
+        with status.lock:
+            seen["backed"] = studio.teleop.state()
+            seen["end"] = studio.teleop.state()["X_WE"]
+            seen["master"] = studio.master
         browser.screenshot(tmp_path / "teleop.png")
         press(browser, "KeyT", "t")  # teleop off: the run is saved
         wait_for(lambda: studio.mode == "setup" and studio.saved)
@@ -129,10 +151,17 @@ def test_studio_in_a_browser(demo_plan, tmp_path):
     assert s["feed_mm"] > s["feed_length_mm"] - 1.0
     assert s["feed_mm"] < s["feed_length_mm"] + 0.5  # stopped at the fixture's end
     assert not s["alarm"]
+    beta = studio.sp.plan["sites"][0]["vf"]["angle_tolerance"]
+    assert seen["rolled"]["roll"] == pytest.approx(beta, abs=1e-6)
+    assert seen["slices_visible"] is False
+    assert seen["feed_slider_found"] and seen["master"] == "sliders"
+    backed = seen["rolled"]["feed"] - seen["backed"]["feed"]
+    assert 0.002 < backed < 0.008  # about 1 s at 5 mm/s out, stopped by P
     assert seen["shown_mode"] == "setup"
     assert seen["errors"] == []
     assert studio.saved
     out = tmp_path / "replay"
     assert main(["simulate", "feeding", "--csv", str(studio.saved[0]), "--out", str(out)]) == 0
     rep = json.loads((out / "feeding.json").read_text())
-    assert np.asarray(rep["end_X_WE"])[:3, 3] == pytest.approx(seen["end"], abs=1e-6)
+    assert np.asarray(rep["end_X_WE"]) == pytest.approx(seen["end"], abs=1e-6)
+    assert rep["end_angle_difference_rad"] < 1e-6
