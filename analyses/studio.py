@@ -20,7 +20,8 @@ with the layout's checks recomputed.
 arm) of the selected site at the current base, driven at real time by the keyboard
 (:data:`KEYS`: feed in/out W/S, lateral x A/D, lateral y R/F, roll about the feed axis Z/X, tilt
 about the lateral axes I/K and J/L, faster/slower E/Q, pause P) or by the sliders
-(systems.master_input.SLIDERS: feed, lateral x/y in mm/s and roll in deg/s, zero in the middle;
+(systems.master_input.SLIDERS: feed, lateral x/y in mm/s and roll in deg/s, zero in the middle,
+in the controls from the start and read only by the sliders master;
 "Master keyboard/sliders" or key M switches, also during a run; P then puts the sliders back to
 zero). The fixture holds the tool's orientation within beta (0.5 deg) of the planned one, roll
 and tilt alike. The fixture's force is drawn as an arrow at the tool, the estimator's alarm
@@ -110,7 +111,7 @@ class Studio:
         self.realtime_rate = realtime_rate
         self.teleop_step = teleop_step
         self.master = master
-        self.sliders: SliderMaster | None = None
+        self.sliders: SliderMaster | None = None  # made with the controls
         self.slices_visible = True
         self.mode = "setup"
         self.site = 0
@@ -166,6 +167,9 @@ class Studio:
             m.AddButton(name, key)
         for label, key in KEYS.values():
             m.AddButton(label, key)
+        # the master sliders are there from the start, at 0 (still) unless they drive: a slider
+        # added while a busy page is live could be missed by it until a reload
+        self.sliders = SliderMaster(m)
         self._clicks = {n: m.GetButtonClicks(n) for n in m.GetButtonNames()}
         self._sliders = self._slider_values()
 
@@ -334,13 +338,9 @@ class Studio:
         if self.teleop is None:
             return
         if kind == "sliders":
-            if self.sliders is None:
-                self.sliders = SliderMaster(self.meshcat)
             self.teleop.device.source = self.sliders
         else:
-            if self.sliders is not None:
-                self.sliders.remove()
-                self.sliders = None
+            self.sliders.stop()
             self.keyboard.release()
             self.teleop.device.source = self.keyboard
 
@@ -348,9 +348,7 @@ class Studio:
         if self.teleop is not None and self.teleop.time > 0:
             self.save_recording()
         self.teleop = None
-        if self.sliders is not None:
-            self.sliders.remove()
-            self.sliders = None
+        self.sliders.stop()
         self.mode = "setup"
         self.meshcat.Delete("/drake")
         self.meshcat.Delete("/studio/force")
@@ -382,7 +380,7 @@ class Studio:
 
         t = self.teleop
         for action in pressed:
-            if action == "pause" and self.sliders is not None:
+            if action == "pause" and self.master == "sliders":
                 self.sliders.stop()
             else:
                 self.keyboard.press(action, t.time)

@@ -94,8 +94,7 @@ def _drive(studio, meshcat_url, status, x0, tmp_path, seen: dict) -> None:
             seen["rolled"] = studio.teleop.state()
             seen["slices_visible"] = studio.slices_visible
         press(browser, "KeyM", "m")  # the sliders drive now
-        wait_for(lambda: studio.sliders is not None, 5.0)
-        time.sleep(1.0)  # the page shows the new sliders
+        wait_for(lambda: studio.master == "sliders", 5.0)
         seen["feed_slider_found"] = browser.evaluate(
             SET_SLIDER % (json.dumps(SLIDERS["feed"][0]), json.dumps(-5.0)))
         time.sleep(1.0)  # 1 s back out at 5 mm/s
@@ -154,7 +153,8 @@ def test_studio_in_a_browser(demo_plan, tmp_path):
     beta = studio.sp.plan["sites"][0]["vf"]["angle_tolerance"]
     assert seen["rolled"]["roll"] == pytest.approx(beta, abs=1e-6)
     assert seen["slices_visible"] is False
-    assert seen["feed_slider_found"] and seen["master"] == "sliders"
+    assert seen["master"] == "sliders"
+    assert seen["feed_slider_found"]
     backed = seen["rolled"]["feed"] - seen["backed"]["feed"]
     assert 0.002 < backed < 0.008  # about 1 s at 5 mm/s out, stopped by P
     assert seen["shown_mode"] == "setup"
