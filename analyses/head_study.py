@@ -24,8 +24,9 @@ Measured per run, all relative to the TRUE (moving) head:
   site (analyses.scan_reference.exact_for), on ``--case cylinder`` the cylinder of its FPSM;
 - the feed's completion: final distance to the target in the head frame <= 1 mm;
 - after a startle: the time from its onset to the guard's stop (detection) and to the end of
-  the back-out (the tool moved 90% of the back-out distance along the fixture's axis from its
-  pose at the startle's onset, measured on the tool itself in the true head frame);
+  the back-out (the tool moved 90% of the back-out distance along the fixture's axis out of
+  the deepest point it reached since the onset, measured on the tool itself in the true head
+  frame);
 - lost tracking (a dropout window mid-feed under breathing): the stop, the back-out and the
   clearance.
 """
@@ -101,9 +102,8 @@ def path_distance(p: np.ndarray, path: np.ndarray, chunk: int = 256) -> np.ndarr
 def measure(run, still, case: TeleopCase, cavity: ExactCavity, *,
             event_time: float | None = None) -> dict:
     """The figures of one head-motion run against its still reference (module notes).
-    ``event_time``: when the head's event began (a startle's onset); the back-out is measured
-    from the tool's pose then (default: the guard's trigger), since at the trigger the tool
-    already lags the moving head by the tracking error."""
+    ``event_time``: when the head's event began (a startle's onset; default the guard's
+    trigger): the back-out is measured out of the deepest point the tool reached since then."""
     p = run.X_CT[:, :3, 3]
     err = np.linalg.norm(p - still.X_CT[: len(p), :3, 3], axis=1)
     dev = path_distance(p, still.X_CT[:, :3, 3])
@@ -126,14 +126,17 @@ def measure(run, still, case: TeleopCase, cavity: ExactCavity, *,
     out["reached_target"] = out["final_error"] <= F.TARGET_TOLERANCE
     out["_clearance"], out["_error"], out["_deviation"] = clear, err, dev
     if trig >= 0:
+        # the back-out on the tool in the TRUE head frame: along the fixture's axis, out of
+        # the deepest point it reached since the event (the onset; at the trigger it may still
+        # be carried in by the head it lags)
         ref = trig if event_time is None else min(trig, float(event_time))
         k = int(np.searchsorted(run.t, ref))
-        axis = case.vf.direction
-        s = (p - p[k]) @ axis
+        s = p[k:] @ case.vf.direction
+        out_of_deepest = s - np.minimum.accumulate(s)
         dist = GuardSettings().retreat_distance
-        done = np.flatnonzero((run.t >= trig) & (s >= BACKED_OUT_SHARE * dist))
-        out["backed_out_time"] = float(run.t[done[0]]) if done.size else -1.0
-        out["backed_out_m"] = float(s[k:].max())
+        done = np.flatnonzero((run.t[k:] >= trig) & (out_of_deepest >= BACKED_OUT_SHARE * dist))
+        out["backed_out_time"] = float(run.t[k + done[0]]) if done.size else -1.0
+        out["backed_out_m"] = float(out_of_deepest.max())
     return out
 
 

@@ -29,6 +29,8 @@ def test_fifty_seeded_runs_per_profile_meet_the_acceptance():
             if prof == "startle":
                 assert s["guard_triggered_following"] == RUNS
                 assert s["stop_after_onset_max_s"] < 0.2
+                assert s["backed_out_runs"] == RUNS
+                assert s["backed_out_after_onset_max_s"] < 1.0
             if prof in ("breathing", "swallow", "startle"):  # following beats ignoring
                 assert (s["path_deviation_max_following"]
                         < s["path_deviation_max_ignoring"]), (tc.label, prof)
