@@ -36,6 +36,7 @@ Core: :func:`camera_samples` (vectorized over ticks), :func:`predict_pose`. Leaf
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -149,19 +150,32 @@ def _shrink(v: np.ndarray, gate: float) -> np.ndarray:
     return v * max(0.0, 1.0 - gate / n) if n > 0 else v
 
 
-def predict_pose(rows: np.ndarray, t: float, gates: tuple[float, float]) -> np.ndarray:
+def predict_pose(rows: np.ndarray, t: float, gates: tuple[float, float], *,
+                 line=None) -> np.ndarray:
     """(4, 4) the head pose at time ``t`` extrapolated from the good samples ``rows`` (n >= 2,
     oldest first): the least-squares line through them evaluated at the newest sample's time,
-    carried to ``t`` by the slope shortened by ``gates`` (m/s, rad/s; :func:`_shrink`)."""
-    tm, Ym, S = _slopes(rows)
+    carried to ``t`` by the slope shortened by ``gates`` (m/s, rad/s; :func:`_shrink`).
+    ``line``: ``_slopes(rows)`` if already known."""
+    tm, Ym, S = _slopes(rows) if line is None else line
     t_new = rows[-1, 0]
     Y = Ym + S * (t_new - tm)
     Y[:3] += _shrink(S[:3], gates[1]) * (t - t_new)
     Y[3:] += _shrink(S[3:], gates[0]) * (t - t_new)
     X = np.eye(4)
-    X[:3, :3] = rotations(Y[None, :3])[0] @ rows[-1, 5:14].reshape(3, 3)
+    X[:3, :3] = _rotation(Y[:3]) @ rows[-1, 5:14].reshape(3, 3)
     X[:3, 3] = Y[3:]
     return X
+
+
+def _rotation(w: np.ndarray) -> np.ndarray:
+    """(3, 3) the rotation of one rotation vector (Rodrigues; the per-step prediction's, where
+    the vectorized ``rotations`` costs more than its one matrix)."""
+    th = math.sqrt(float(w @ w))
+    if th < 1e-15:
+        return np.eye(3)
+    x, y, z = w / th
+    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return np.eye(3) + math.sin(th) * K + (1.0 - math.cos(th)) * (K @ K)
 
 
 def camera_noise(params: TrackerParams, ticks) -> np.ndarray:
@@ -216,6 +230,7 @@ class Tracker(LeafSystem):
         super().__init__()
         self._p = params
         self._gates = params.gates()
+        self._memo = None  # (key, rows) of the last _rows call
         X0 = np.asarray(X_WHead0, dtype=float)
         self._X0 = X0
         row = np.concatenate([[-np.inf, 1.0], X0[:3, 3], X0[:3, :3].ravel()])
@@ -257,16 +272,29 @@ class Tracker(LeafSystem):
         x[14 * RING] = (slot + 1) % RING
         discrete_state.get_mutable_vector(0).SetFromVector(x)
 
+    def _rows(self, context) -> dict:
+        """The available samples (taken >= latency ago, oldest first), the good ones among them
+        and what is fitted to them, memoized on (state, which samples are available): every
+        output port asks at every control step, the answer changes only at camera ticks."""
+        x = context.get_discrete_state(0).get_value()
+        times = x[:14 * RING:14]
+        avail = times <= context.get_time() - self._p.latency + 1e-9
+        key = (x.tobytes(), avail.tobytes())
+        if self._memo is not None and self._memo[0] == key:
+            return self._memo[1]
+        ring = x[:14 * RING].reshape(RING, 14)
+        order = np.argsort(times, kind="stable")
+        rows = ring[order][avail[order]]
+        entry = {"available": rows, "good": rows[rows[:, 1] > 0.5]}
+        self._memo = (key, entry)
+        return entry
+
     def _available(self, context) -> np.ndarray:
         """Rows of the available samples (taken >= latency ago), oldest first."""
-        x = context.get_discrete_state(0).get_value()
-        ring = x[:14 * RING].reshape(RING, 14)
-        ring = ring[np.argsort(ring[:, 0], kind="stable")]
-        return ring[ring[:, 0] <= context.get_time() - self._p.latency + 1e-9]
+        return self._rows(context)["available"]
 
     def _good(self, context) -> np.ndarray:
-        rows = self._available(context)
-        return rows[rows[:, 1] > 0.5]
+        return self._rows(context)["good"]
 
     def estimate(self, context) -> np.ndarray:
         """(4, 4) the current estimate of the head pose."""
@@ -282,13 +310,16 @@ class Tracker(LeafSystem):
         with fewer good samples, on lost tracking, or when the newest good sample is older than
         latency + two camera periods (a dropout: never extrapolate across a gap)."""
         k = self._p.predict_samples
-        good = self._good(context)
+        entry = self._rows(context)
+        good = entry["good"]
         good = good[np.isfinite(good[:, 0])]
         t = context.get_time()
         if (k < 2 or good.shape[0] < k or self._lost_now(context)
                 or t - good[-1, 0] > self._p.latency + 2.0 * self._p.period + 1e-9):
             return self.estimate(context)
-        return predict_pose(good[-k:], t, self._gates)
+        if "line" not in entry:
+            entry["line"] = _slopes(good[-k:])
+        return predict_pose(good[-k:], t, self._gates, line=entry["line"])
 
     def _calc_predicted(self, context, value):
         X = self.predicted(context)
@@ -301,8 +332,11 @@ class Tracker(LeafSystem):
                                        X[:3, 3]))
 
     def _calc_velocity(self, context, output: BasicVector):
-        good = self._good(context)
-        output.SetFromVector(velocity_fit(good[np.isfinite(good[:, 0])][-VELOCITY_WINDOW:]))
+        entry = self._rows(context)
+        if "velocity" not in entry:
+            good = entry["good"]
+            entry["velocity"] = velocity_fit(good[np.isfinite(good[:, 0])][-VELOCITY_WINDOW:])
+        output.SetFromVector(entry["velocity"])
 
     def _lost_now(self, context) -> bool:
         rows = self._available(context)
