@@ -171,7 +171,8 @@ def head_study(case: TeleopCase, inst, *, profiles=STUDY_PROFILES, runs: int = 5
                tracker: TrackerParams | None = None, progress=None, keep_traces: int = 1,
                cavity=None) -> dict:
     """The study over ``runs`` seeded runs per profile (module notes); returns the JSON dict and,
-    under ``"_traces"``, the time series of the first ``keep_traces`` runs per profile."""
+    under ``"_traces"``, the time series of the ``keep_traces`` runs per profile with the lowest
+    exact clearance while following (the worst cases, lowest first)."""
     if runs < 1:
         raise InputError("--runs", f"expected an integer >= 1, got {runs}")
     for p in profiles:
@@ -217,8 +218,11 @@ def head_study(case: TeleopCase, inst, *, profiles=STUDY_PROFILES, runs: int = 5
                     if a.get("backed_out_time", -1) >= 0:
                         row["following"]["backed_out_after_onset_s"] = a["backed_out_time"] - on
             rows.append(row)
-            if i < keep_traces:
-                traces.setdefault(prof, []).append({
+            kept = traces.setdefault(prof, [])
+            if keep_traces and (len(kept) < keep_traces
+                                or a["exact_clearance_min"] < kept[-1]["clearance_min"]):
+                kept.append({
+                    "run": i, "runs": runs, "clearance_min": a["exact_clearance_min"],
                     "t": fol.t, "head_mm": 1000 * np.linalg.norm(
                         hm.displacement(fol.t)[0], axis=1),
                     "clearance_following": a["_clearance"], "clearance_ignoring": b["_clearance"],
@@ -227,6 +231,8 @@ def head_study(case: TeleopCase, inst, *, profiles=STUDY_PROFILES, runs: int = 5
                     "deviation_ignoring": b["_deviation"],
                     "trigger_time": a["trigger_time"], "margin": margin,
                     "margin_extra": fol.margin_extra})
+                kept.sort(key=lambda tr: tr["clearance_min"])  # the lowest clearances first
+                del kept[keep_traces:]
             if progress is not None:
                 progress.step(i, runs, f"{prof}: deviation {1000 * a['path_deviation_max']:.2f}"
                               f" mm following, {1000 * b['path_deviation_max']:.2f} mm ignoring;"

@@ -28,10 +28,13 @@ def plot_head(traces: dict, out_dir) -> list[Path]:
         axes[0].set_ylabel("head displacement (mm)")
         dev_f, dev_i = tr.get("deviation_following"), tr.get("deviation_ignoring")
         if dev_f is not None:
-            axes[1].plot(t, 1000 * np.asarray(dev_f), label="following the mouth")
+            # following: up to the guard's trigger (after it the tool backs out on purpose)
+            upto = t < tr["trigger_time"] if tr["trigger_time"] >= 0 else np.ones(len(t), bool)
+            axes[1].plot(t[upto], 1000 * np.asarray(dev_f)[upto], label="following the mouth")
             axes[1].plot(t, 1000 * np.asarray(dev_i), label="ignoring the head")
-            axes[1].plot(t, 1000 * np.asarray(tr["error_following"]), color="tab:blue",
-                         ls=":", lw=0.8, label="following, time-indexed (incl. holds)")
+            axes[1].plot(t[upto], 1000 * np.asarray(tr["error_following"])[upto],
+                         color="tab:blue", ls=":", lw=0.8,
+                         label="following, time-indexed (incl. holds)")
             axes[1].set_ylabel("deviation from path\nrel. mouth (mm)")
         else:
             axes[1].plot(t, 1000 * np.asarray(tr["error_following"]),
@@ -54,7 +57,10 @@ def plot_head(traces: dict, out_dir) -> list[Path]:
         if tr["trigger_time"] >= 0:
             for ax in axes:
                 ax.axvline(tr["trigger_time"], color="tab:red", ls=":", lw=1.0)
-        axes[0].set_title(f"Awake patient: {prof} (run 0; dotted: the guard stops and backs out)")
+        which = (f"run {tr['run']}, the lowest clearance of {tr['runs']}" if "run" in tr
+                 else "run 0")
+        axes[0].set_title(f"Awake patient: {prof} ({which}; red dotted: the guard stops and "
+                          "backs out)")
         fig.tight_layout()
         path = out_dir / f"head_{prof}.png"
         fig.savefig(path, dpi=110)
