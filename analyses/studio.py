@@ -111,7 +111,7 @@ class Studio:
         self.realtime_rate = realtime_rate
         self.teleop_step = teleop_step
         self.master = master
-        self.sliders: SliderMaster | None = None  # made with the controls
+        self.sliders: SliderMaster  # made with the controls (_add_controls)
         self.slices_visible = True
         self.mode = "setup"
         self.site = 0
@@ -486,8 +486,7 @@ class Studio:
                              "speed_mm_s": 1e3 * self.keyboard.speed,
                              "rate_deg_s": np.rad2deg(self.keyboard.rate),
                              "paused": self.keyboard.paused}
-            if self.sliders is not None:
-                out["teleop"]["sliders"] = dict(self.sliders.last)  # any thread may ask
+            out["teleop"]["sliders"] = dict(self.sliders.last)  # any thread may ask
         out["recordings"] = [p.name for p in self.saved]
         return to_jsonable(out)
 

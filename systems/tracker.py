@@ -38,7 +38,6 @@ Core: :func:`camera_samples` (vectorized over ticks), :func:`predict_pose`. Leaf
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -164,20 +163,9 @@ def predict_pose(rows: np.ndarray, t: float, gates: tuple[float, float], *,
     Y[:3] += _shrink(S[:3], gates[1]) * (t - t_new)
     Y[3:] += _shrink(S[3:], gates[0]) * (t - t_new)
     X = np.eye(4)
-    X[:3, :3] = _rotation(Y[:3]) @ rows[-1, 5:14].reshape(3, 3)
+    X[:3, :3] = rotations(Y[None, :3])[0] @ rows[-1, 5:14].reshape(3, 3)
     X[:3, 3] = Y[3:]
     return X
-
-
-def _rotation(w: np.ndarray) -> np.ndarray:
-    """(3, 3) the rotation of one rotation vector (Rodrigues; the per-step prediction's, where
-    the vectorized ``rotations`` costs more than its one matrix)."""
-    th = math.sqrt(float(w @ w))
-    if th < 1e-15:
-        return np.eye(3)
-    x, y, z = w / th
-    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-    return np.eye(3) + math.sin(th) * K + (1.0 - math.cos(th)) * (K @ K)
 
 
 def camera_noise(params: TrackerParams, ticks) -> np.ndarray:
