@@ -331,7 +331,7 @@ def tracker_from_args(args) -> TrackerParams:
         if value is None:
             continue
         try:
-            kw[name] = value * scale if scale != 1 else value
+            kw[name] = value * scale
             TrackerParams(**kw)
         except InputError as e:
             raise InputError(flag, str(e).split(': ', 1)[-1]) from None
@@ -342,7 +342,7 @@ def cmd_head_motion(args) -> int:
     from implantplan.analyses.figures.head import plot_head
     from implantplan.analyses.progress import Progress
     from implantplan.analyses.report import render_head_motion
-    from implantplan.systems.files import write_json, write_text_atomic
+    from implantplan.systems.files import to_jsonable, write_json, write_text_atomic
 
     progress = Progress("analyze head-motion", quiet=args.quiet)
     profiles = tuple(p.strip() for p in args.profiles.split(",") if p.strip())
@@ -378,8 +378,6 @@ def cmd_head_motion(args) -> int:
         study = {"case": "scan", "tracker": trk, "sites": sites,
                  "passed": _never_below_zero(sites)}
         write_json(out / "head_motion.json", study, kind="head_motion")
-    from implantplan.systems.files import to_jsonable
-
     write_text_atomic(out / "report.html", render_head_motion(to_jsonable(study), figs))
     print(f"exact clearance never below 0 in any run: {'yes' if study['passed'] else 'NO'}; "
           f"wrote {out / 'head_motion.json'} and {out / 'report.html'}")
