@@ -5,7 +5,8 @@
     implantplan batch --make-cohort CASE.yaml --cases N [--seed S] [--scale-sd F]
         [--rotation-deg D] [--shift-mm M] [--site-jitter-mm J] --out DIR
 
-Each case is one task on the scale-out engine (systems.scaleout: this process for ``--workers
+Each case is one task on the scale-out engine (systems.capability.scaleout: this process for
+``--workers
 1``, a LocalCluster on 127.0.0.1 by default otherwise, or a running cluster). A case is planned
 into ``DIR/<case file stem>/`` exactly as ``implantplan plan CASE --out DIR/<stem>`` with the
 same flags writes it (same seed, same plan.json apart from timings). A case that fails is
@@ -38,7 +39,7 @@ import traceback
 from pathlib import Path
 
 from implantplan.analyses.progress import Progress
-from implantplan.systems import scaleout
+from implantplan.systems.capability import scaleout
 from implantplan.systems.errors import InputError, PlanningFailure
 from implantplan.systems.files import write_json, write_text_atomic
 

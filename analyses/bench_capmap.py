@@ -10,7 +10,8 @@ queries/s): IK samples/s, seconds per map (5 cm x 100, 5 cm x 200, 2.5 cm x 200 
 query throughput, accuracy (TP/FP/FN vs direct IK on random poses), RASSCMAP time per base pose
 (unconstrained, and constrained at 5 cm / 5 deg), exhaustive vs GA setup search, and the
 laparoscopy cases (fixed base / rail). Ratio = paper (or anchor) time / ours (> 1: we are faster).
-Scale-out (Dask, systems.scaleout): one map (5 cm x ``--scaleout-directions`` 450, >= 60 s of
+Scale-out (Dask, systems.capability.scaleout): one map (5 cm x ``--scaleout-directions`` 450, >= 60
+s of
 single-process work here) built in this process, on a 1-worker and on a 2-worker LocalCluster
 (ratios side by side; the maps are checked equal), and the engine's per-task overhead (no-op tasks:
 one round trip alone, and the cost per task when many are queued) against one block's work.
@@ -33,12 +34,12 @@ import timeit
 
 import numpy as np
 
-from implantplan.systems import capability_map as cm
-from implantplan.systems import map_store as ms
-from implantplan.systems import rasscmap_inputs as rin
-from implantplan.systems import scaleout
-from implantplan.systems import setup_search as ss
-from implantplan.systems.kinematics import REASONS, fk, ik
+from implantplan.systems.capability import maps as cm
+from implantplan.systems.capability import rasscmap_inputs as rin
+from implantplan.systems.capability import scaleout
+from implantplan.systems.capability import setup_search as ss
+from implantplan.systems.capability import store as ms
+from implantplan.systems.robot.kinematics import REASONS, fk, ik
 
 CASES = os.path.join(
     os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "models", "capmap_cases"
@@ -92,7 +93,7 @@ def false_safe_causes(cmap: cm.CapabilityMap, poses: np.ndarray) -> dict:
     reach, _ = cmap.query(poses)
     bad = np.flatnonzero(reach & ~cm.exact_reachable(p, poses))
     X = poses[bad]
-    relaxed = cm._relaxed_limits(p.limits)
+    relaxed = cm.relaxed_limits(p.limits)
     X_FT = p.X_FT_matrix()
 
     def some_roll(pos, z):
@@ -103,7 +104,7 @@ def false_safe_causes(cmap: cm.CapabilityMap, poses: np.ndarray) -> dict:
         return np.array([cm.reach_at(p, pos[i : i + 1], z[i : i + 1])[0][0, 0]
                          for i in range(len(pos))], dtype=bool)  # fmt: skip
 
-    rolled = cm._some_roll_truth(p, X)[0] if len(X) else np.zeros(0, bool)
+    rolled = cm.some_roll_truth(p, X)[0] if len(X) else np.zeros(0, bool)
     centre = cmap.grid.centres(np.ravel_multi_index(cmap.grid.cells(X[:, :3, 3]).T,
                                                     cmap.grid.shape)) if len(X) else X[:, :3, 3]
     binned = cmap.directions[cmap.nearest_direction(X[:, :3, 2])] if len(X) else X[:, :3, 2]

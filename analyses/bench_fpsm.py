@@ -23,16 +23,16 @@ import timeit
 
 import numpy as np
 
-from implantplan.systems.fpsm import TWO_PI, area_matrix, basis_matrix
-from implantplan.systems.fpsm_fit import (
+from implantplan.systems.fpsm.fit import (
     PAPER_SETTINGS,
     cast_walls,
     first_hits,
     fit_fpsm,
     ray_engine,
 )
+from implantplan.systems.fpsm.model import TWO_PI, area_matrix, basis_matrix
+from implantplan.systems.fpsm.oral_mesh import close_open_cuts, load_default_cavity
 from implantplan.systems.frames import apply
-from implantplan.systems.oral_mesh import close_open_cuts, load_default_cavity
 
 PAPER_CPP_SECONDS = 33.613  # Sec. 5.1, 15 slices x 15 control points x 150 samples
 TABLE1 = {

@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from implantplan.diagrams.ik_drake import DrakeIk
     from implantplan.diagrams.plant import fk_jacobian_loop
-    from implantplan.systems import kinematics as kin
+    from implantplan.systems.robot import kinematics as kin
 
     rng = np.random.default_rng(0)
     lim = np.deg2rad(175.0)

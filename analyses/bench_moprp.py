@@ -4,8 +4,8 @@ Run: ``python -m implantplan.analyses.bench_moprp [--scenario lying] [--agreemen
 
 Prints, measured side by side in one run:
 
-1. bases/s of the problem (``systems.moprp.evaluate_bases``, closed-form IK) with the fast
-   conservative collision model (systems.arm_collision), with the old hand-written capsules
+1. bases/s of the problem (``systems.robot.moprp.evaluate_bases``, closed-form IK) with the fast
+   conservative collision model (systems.robot.arm_collision), with the old hand-written capsules
    (:class:`OldCapsules`, kept here only for this comparison), and with Drake's SceneGraph for
    every configuration (:class:`SceneGraphModel`); and the Drake multi-start IK path (``--ik
    drake``: diagrams.ik_drake, 64 starts per pose), ratio;
@@ -36,9 +36,9 @@ import time
 
 import numpy as np
 
-from implantplan.systems import collision_primitives as cp
-from implantplan.systems import moprp
-from implantplan.systems.nsga2 import hypervolume, nsga2
+from implantplan.systems.robot import collision_primitives as cp
+from implantplan.systems.robot import moprp
+from implantplan.systems.robot.nsga2 import hypervolume, nsga2
 
 # The old hand-written capsule model (before issue 11), reconstructed for the comparison only:
 # DESIGN.md section 8's primitives as capsules, the actuator as capsules, a hand list of self
@@ -186,7 +186,7 @@ def agreement(n_bases, per_base, near_per_base, seed=0):
 def evals_per_second(sc, n_closed=20000, n_drake=2, starts=64):
     """(closed-form evals/s, Drake evals/s, Drake IK poses solved, same surviving branches,
     largest objective difference on the Drake-evaluated bases)."""
-    from implantplan.analyses.robot_place import drake_ik_solver
+    from implantplan.analyses.robot import drake_ik_solver
 
     rng = np.random.default_rng(0)
     X = sc.lower + rng.random((n_closed, 3)) * (sc.upper - sc.lower)

@@ -35,8 +35,8 @@ import time
 
 import numpy as np
 
-from implantplan.systems.fpsm import Fpsm
-from implantplan.systems.placement import (
+from implantplan.systems.fpsm.model import Fpsm
+from implantplan.systems.placement.planner import (
     PlacementProblem,
     default_bounds,
     hole_frame,
@@ -246,12 +246,12 @@ TARGET_SOUND_OVER_FCL = 20.0
 
 def bench_sound(n: int, n_fcl: int, repeats: int) -> str:
     """The sound clearance (issue 12) beside FCL's exact capsule-vs-mesh collide on the same
-    rods of the default case's real cavity (analyses.rod_check's random rods), and the
+    rods of the default case's real cavity (analyses.studies.rod_check's random rods), and the
     single-query latency of the whole tool (the 200 Hz / 1 kHz path)."""
     import os
 
-    from implantplan.analyses import rod_check
-    from implantplan.systems.tool_clearance import (
+    from implantplan.analyses.studies import rod_check
+    from implantplan.systems.placement.tool_clearance import (
         ToolClearance,
         ToolGeometry,
         rod_clearance,

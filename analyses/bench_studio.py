@@ -38,7 +38,7 @@ def main(argv=None) -> int:
 
     from implantplan.analyses import live_setup as ls
     from implantplan.analyses import studio as st
-    from implantplan.systems.master_input import SLIDERS, KeyboardMaster, SliderMaster
+    from implantplan.systems.teleop.master_input import SLIDERS, KeyboardMaster, SliderMaster
 
     studio, meshcat, status = st.open_studio(args.plan, realtime_rate=0.0, scan=False)
     try:

@@ -41,14 +41,14 @@ from pydrake.systems.controllers import InverseDynamicsController
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import StateInterpolatorWithDiscreteDerivative
 
-from implantplan.analyses import adversarial
+from implantplan.analyses.studies import adversarial
 from implantplan.diagrams import feeding as S
 from implantplan.diagrams import teleop as T
-from implantplan.systems.adversarial_operator import Directions, adversarial_motion
-from implantplan.systems.fpsm_estimator import FpsmEstimator
-from implantplan.systems.master_device import MasterDevice, feeding_runs
-from implantplan.systems.safety_supervisor import SafetySupervisor
-from implantplan.systems.vf_system import VirtualFixtureForceLaw
+from implantplan.systems.teleop.adversarial_operator import Directions, adversarial_motion
+from implantplan.systems.teleop.fixture_system import VirtualFixtureForceLaw
+from implantplan.systems.teleop.fpsm_estimator import FpsmEstimator
+from implantplan.systems.teleop.master_device import MasterDevice, feeding_runs
+from implantplan.systems.teleop.supervisor import SafetySupervisor
 
 CALLBACKS = {
     "MasterDevice": (MasterDevice, ("_calc_velocity", "_calc_offset", "_calc_handle")),
@@ -131,7 +131,7 @@ class _PassThrough(LeafSystem):
 def bare_loop(case: T.TeleopCase, mode: str, seconds: float) -> float:
     """Realtime factor of DiffIK 200 Hz + two trivial Python systems on the same scene."""
     builder = DiagramBuilder()
-    plant, scene_graph = T._add_scene(builder, case, mode, 0.001)
+    plant, scene_graph = T.add_teleop_scene(builder, case, mode, 0.001)
     q0 = np.asarray(case.q_start, dtype=float)
     tcp = plant.GetFrameByName("tcp")
     diffik = builder.AddSystem(
@@ -250,7 +250,7 @@ def main(argv=None) -> int:
         seconds = sim / len(motions)
         rows.append((mode, sim / wall, bare_loop(case, mode, seconds)))
     if args.head_motion:  # the awake patient: tracker, guard, moving patient (kinematic only)
-        from implantplan.systems.head_motion import HeadMotion
+        from implantplan.systems.teleop.head_motion import HeadMotion
 
         hm = HeadMotion.make(args.head_motion, seed=args.seed, pivot=case.X_WCenter[:3, 3])
         head = T.build_teleop(case, head_motion=hm)

@@ -6,7 +6,8 @@ Subcommands:
   [--self-collision] [--cell certified|centre] [--workers W] [--scheduler local|tcp://HOST:PORT]
   [--resume] --out map.h5`` (without ``--tool`` the mapped frame is the flange, wrist3_Link; with
   ``--tool actuator`` it is the actuator's implant tip, z along the implant axis, the drilling
-  direction). Voxel blocks run on the engine of systems.scaleout (a LocalCluster by default when W >
+  direction). Voxel blocks run on the engine of systems.capability.scaleout (a LocalCluster by
+  default when W >
   1); finished blocks go to ``map.h5.blocks-<key>/`` so ``--resume`` redoes only the missing ones;
   the HDF5 is written once at the end (atomically) and the block folder removed. Progress (blocks
   done / total, ETA) on stderr; a summary on stdout.
@@ -38,12 +39,13 @@ from implantplan.analyses.figures.capability import (
     setup_points,
 )
 from implantplan.analyses.progress import Progress
-from implantplan.systems import capability_map as cm
-from implantplan.systems import map_store as ms
-from implantplan.systems import rasscmap_inputs as rin
-from implantplan.systems import scaleout, validate
-from implantplan.systems import setup_search as ss
+from implantplan.systems import validate
 from implantplan.systems.actuator import actuator_map_frame
+from implantplan.systems.capability import maps as cm
+from implantplan.systems.capability import rasscmap_inputs as rin
+from implantplan.systems.capability import scaleout
+from implantplan.systems.capability import setup_search as ss
+from implantplan.systems.capability import store as ms
 from implantplan.systems.errors import InputError, PlanningFailure
 from implantplan.systems.files import write_json
 from implantplan.systems.frames import invert
@@ -78,11 +80,12 @@ def build_map(
     resume: bool = False,
     poses_per_block: int = BLOCK_POSES,
 ) -> tuple[cm.CapabilityMap, dict]:
-    """Build a map on the engine of ``scheduler`` / ``workers`` (systems.scaleout); returns the
+    """Build a map on the engine of ``scheduler`` / ``workers`` (systems.capability.scaleout);
+    returns the
     map and what the build did (blocks, reused, computed, engine).
 
     With ``out`` the finished blocks go to the build's block store beside it
-    (:class:`systems.capability_map.BlockStore`), the map is written to ``out`` once, atomically,
+    (:class:`systems.capability.maps.BlockStore`), the map is written to ``out`` once, atomically,
     and the store is removed; ``resume`` reuses the blocks of an interrupted build (without it a
     store holding blocks is an error, so a forgotten flag never throws hours of work away).
     """

@@ -47,7 +47,7 @@ class Case:
     close_open_cuts: bool
     cap_radius: float | None
     mouth_opening_deg: float
-    opening: dict  # keyword arguments of systems.oral_mesh.open_mouth (m), empty when 0 deg
+    opening: dict  # keyword arguments of systems.fpsm.oral_mesh.open_mouth (m), empty when 0 deg
     center_origin: np.ndarray
     center_z: np.ndarray
     center_x_hint: np.ndarray | None

@@ -1,8 +1,9 @@
 """Figures of a surgical case: the mouth opening and the instrument placements at its sites.
 
 ``python -m implantplan.analyses.case_figures [--case models/cases/default.yaml] [--out DIR]``
-opens the case's mesh (:func:`systems.oral_mesh.open_mouth`), fits the FPSM, places the paper's tool
-at each site (:func:`systems.placement.place_instrument`) and writes
+opens the case's mesh (:func:`systems.fpsm.oral_mesh.open_mouth`), fits the FPSM, places the
+paper's tool
+at each site (:func:`systems.placement.planner.place_instrument`) and writes
 
 * ``opening.png``: side views (mesh x-z, mm) of the scanned and the opened mesh in the
   mid-sagittal plane and in the sites' sagittal planes, with the hinge and the occlusal plane;
@@ -37,7 +38,7 @@ def build_case(case_path):
 
     Returns:
         dict with ``case`` (:class:`analyses.case.Case`), ``scanned`` and ``opened`` meshes (m),
-        ``X_WC``, ``fpsm``, ``placements`` (list of :class:`systems.placement.Placement`),
+        ``X_WC``, ``fpsm``, ``placements`` (list of :class:`systems.placement.planner.Placement`),
         ``seconds`` (dict: fit, place = all sites with their grid checks).
     """
     import time
@@ -81,23 +82,24 @@ def scan_sites(
     slices) and polar angle in ``angles_deg`` (Center, -90 = straight down), with the axis
     Center +Y tilted towards the mid-sagittal plane by each lingual tilt and then towards +Z
     (out of the mouth) by each mesial tilt. Each is scored by the exhaustive placement grid
-    (:func:`systems.placement.grid_search`, ``grid`` points over the default bounds), which is
+    (:func:`systems.placement.planner.grid_search`, ``grid`` points over the default bounds), which
+    is
     how the default case's sites were chosen. With the scan (``mesh`` and the Center pose
     ``X_WC`` in it) each candidate is then moved along -axis onto the tissue
-    (:func:`systems.sites.project_to_tissue`), where a site must lie; candidates whose axis
+    (:func:`systems.fpsm.sites.project_to_tissue`), where a site must lie; candidates whose axis
     meets no tissue are left out.
 
     Returns:
         dicts sorted by F (best first): slice, angle_deg, lingual/mesial tilt (deg), site (m),
         axis, F, f_safe_line1/2 (m), d_T (m), theta_T (rad), valid (both f_safe > 0).
     """
-    from implantplan.systems.placement import (
+    from implantplan.systems.fpsm.sites import project_to_tissue
+    from implantplan.systems.placement.planner import (
         PlacementProblem,
         default_bounds,
         grid_search,
         hole_frame,
     )
-    from implantplan.systems.sites import project_to_tissue
 
     js = range(1, fpsm.slices - 1) if slices is None else slices
     bounds = default_bounds(fpsm, implant_length)

@@ -29,12 +29,12 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "plan the bundled default case (real oral mesh, two implants, lying)",
     ),
     "fpsm": (
-        "implantplan.analyses.fpsm_commands",
+        "implantplan.analyses.fpsm",
         "finite-parameter surrogate model of the oral cavity",
     ),
     "instrument": ("implantplan.analyses.instrument", "instrument placement (feeding target + VF)"),
     "capmap": ("implantplan.analyses.capmap", "capability maps and RASSCMAP setup planning"),
-    "robot": ("implantplan.analyses.robot_place", "robot base placement (MOPRP, seed 001)"),
+    "robot": ("implantplan.analyses.robot", "robot base placement (MOPRP, seed 001)"),
     "simulate": ("implantplan.analyses.simulate", "teleoperated-feeding simulations (seed 001)"),
     "analyze": ("implantplan.analyses.simulate", "offline analyses of layouts"),
     "studio": (

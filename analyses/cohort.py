@@ -39,8 +39,8 @@ from implantplan.analyses.case import load_case
 from implantplan.systems import validate as v
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import SCHEMA_VERSION, read_yaml, write_atomic, write_text_atomic
-from implantplan.systems.oral_mesh import center_frame, load_oral_mesh, open_mouth
-from implantplan.systems.sites import project_to_tissue
+from implantplan.systems.fpsm.oral_mesh import center_frame, load_oral_mesh, open_mouth
+from implantplan.systems.fpsm.sites import project_to_tissue
 
 _KEYS = ("schema_version", "name", "cases", "generated")
 

@@ -1,5 +1,5 @@
 """``implantplan instrument place``: the feeding target and virtual fixture of one implant site
-(seed 000 stage 2, systems.placement), written as a placement JSON, with the paper's plots.
+(seed 000 stage 2, systems.placement.planner), written as a placement JSON, with the paper's plots.
 
     implantplan instrument place --fpsm fpsm.json --hole-mm X Y Z --hole-axis DX DY DZ \\
         --rod-radius-mm 6 --implant-length-mm 31 [--objective eq14|eq21|eq22] [--seed S] \\
@@ -26,9 +26,9 @@ from implantplan.analyses.figures.placement import plot_placement
 from implantplan.analyses.progress import Progress
 from implantplan.systems.errors import InputError, PlanningFailure
 from implantplan.systems.files import write_json
-from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.fpsm.model import Fpsm
 from implantplan.systems.frames import wrap_angle
-from implantplan.systems.placement import Placement, default_bounds, place_instrument
+from implantplan.systems.placement.planner import Placement, default_bounds, place_instrument
 
 MM = 1e-3
 

@@ -8,7 +8,8 @@ collision model, the random feasible bases the percentiles rank against, recompu
 pipeline's own seed and function); then, per base position:
 
 - :func:`evaluate_layout` (fast, one call per slider change): every site's surviving IK branch and
-  its three MOPRP indices (systems.moprp.evaluate_bases, the worst over the sites as in the plan),
+  its three MOPRP indices (systems.robot.moprp.evaluate_bases, the worst over the sites as in the
+  plan),
   their percentiles, the fast model's arm clearance (a lower bound of SceneGraph's) at the pre-feed
   and target configurations, the cart's clearance; the tool's clearances in the mouth do not
   depend on the base and come from the plan (certified on the FPSM, exact with FCL).
@@ -34,16 +35,17 @@ from pydrake.systems.analysis import Simulator
 from implantplan.analyses import pipeline
 from implantplan.diagrams.arm_clearance import SceneGraphClearance, confirm_feed
 from implantplan.diagrams.teleop import X_ET, FeedRun, TeleopCase, build_teleop, simulate
-from implantplan.systems import actuator, moprp
-from implantplan.systems import capability_map as cm
-from implantplan.systems import kinematics as kin
+from implantplan.systems import actuator
+from implantplan.systems.capability import maps as cm
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import read_json
-from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.fpsm.model import Fpsm
 from implantplan.systems.frames import frame_from_z, invert, rotation_angle
-from implantplan.systems.master_device import IncrementalMapping, MasterMotion
-from implantplan.systems.master_input import LiveMasterDevice, MasterInput
-from implantplan.systems.virtual_fixture import VirtualFixture
+from implantplan.systems.placement.fixture import VirtualFixture
+from implantplan.systems.robot import kinematics as kin
+from implantplan.systems.robot import moprp
+from implantplan.systems.teleop.master_device import IncrementalMapping, MasterMotion
+from implantplan.systems.teleop.master_input import LiveMasterDevice, MasterInput
 
 
 @dataclass
@@ -57,7 +59,7 @@ class StudioPlan:
     names: list[str]
     X_OT: np.ndarray  # (S, 4, 4) feeding targets in Oral
     X_WCenter: np.ndarray
-    model: object  # the fast collision model (systems.arm_collision)
+    model: object  # the fast collision model (systems.robot.arm_collision)
     F_reference: np.ndarray  # (n, 3) random feasible bases' indices (percentile reference)
     pareto_xyz: np.ndarray  # (P, 3)
     pareto_F: np.ndarray  # (P, 3)
@@ -126,7 +128,7 @@ def load_plan(folder, *, field: str = "--plan", reference: bool = True) -> Studi
     model = moprp.collision_model(sc)
 
     def evaluate(X, rng):
-        return pipeline._combine([moprp.evaluate_bases(X, sc, rng, model=model, X_OT=T)
+        return pipeline.combine_sites([moprp.evaluate_bases(X, sc, rng, model=model, X_OT=T)
                                   for T in X_OT])
 
     F_ref = pipeline.percentile_reference(sc, evaluate) if reference else np.zeros((0, 3))
@@ -178,7 +180,7 @@ def evaluate_layout(sp: StudioPlan, xyz) -> Layout:
     sc = sp.sc
     rng = np.random.default_rng(sp.seed)
     evs = [moprp.evaluate_bases(xyz[None], sc, rng, model=sp.model, X_OT=T) for T in sp.X_OT]
-    F, _ = pipeline._combine(evs)
+    F, _ = pipeline.combine_sites(evs)
     branch = np.array([int(e.branch[0]) for e in evs])
     feasible = bool(np.all(branch >= 0))
     q = np.array([e.q[0] for e in evs])
@@ -323,7 +325,7 @@ class LiveTeleop:
 
     Args:
         case: the feeding case (:meth:`StudioPlan.teleop_case`).
-        source: the live master input (systems.master_input.MasterInput).
+        source: the live master input (systems.teleop.master_input.MasterInput).
         meshcat: draw the plant there (None: headless).
         realtime_rate: the Simulator's target real-time rate (1.0 in the studio; 0 runs as fast
             as it can, for tests).
@@ -390,7 +392,7 @@ class LiveTeleop:
 
     def save(self, csv_path) -> Path:
         """Write the run's recording (MasterDevice CSV, atomically) and return its path."""
-        from implantplan.systems.master_device import save_csv
+        from implantplan.systems.teleop.master_device import save_csv
 
         motion = self.device.recording(self.time)
         return save_csv(csv_path, motion)
@@ -406,7 +408,7 @@ def replay(case: TeleopCase, motion: MasterMotion) -> FeedRun:
 def recorded_case(csv_path) -> tuple[TeleopCase, MasterMotion, dict]:
     """A studio recording's case (from ``<csv>.json``: the plan folder, site, base, start) and
     motion, for a replay."""
-    from implantplan.systems.master_device import load_csv
+    from implantplan.systems.teleop.master_device import load_csv
 
     csv_path = Path(csv_path)
     side = csv_path.with_suffix(".json")

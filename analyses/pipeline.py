@@ -23,16 +23,17 @@ from implantplan.analyses.case import Case
 from implantplan.diagrams.arm_clearance import SceneGraphClearance, confirm_feed
 from implantplan.diagrams.feeding import run_feeding
 from implantplan.diagrams.teleop import TeleopCase
-from implantplan.systems import actuator, moprp
-from implantplan.systems import capability_map as cm
-from implantplan.systems import kinematics as kin
+from implantplan.systems import actuator
+from implantplan.systems.capability import maps as cm
 from implantplan.systems.errors import InputError, PlanningFailure
-from implantplan.systems.fpsm import Fpsm
-from implantplan.systems.fpsm_fit import fit_fpsm
+from implantplan.systems.fpsm.fit import fit_fpsm
+from implantplan.systems.fpsm.model import Fpsm
+from implantplan.systems.fpsm.oral_mesh import center_frame, load_oral_mesh, open_mouth
+from implantplan.systems.fpsm.sites import SiteCheck, check_sites, site_problems
 from implantplan.systems.frames import invert, transform
-from implantplan.systems.oral_mesh import center_frame, load_oral_mesh, open_mouth
-from implantplan.systems.placement import Placement, place_instrument
-from implantplan.systems.sites import SiteCheck, check_sites, site_problems
+from implantplan.systems.placement.planner import Placement, place_instrument
+from implantplan.systems.robot import kinematics as kin
+from implantplan.systems.robot import moprp
 
 
 @dataclass
@@ -81,7 +82,8 @@ def fit_stage(case: Case, *, progress=None) -> FitResult:
 
 
 def site_stage(case: Case, fit: FitResult) -> SiteCheck:
-    """Every site on the scanned tissue with its axis into the cavity (systems.sites); the first
+    """Every site on the scanned tissue with its axis into the cavity (systems.fpsm.sites); the
+    first
     site that is not is an input error naming it (exit 2), with the likely slip when one fits."""
     positions = np.array([s.position for s in case.sites])
     axes = np.array([s.axis for s in case.sites])
@@ -102,8 +104,8 @@ def placement_stage(case: Case, fpsm: Fpsm, *, progress=None, require_valid: boo
     margin (case ``safety``): certified on the FPSM and, with the scan ``mesh`` (mesh frame, as
     fitted), exactly with FCL; then the registration Monte Carlo of the exact clearance along
     the feed (``placement.verification["registration"]``)."""
-    from implantplan.systems.exact_clearance import ExactCavity, registration_monte_carlo
-    from implantplan.systems.tool_clearance import ToolGeometry
+    from implantplan.systems.placement.exact_clearance import ExactCavity, registration_monte_carlo
+    from implantplan.systems.placement.tool_clearance import ToolGeometry
 
     exact = None
     if mesh is not None:
@@ -169,7 +171,7 @@ def center_in_oral(posture: str, placements: list[Placement]) -> np.ndarray:
 
 @dataclass
 class RobotResult:
-    scenario: object  # systems.moprp.Scenario (with the plant's TCP)
+    scenario: object  # systems.robot.moprp.Scenario (with the plant's TCP)
     X_OC: np.ndarray
     X_OT: np.ndarray  # (S, 4, 4) feeding targets in Oral
     base_xyz: np.ndarray  # (3,) selected base position in Oral
@@ -196,7 +198,7 @@ def _site_evaluations(X, sc, rng, targets, model):
     return [moprp.evaluate_bases(X, sc, rng, model=model, X_OT=T) for T in targets]
 
 
-def _combine(evs):
+def combine_sites(evs):
     """Several sites from one base: feasible when every site is; each index is its worst value
     over the sites (the base must serve all of them); violations add up."""
     F = np.max([np.where(np.isfinite(e.objectives), e.objectives, 1e12) for e in evs], axis=0)
@@ -220,7 +222,7 @@ def percentile_reference(sc, evaluate) -> np.ndarray:
 
 
 def robot_stage(case: Case, placements: list[Placement], *, progress=None) -> RobotResult:
-    """MOPRP over the base position with every site's feeding target (NSGA-II, systems.nsga2).
+    """MOPRP over the base position with every site's feeding target (NSGA-II, systems.robot.nsga2).
 
     Departure from seed 001 for several sites: the objectives are the worst index over the sites
     and a base is feasible only if every site has a surviving branch."""
@@ -232,7 +234,7 @@ def robot_stage(case: Case, placements: list[Placement], *, progress=None) -> Ro
     model = moprp.collision_model(sc)
 
     def evaluate(X, rng):
-        return _combine(_site_evaluations(X, sc, rng, targets, model))
+        return combine_sites(_site_evaluations(X, sc, rng, targets, model))
 
     def explain(Xs, rng) -> str:
         evs = _site_evaluations(Xs, sc, rng, targets, model)
@@ -307,7 +309,7 @@ def robot_stage(case: Case, placements: list[Placement], *, progress=None) -> Ro
 
 @dataclass
 class CapabilityResult:
-    cmap: object  # systems.capability_map.CapabilityMap over the sites' neighbourhoods
+    cmap: object  # systems.capability.maps.CapabilityMap over the sites' neighbourhoods
     X_BA: np.ndarray  # (S, 4, 4) the mapped frame (implant tip, z = drilling) at each target
     map_reachable: np.ndarray  # (S,) the map's answer for the target's voxel and direction
     index: np.ndarray  # (S,) reachability index of the target's voxel
@@ -336,7 +338,7 @@ def capability_stage(case: Case, robot: RobotResult, *, progress=None) -> Capabi
         maps[cell] = cm.CapabilityMap(params, grid, *block)
     # the verdict from the certified map (never reachable where exact IK fails); the dexterity
     # index and the figure from the centre-sampled map: the certified tool map (12 sampled rolls,
-    # every roll) certifies ~0 of these voxels (systems/capability_map.py, issue report)
+    # every roll) certifies ~0 of these voxels (systems/capability/maps.py, issue report)
     map_reach, _ = maps["certified"].query(X_BA)
     cmap = maps["centre"]
     _, index = cmap.query(X_BA)

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from implantplan.analyses import checks as checks_
 from implantplan.analyses import pipeline
 from implantplan.analyses.case import Case, default_case_path, load_case
 from implantplan.analyses.figures.plan import make_figures
@@ -34,15 +35,9 @@ from implantplan.analyses.progress import Progress
 from implantplan.analyses.provenance import provenance
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import write_json
-from implantplan.systems.frames import wrap_angle
 
 DEMO_OUT = "out/implantplan-demo"  # out/ is where every README command writes
 # Pass/fail limits of the checks (DESIGN.md section 4 and issue 6 acceptance figures).
-MAX_PENETRATION_DEPTH = 0.5e-3  # m, dense check of the FPSM fit
-GRID_TOL_D = 0.1e-3  # m, PSO vs exhaustive grid
-GRID_TOL_THETA = np.deg2rad(0.1)
-MIN_CAPABILITY = 0.5  # mean reachability index around a feeding target
-MAX_VF_VIOLATION = 1e-3  # m
 
 
 def register(subparsers) -> None:
@@ -194,41 +189,16 @@ def _plan_into(case: Case, out: Path, *, runs, html_scene: bool, quiet: bool,
 # -- the plan ------------------------------------------------------------------------------------
 
 
-def _check(check_id: str, name: str, value: float, limit: float, *, unit: str, upper: bool,
-           site=None) -> dict:
-    """A check and its margin. ``id`` is stable (README: which requirement it verifies);
-    ``bound`` says whether the limit is a maximum or a minimum. A maximum passes when value <=
-    limit (margin limit - value >= 0, so "0 alarms <= 0" passes), a minimum when value > limit
-    (strictly: a clearance of exactly 0 is contact)."""
-    margin = (limit - value) if upper else (value - limit)
-    passed = margin >= 0 if upper else margin > 0
-    return {"id": check_id, "name": name, "site": site, "value": float(value),
-            "limit": float(limit), "bound": "max" if upper else "min", "unit": unit,
-            "margin": float(margin), "pass": bool(passed)}
-
-
-def _scene_graph_fields(robot, k: int) -> dict:
-    """SceneGraph clearances of site k's reported configurations (empty before confirmation)."""
-    if k >= len(robot.feed_clearance):
-        return {}
-    f = robot.feed_clearance[k]
-    return {"scene_graph_clearance_m": f["distance_target"],
-            "scene_graph_clearance_pre_m": f["distance_pre"],
-            "feed_clearance": {"distance_m": f["distance"], "pair": f["pair"],
-                               "samples": f["samples"], "limit_m": f["limit"]}}
-
-
 def plan_dict(case: Case, fit, placements, robot, cap, sims, sites_checked) -> dict:
-    from implantplan.systems import actuator, moprp
+    from implantplan.systems import actuator
+    from implantplan.systems.robot import moprp
 
     sc = robot.scenario
     X_WC = sc.X_WO @ robot.X_OC
     d = fit.fpsm.diagnostics
-    checks = [_check("fpsm.penetration_depth", "fpsm dense-check penetration depth",
-                     d["dense_max_depth_m"], MAX_PENETRATION_DEPTH, unit="m", upper=True)]
+    checks = checks_.fpsm_checks(d)
     sites = []
     for k, (site, p) in enumerate(zip(case.sites, placements, strict=True)):
-        grid = (p.to_dict().get("grid_check") or {})
         X_WT = sc.X_WO @ robot.X_OT[k]
         X_BE = moprp.target_pose(robot.base_xyz, robot.X_OT[k])
         sim = sims[k] if k < len(sims) else None
@@ -249,7 +219,7 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims, sites_checked) -> d
             "ik": {"branch": int(robot.branch[k]), "q": robot.q[k], "q_pre": robot.q_pre[k],
                    "indices": dict(zip(moprp.INDEX_NAMES, robot.site_indices[k].tolist(),
                                        strict=True)),
-                   **_scene_graph_fields(robot, k)},
+                   **checks_.scene_graph_fields(robot.feed_clearance, k)},
             "capability": {"map_reachable": bool(cap.map_reachable[k]),
                            "voxel_index": float(cap.index[k]),
                            "neighbourhood_index": float(cap.neighbourhood_index[k]),
@@ -260,50 +230,13 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims, sites_checked) -> d
                 "realtime_factor": sim["realtime_factor"]},
         })
         n = site.name
-
-        def add(check_id, name, value, limit, unit, upper, site=n):
-            checks.append(_check(check_id, name, value, limit, unit=unit, upper=upper, site=site))
-
-        add("site.on_tissue", "site on the scanned tissue", sites_checked.distance[k],
-            sites_checked.tolerance, "m", True)
-        add("placement.line1_clearance", "line1 (rod) clearance", p.d_safe_min_line1,
-            case.clearance_margin, "m", False)
-        add("placement.line2_clearance", "line2 (implant path) clearance", p.d_safe_min_line2,
-            case.clearance_margin, "m", False)
-        ver = p.verification
-        if ver:
-            add("placement.tool_clearance_certified", "tool clearance over the feed and the "
-                "fixture's region (certified, FPSM)", ver["clearance_certified"],
-                ver["clearance_margin"], "m", False)
-            if ver.get("clearance_exact_min") is not None:
-                add("placement.tool_clearance_exact", "tool clearance over the feed and the "
-                    "fixture's region (exact, FCL against the scan)", ver["clearance_exact_min"],
-                    ver["clearance_margin"], "m", False)
-        if "x" in grid:
-            add("placement.grid_d_T", "PSO vs grid optimum, d_T",
-                abs(p.d_T - float(grid["x"][0])), GRID_TOL_D, "m", True)
-            add("placement.grid_theta_T", "PSO vs grid optimum, theta_T",
-                abs(wrap_angle(p.theta_T - float(grid["x"][1]))), GRID_TOL_THETA, "rad", True)
-        if k < len(robot.feed_clearance):
-            feed = robot.feed_clearance[k]
-            checks.append(_check("robot.arm_clearance_scene_graph",
-                                 "arm clearance along the feed (SceneGraph)", feed["distance"],
-                                 feed["limit"], unit="m", upper=False, site=n)
-                          | {"pair": " / ".join(feed["pair"])})
-        add("robot.ik_branches", "IK branches at the feeding target", cap.ik_branches[k], 0,
-            "branches", False)
-        add("capability.neighbourhood_index", "capability index around the target",
-            cap.neighbourhood_index[k], MIN_CAPABILITY, "1", False)
-        if sim is not None and sim["runs"]:
-            runs = sim["runs"]
-            add("feeding.missed_target", "feeds missing the target",
-                sum(not r["reached_target"] for r in runs), 0, "runs", True)
-            add("feeding.vf_violation", "max VF violation",
-                max(r["max_vf_violation"] for r in runs), MAX_VF_VIOLATION, "m", True)
-            add("feeding.rod_d_safe", "min d_safe of the rod during feeds",
-                min(r["min_d_safe"] for r in runs), 0.0, "m", False)
-            add("feeding.collision_alarms", "FPSM collision alarms",
-                sum(r["collision_alarm"] for r in runs), 0, "runs", True)
+        checks += checks_.placement_checks(
+            n, p, distance_to_tissue=float(sites_checked.distance[k]),
+            tolerance=sites_checked.tolerance, clearance_margin=case.clearance_margin)
+        feed = robot.feed_clearance[k] if k < len(robot.feed_clearance) else None
+        checks += checks_.layout_checks(n, feed, ik_branches=cap.ik_branches[k],
+                                        neighbourhood_index=cap.neighbourhood_index[k])
+        checks += checks_.feeding_checks(n, sim["runs"] if sim is not None else [])
     return {
         "case": {"name": case.name, "source": str(case.source), "seed": case.seed},
         "fpsm": {
@@ -341,7 +274,7 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims, sites_checked) -> d
                             "dropped and the next-ranked one taken",
         },
         "checks": checks,
-        "passed": all(c["pass"] for c in checks),
+        "passed": checks_.passed(checks),
     }
 
 

@@ -51,7 +51,7 @@ class Markup(str):
     """Markup this module wrote itself (a pass/fail badge): the one cell kind not escaped."""
 
 
-def _cell(value) -> str:
+def table_cell(value) -> str:
     """A table cell's HTML: every value is escaped (html.escape) unless it is :class:`Markup`,
     so a site or case name from the user's YAML cannot inject markup into the page."""
     return value if isinstance(value, Markup) else html.escape(str(value))
@@ -67,7 +67,7 @@ def _table(header: list[str], rows: list[list], left: int = 1) -> str:
                  for i, h in enumerate(header))
     body = []
     for r in rows:
-        cells = "".join(f"<td class='{'l' if i < left else ''}'>{_cell(c)}</td>"
+        cells = "".join(f"<td class='{'l' if i < left else ''}'>{table_cell(c)}</td>"
                         for i, c in enumerate(r))
         body.append(f"<tr>{cells}</tr>")
     return f"<table><tr>{th}</tr>{''.join(body)}</table>"
@@ -266,7 +266,8 @@ def write_report(path: Path, plan: dict, figs: dict) -> Path:
 
 
 def render_head_motion(study: dict, figs: dict) -> str:
-    """``report.html`` of the awake-patient study (analyses.head_study): per site, the summary
+    """``report.html`` of the awake-patient study (analyses.studies.head_motion): per site, the
+    summary
     per profile (path deviation and time-indexed error following vs ignoring the head, exact
     clearance, completion, the startle's stop and back-out), lost tracking, and the figures
     (``figs``: {site: [PNG paths relative to the page]})."""

@@ -13,20 +13,22 @@ Commands::
 ``implant_length`` and the FPSM it names in ``fpsm`` or ``inputs.fpsm``, a file or the model).
 Without a plan the default case is seed 000's cylinder check (Sec. 5.3): a cylinder FPSM of
 radius 50 mm from z = 0 to 100 mm (opening at 100 mm), hole (0, -50, 50) mm, axis +y, rod radius
-6 mm, d12 31 mm, placed on the fly by systems.placement (d_T = 62.5 mm, theta_T = 0). The room
+6 mm, d12 31 mm, placed on the fly by systems.placement.planner (d_T = 62.5 mm, theta_T = 0). The
+room
 comes from the MOPRP scenario (``--scenario``, default lying): Oral (= the feeding target, seed
 000's Tool frame) at the scenario's X_WO, so Center sits at X_WO X_CT^-1. The base layout comes
 from ``--robot-placement`` (an ``implantplan robot place`` result: ``selected.base_xyz`` and
 ``selected.branch``); without it we pick a stand-in for MOPRP's choice: the knee point
-(systems.moprp.knee_point) of the non-dominated set of 300 random feasible bases.
+(systems.robot.moprp.knee_point) of the non-dominated set of 300 random feasible bases.
 
 The arm starts at the pre-feed pose (the TCP backed out along the rod by the scenario's feed
-length) on the layout's branch, and the scripted operator (systems.master_device) feeds it to
+length) on the layout's branch, and the scripted operator (systems.teleop.master_device) feeds it to
 the target through the virtual fixture.
 
 **Experiments.** (a) feeding: K feeds with independent operator randomness; (b) error mapping: a
 circle of radius 25 mm at 10 mm/s about the target with injected joint error; (c) GII over 100
-poses about Oral (systems.moprp.gii); (d) the selected layout against N random feasible ones on
+poses about Oral (systems.robot.moprp.gii); (d) the selected layout against N random feasible ones
+on
 (a)-(c): bars and distributions (seed 001 Figs. 11, 13, 14) and ranks. The runners of (a) and
 (b), the joint error model and the departures are diagrams.feeding's; the figures are
 analyses.figures.simulation's.
@@ -42,9 +44,9 @@ from pathlib import Path
 import numpy as np
 
 from implantplan.analyses.figures.simulation import plot_circle, plot_feeding, plot_layouts
-from implantplan.analyses.head_study import register_analysis as register_head_analysis
-from implantplan.analyses.moprp_fidelity import gii_units, register_analysis
 from implantplan.analyses.progress import Progress
+from implantplan.analyses.studies.head_motion import register_analysis as register_head_analysis
+from implantplan.analyses.studies.moprp_fidelity import gii_units, register_analysis
 from implantplan.diagrams.feeding import (  # the case and the runs (bench_teleop reads them here)
     FINISH_SECONDS,  # noqa: F401
     Instrument,
@@ -56,14 +58,15 @@ from implantplan.diagrams.feeding import (  # the case and the runs (bench_teleo
     run_circle,
     run_feeding,
 )
-from implantplan.systems import actuator, moprp, validate
-from implantplan.systems import kinematics as kin
+from implantplan.systems import actuator, validate
 from implantplan.systems.errors import InputError, PlanningFailure
 from implantplan.systems.files import read_json, write_json, write_text_atomic
-from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.fpsm.model import Fpsm
 from implantplan.systems.frames import rotation_angle
-from implantplan.systems.master_device import Operator
-from implantplan.systems.virtual_fixture import VirtualFixture
+from implantplan.systems.placement.fixture import VirtualFixture
+from implantplan.systems.robot import kinematics as kin
+from implantplan.systems.robot import moprp
+from implantplan.systems.teleop.master_device import Operator
 
 # --------------------------------------------------------------------------------------------
 # The case
@@ -348,7 +351,7 @@ def cmd_feeding(args) -> int:
     operator = _operator(args)
     head = None
     if args.head_motion is not None:
-        from implantplan.systems.head_motion import HeadMotion
+        from implantplan.systems.teleop.head_motion import HeadMotion
 
         if args.mode != "kinematic":
             raise InputError("--head-motion", "expected --mode kinematic with a head motion")

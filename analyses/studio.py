@@ -20,7 +20,8 @@ with the layout's checks recomputed.
 arm) of the selected site at the current base, driven at real time by the keyboard
 (:data:`KEYS`: feed in/out W/S, lateral x A/D, lateral y R/F, roll about the feed axis Z/X, tilt
 about the lateral axes I/K and J/L, faster/slower E/Q, pause P) or by the sliders
-(systems.master_input.SLIDERS: feed, lateral x/y in mm/s and roll in deg/s, zero in the middle,
+(systems.teleop.master_input.SLIDERS: feed, lateral x/y in mm/s and roll in deg/s, zero in the
+middle,
 in the controls from the start and read only by the sliders master;
 "Master keyboard/sliders" or key M switches, also during a run; P then puts the sliders back to
 zero). The fixture holds the tool's orientation within beta (0.5 deg) of the planned one, roll
@@ -48,10 +49,10 @@ from pathlib import Path
 import numpy as np
 
 from implantplan.analyses import live_setup as ls
-from implantplan.systems import moprp
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import to_jsonable, write_json
-from implantplan.systems.master_input import SLIDERS, KeyboardMaster, SliderMaster
+from implantplan.systems.robot import moprp
+from implantplan.systems.teleop.master_input import SLIDERS, KeyboardMaster, SliderMaster
 
 BASE_SLIDERS = ("base x (mm)", "base y (mm)", "base z (mm)")
 PARETO_SLIDER = "Pareto member"
@@ -135,7 +136,7 @@ class Studio:
         from types import SimpleNamespace
 
         from implantplan.analyses.figures.scene import draw_site
-        from implantplan.systems.virtual_fixture import VirtualFixture
+        from implantplan.systems.placement.fixture import VirtualFixture
 
         for k, s in enumerate(self.sp.plan["sites"]):
             pl = s["placement"]
@@ -254,9 +255,7 @@ class Studio:
     def keep(self) -> Path:
         """Write the current layout into the plan folder's plan.json (atomically), with the
         layout's checks recomputed; returns the path."""
-        from types import SimpleNamespace
-
-        from implantplan.analyses.plan import MIN_CAPABILITY, _check, _scene_graph_fields
+        from implantplan.analyses import checks as checks_
 
         lay, sp = self.layout, self.sp
         if not lay.feasible:
@@ -272,16 +271,14 @@ class Studio:
         base["rule"] = "kept in the studio (the planned knee point was " \
             f"{np.round(1e3 * sp.base_xyz, 1).tolist()} mm)"
         cap = lay.capability or self.show_capability()
-        layout_checks = ("robot.arm_clearance_scene_graph", "robot.ik_branches",
-                         "capability.neighbourhood_index")
-        checks = [c for c in plan["checks"] if c["id"] not in layout_checks]
+        checks = [c for c in plan["checks"] if c["id"] not in checks_.LAYOUT_CHECK_IDS]
         for k, s in enumerate(plan["sites"]):
             feed = lay.confirmation[k]
             s["ik"].update({
                 "branch": int(lay.branch[k]), "q": lay.q[k], "q_pre": lay.q_pre[k],
                 "indices": dict(zip(moprp.INDEX_NAMES, lay.site_indices[k].tolist(),
                                     strict=True)),
-                **_scene_graph_fields(SimpleNamespace(feed_clearance=lay.confirmation), k)})
+                **checks_.scene_graph_fields(lay.confirmation, k)})
             s["feeding_target"]["X_BaseEnd"] = moprp.target_pose(lay.xyz, sp.X_OT[k])
             s["capability"] = {"map_reachable": bool(cap["map_reachable"][k]),
                                "voxel_index": float(cap["index"][k]),
@@ -290,18 +287,10 @@ class Studio:
             if s.get("simulation") is not None:
                 s["simulation"]["layout"] = "the planned base (not re-simulated in the studio)"
             n = s["name"]
-            checks.append(_check("robot.arm_clearance_scene_graph",
-                                 "arm clearance along the feed (SceneGraph)", feed["distance"],
-                                 feed["limit"], unit="m", upper=False, site=n)
-                          | {"pair": " / ".join(feed["pair"])})
-            checks.append(_check("robot.ik_branches", "IK branches at the feeding target",
-                                 cap["ik_branches"][k], 0, unit="branches", upper=False, site=n))
-            checks.append(_check("capability.neighbourhood_index",
-                                 "capability index around the target",
-                                 cap["neighbourhood_index"][k], MIN_CAPABILITY, unit="1",
-                                 upper=False, site=n))
+            checks += checks_.layout_checks(n, feed, ik_branches=cap["ik_branches"][k],
+                                            neighbourhood_index=cap["neighbourhood_index"][k])
         plan["checks"] = checks
-        plan["passed"] = all(c["pass"] for c in checks)
+        plan["passed"] = checks_.passed(checks)
         plan.pop("schema_version", None)
         plan.pop("kind", None)
         path = write_json(sp.folder / "plan.json", plan, kind="plan")
@@ -625,7 +614,7 @@ def open_studio(plan_dir, *, host: str = "127.0.0.1", port: int | None = None,
     from pydrake.geometry import Meshcat, MeshcatParams
 
     sp = ls.load_plan(plan_dir)
-    mesh = _opened_scan(sp) if scan else None
+    mesh = opened_scan(sp) if scan else None
     params = MeshcatParams()
     params.host = host
     if port is not None:
@@ -637,7 +626,7 @@ def open_studio(plan_dir, *, host: str = "127.0.0.1", port: int | None = None,
     return studio, meshcat, status
 
 
-def _opened_scan(sp: ls.StudioPlan):
+def opened_scan(sp: ls.StudioPlan):
     """The plan's case's opened scan (the case file it names), or None when it is gone."""
     from implantplan.analyses.case import load_case
     from implantplan.analyses.pipeline import fit_stage

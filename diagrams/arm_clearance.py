@@ -4,7 +4,7 @@
 build_plant`, the base welded where the planner put it) over every pair SceneGraph does not
 filter: the arm and actuator against themselves, the cart, the patient and the chair. This is
 what the planner's reported configurations are confirmed with (issue 11 item 2): the selected
-base along its whole feed, every Pareto member written out; ``systems.arm_collision`` is the
+base along its whole feed, every Pareto member written out; ``systems.robot.arm_collision`` is the
 fast conservative model checked against it.
 """
 
@@ -15,9 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from implantplan.diagrams.plant import build_plant
-from implantplan.systems import kinematics as kin
-from implantplan.systems import moprp
 from implantplan.systems.errors import InputError
+from implantplan.systems.robot import kinematics as kin
+from implantplan.systems.robot import moprp
 
 
 @dataclass(frozen=True)
@@ -161,7 +161,7 @@ class Agreement:
 
 
 def compare_at_base(sc: moprp.Scenario, xyz, q, *, model=None) -> Agreement:
-    """Compare the fast model (systems.arm_collision via moprp.collision_clearance) with
+    """Compare the fast model (systems.robot.arm_collision via moprp.collision_clearance) with
     SceneGraph on configurations ``q`` (N, 6) at one base position ``xyz``."""
     q = np.asarray(q, dtype=float).reshape(-1, 6)
     if q.shape[0] == 0:

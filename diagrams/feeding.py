@@ -1,8 +1,8 @@
 """Seed 001's teleop experiments as cores over the feeding diagram (diagrams.teleop) and the arm's
-kinematics (systems.kinematics): K scripted feeds of one case, and the error-mapping circle.
+kinematics (systems.robot.kinematics): K scripted feeds of one case, and the error-mapping circle.
 
 **Feeding** (seed 001 "Experimental validation"): K feeds with independent operator randomness
-(systems.master_device.feeding_runs) on one diagram; joint travel = sum over joints of
+(systems.teleop.master_device.feeding_runs) on one diagram; joint travel = sum over joints of
 integrated |qdot| (seed 001 Eq. 23).
 
 **Error mapping**: a circle of radius 25 mm at 10 mm/s about the target, in the plane across the
@@ -33,15 +33,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from implantplan.diagrams.teleop import TeleopCase, build_teleop, simulate
-from implantplan.systems import actuator, moprp
-from implantplan.systems import kinematics as kin
+from implantplan.systems import actuator
 from implantplan.systems.errors import PlanningFailure
-from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.fpsm.model import Fpsm
 from implantplan.systems.frames import invert, transform
-from implantplan.systems.master_device import Operator, feeding_runs
-from implantplan.systems.nsga2 import non_dominated_sort
-from implantplan.systems.placement import place_instrument
-from implantplan.systems.virtual_fixture import VirtualFixture
+from implantplan.systems.placement.fixture import VirtualFixture
+from implantplan.systems.placement.planner import place_instrument
+from implantplan.systems.robot import kinematics as kin
+from implantplan.systems.robot import moprp
+from implantplan.systems.robot.nsga2 import non_dominated_sort
+from implantplan.systems.teleop.master_device import Operator, feeding_runs
 
 # -- the case ----------------------------------------------------------------------------------
 
@@ -60,7 +61,8 @@ class Instrument:
 
 def default_instrument(seed: int = 0) -> Instrument:
     """Seed 000's cylinder check (Sec. 5.3) placed on the fly: a cylinder FPSM of radius 50 mm from
-    z = 0 to 100 mm, hole (0, -50, 50) mm, axis +y, rod radius 6 mm, d12 31 mm (systems.placement
+    z = 0 to 100 mm, hole (0, -50, 50) mm, axis +y, rod radius 6 mm, d12 31 mm
+    (systems.placement.planner
     finds d_T = 62.5 mm, theta_T = 0)."""
     fpsm = Fpsm.cylinder(0.05, 0.0, 0.1, slices=11)
     p = place_instrument(
@@ -120,7 +122,7 @@ def make_case(scenario: str, sc_plant, xyz, branch: int, inst: Instrument, label
 
 def knee_layout(sc, *, seed: int = 0, candidates: int = 300):
     """(base_xyz in Oral, branch, source): a stand-in for MOPRP's choice, the knee point
-    (systems.moprp.knee_point) of the non-dominated set of ``candidates`` random feasible
+    (systems.robot.moprp.knee_point) of the non-dominated set of ``candidates`` random feasible
     bases."""
     rng = np.random.default_rng(seed)
     xyz, F = moprp.random_feasible(sc, candidates, rng)
@@ -156,7 +158,7 @@ def run_feeding(
     and recorded on a second diagram that has the visualizer.
 
     ``progress``: anything with ``step(i, n, text)`` (analyses.progress.Progress), or None.
-    ``head_motion``: a systems.head_motion.HeadMotion (the awake patient, every run; the arm
+    ``head_motion``: a systems.teleop.head_motion.HeadMotion (the awake patient, every run; the arm
     follows the tracked mouth): the errors are then relative to the moving head, and each run
     says whether the head guard stopped it.
     """

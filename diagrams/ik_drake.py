@@ -1,6 +1,7 @@
 """Inverse kinematics by Drake's optimizer: multi-start enumeration of a 6-DOF arm's IK branches.
 
-DESIGN.md section 5: the closed form (``systems.kinematics.ik``) gives the AUBO-i10's 8 branches
+DESIGN.md section 5: the closed form (``systems.robot.kinematics.ik``) gives the AUBO-i10's 8
+branches
 directly; this path enumerates the same set with ``pydrake.multibody.inverse_kinematics``
 (MathematicalProgram), more slowly, for any 6-DOF URDF. It is the cross-check of the closed form
 and the fallback for arms without one.
@@ -44,7 +45,7 @@ from implantplan import models
 from implantplan.systems import validate
 from implantplan.systems.errors import InputError
 from implantplan.systems.frames import wrap_angle
-from implantplan.systems.kinematics import wrapped_distance
+from implantplan.systems.robot.kinematics import wrapped_distance
 
 AXIS_POINT = 0.1  # m, distance of the two axis points constraining the orientation
 DEFAULT_URDF = {"175": "aubo_i10/aubo_i10.urdf", "360": "aubo_i10/aubo_i10_360.urdf"}
@@ -88,7 +89,7 @@ class DrakeIk:
             with ``limits``. Ignored when ``plant`` is given.
         base_frame, tool_frame: frame names in the model (the pose is of ``tool_frame`` in
             ``base_frame``).
-        X_FT: 4x4 pose of the TCP in ``tool_frame`` (e.g. ``diagrams.tools.X_FT()`` with the
+        X_FT: 4x4 pose of the TCP in ``tool_frame`` (e.g. ``diagrams.actuator_urdf.X_FT()`` with the
             flange), or None.
         limits: "175" or "360" for the default AUBO model.
         plant, diagram: a finalized plant inside a built diagram (e.g. from

@@ -1,7 +1,8 @@
 """Build the MultibodyPlant + SceneGraph of a scene: AUBO-i10, implanting actuator, cart, patient.
 
 One model of the room: the MOPRP scenario (``models/scenarios/<name>.yaml``, read by
-``systems.moprp.load_scenario``; DESIGN.md section 5: patient lying or sitting) is the source of
+``systems.robot.moprp.load_scenario``; DESIGN.md section 5: patient lying or sitting) is the source
+of
 truth for the patient, the chair, the cart and the Oral (mouth) frame. :func:`build_plant` loads
 the model files (arm, actuator) through in-memory model directives (:func:`scene_directives`,
 the ``implantplan`` package registered on the parser, nothing downloaded), welds base_link at
@@ -18,7 +19,7 @@ filtered among itself by MultibodyPlant; the actuator is welded to wrist3_Link, 
 filtered against the flange. :func:`filter_environment_pairs` adds one rule: the actuator's
 shapes (rod, head, implant) are not checked against the patient and chair, they enter the mouth
 by design (their clearance is the FPSM's job, seed 000). Every other pair is checked, and the
-fast model of ``systems.arm_collision`` checks exactly the same pairs.
+fast model of ``systems.robot.arm_collision`` checks exactly the same pairs.
 """
 
 from __future__ import annotations
@@ -58,9 +59,10 @@ from pydrake.multibody.tree import (
 from pydrake.systems.framework import Diagram, DiagramBuilder
 
 from implantplan import models
-from implantplan.systems import arm_collision, moprp, validate
+from implantplan.systems import validate
 from implantplan.systems.errors import InputError
 from implantplan.systems.frames import frame_from_z
+from implantplan.systems.robot import arm_collision, moprp
 
 SCENARIOS = ("lying", "sitting", "arm")
 ARM_FILES = {
@@ -122,7 +124,7 @@ class ScenarioGeometry:
 
 def resolve_scenario(scenario) -> moprp.Scenario | None:
     """The MOPRP scenario of ``scenario``: None for "arm", a bundled name, a YAML path or a
-    :class:`systems.moprp.Scenario` (returned as is)."""
+    :class:`systems.robot.moprp.Scenario` (returned as is)."""
     if isinstance(scenario, moprp.Scenario):
         return scenario
     if isinstance(scenario, (str, Path)):
@@ -227,7 +229,7 @@ def add_scenario_geometry(plant: MultibodyPlant, sc: moprp.Scenario) -> Scenario
 def filter_environment_pairs(plant: MultibodyPlant, scene_graph: SceneGraph,
                              geometry: ScenarioGeometry) -> None:
     """Exclude the actuator vs patient/chair pairs (see the module docstring; the rule is
-    ``systems.arm_collision.TOOL_VS_PATIENT_FILTERED``)."""
+    ``systems.robot.arm_collision.TOOL_VS_PATIENT_FILTERED``)."""
     if not arm_collision.TOOL_VS_PATIENT_FILTERED or not plant.HasModelInstanceNamed(ACTUATOR):
         return
     tool = plant.GetModelInstanceByName(ACTUATOR)
@@ -287,7 +289,7 @@ def build_plant(
 
     Args:
         scenario: "lying", "sitting" (the bundled MOPRP scenarios), a scenario YAML path, a
-            :class:`systems.moprp.Scenario`, or "arm" (bare arm).
+            :class:`systems.robot.moprp.Scenario`, or "arm" (bare arm).
         X_WBase: pose of base_link in World (4x4 or RigidTransform); None keeps the scenario's
             default layout (:func:`default_base_pose`; identity for "arm").
         limits: "175" or "360", which arm URDF to load.
@@ -341,7 +343,7 @@ def fk_jacobian_loop(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Drake's FK and Jacobians over a batch of configurations, one SetPositions at a time.
 
-    The MultibodyPlant reference for ``systems.kinematics`` (tests, benchmarks): the same
+    The MultibodyPlant reference for ``systems.robot.kinematics`` (tests, benchmarks): the same
     quantities and conventions as ``fk``, ``jacobian_space`` and ``jacobian_body``.
 
     Args:

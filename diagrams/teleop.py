@@ -12,7 +12,8 @@ loggers: q, supervisor barrier, FPSM safety, alarm (the tool pose and the fixtur
 ```
 
 One diagram per case: the master motion is a parameter of the context
-(systems.master_device.MasterDevice.set_motion), so ``simulate(teleop, T, motion=m)`` replays any
+(systems.teleop.master_device.MasterDevice.set_motion), so ``simulate(teleop, T, motion=m)``
+replays any
 run on the same diagram (diagrams.feeding runs K feeds this way).
 
 Two modes:
@@ -25,7 +26,8 @@ Two modes:
   InverseDynamicsController driving the discrete MultibodyPlant (1 ms step) through its actuators.
 
 Frames: End = the actuator's ``tcp`` frame on the plant; seed 000's Tool frame (x along the rod
-out of the mouth, z along the implant axis) is End rotated by R_ET = R_OE^T (systems.moprp: Oral
+out of the mouth, z along the implant axis) is End rotated by R_ET = R_OE^T (systems.robot.moprp:
+Oral
 = Tool, and End's axes in Oral are R_OE). The FPSM and the virtual fixture live in the Center
 frame, placed in World by ``X_WCenter``.
 
@@ -81,20 +83,20 @@ from pydrake.systems.rendering import MultibodyPositionToGeometryPose
 
 from implantplan.diagrams import plant as scene
 from implantplan.systems import actuator
-from implantplan.systems import kinematics as kin
 from implantplan.systems.errors import InputError
-from implantplan.systems.fpsm import Fpsm
-from implantplan.systems.fpsm_estimator import FpsmEstimator, ToolLines
+from implantplan.systems.fpsm.model import Fpsm
 from implantplan.systems.frames import invert, transform
-from implantplan.systems.head_guard import GuardSettings, HeadGuard
-from implantplan.systems.head_motion import HeadMotion, HeadMotionSource
-from implantplan.systems.master_device import IncrementalMapping, MasterDevice, MasterMotion
-from implantplan.systems.moprp import R_OE
-from implantplan.systems.safety_supervisor import Barrier, SafetySupervisor
-from implantplan.systems.tool_clearance import ToolGeometry
-from implantplan.systems.tracker import Tracker, TrackerParams
-from implantplan.systems.vf_system import VirtualFixtureForceLaw
-from implantplan.systems.virtual_fixture import VirtualFixture
+from implantplan.systems.placement.fixture import VirtualFixture
+from implantplan.systems.placement.tool_clearance import ToolGeometry
+from implantplan.systems.robot import kinematics as kin
+from implantplan.systems.robot.moprp import R_OE
+from implantplan.systems.teleop.fixture_system import VirtualFixtureForceLaw
+from implantplan.systems.teleop.fpsm_estimator import FpsmEstimator, ToolLines
+from implantplan.systems.teleop.head_guard import GuardSettings, HeadGuard
+from implantplan.systems.teleop.head_motion import HeadMotion, HeadMotionSource
+from implantplan.systems.teleop.master_device import IncrementalMapping, MasterDevice, MasterMotion
+from implantplan.systems.teleop.supervisor import Barrier, SafetySupervisor
+from implantplan.systems.teleop.tracker import Tracker, TrackerParams
 
 MODES = ("kinematic", "dynamic")
 X_ET = transform(R_OE.T, np.zeros(3))  # seed 000's Tool frame in the plant's TCP frame (End)
@@ -131,7 +133,8 @@ class TeleopCase:
 
     @property
     def tool(self) -> ToolGeometry:
-        """The tool body the supervisor bounds (rod, head, implant; systems.tool_clearance)."""
+        """The tool body the supervisor bounds (rod, head, implant;
+        systems.placement.tool_clearance)."""
         return ToolGeometry(rod_radius=self.rod_radius, implant_length=self.implant_length)
 
     @property
@@ -163,7 +166,7 @@ class ToolPose(LeafSystem):
     ``q`` (6, or the 12-vector arm state [q; v] when ``state_input``): joint positions.
     ``X_WE`` (abstract RigidTransform) and ``p_WE`` (3): the pose / position of the plant's
     ``tcp`` frame in World, from the plant's own kinematics in a private context (~2 us; the
-    numpy core systems.kinematics.fk gives the same pose, tested, at ~45 us a call).
+    numpy core systems.robot.kinematics.fk gives the same pose, tested, at ~45 us a call).
     """
 
     def __init__(self, plant: MultibodyPlant, frame, *, state_input: bool = False):
@@ -307,7 +310,7 @@ class MovePatient(LeafSystem):
             out.set_value(i, D.multiply(poses.value(i)) if i == self._id else poses.value(i))
 
 
-def _add_scene(builder, case: TeleopCase, mode: str, plant_step: float):
+def add_teleop_scene(builder, case: TeleopCase, mode: str, plant_step: float):
     """The case's scene (diagrams.plant.add_scene: model directives with the base welded at
     X_WBase, the scenario's patient/chair/cart geometry and its collision filters) in
     ``builder``. Contact stays on in dynamic mode: the robot meets the same environment as
@@ -378,7 +381,7 @@ def build_teleop(
         vf_enabled: False lets the command through unfiltered (experiments without the fixture).
         supervisor_enabled: False integrates the fixture's command without the barrier filter.
         barrier: the supervisor's settings (margin, rate); the defaults of
-            :class:`systems.safety_supervisor.Barrier` if None.
+            :class:`systems.teleop.supervisor.Barrier` if None.
         finish: the operator finishes by eye towards the feeding target after the script.
         period: control period of DiffIK, the fixture, the estimator and the loggers (s).
         plant_step: the plant's time step in dynamic mode (s).
@@ -388,7 +391,7 @@ def build_teleop(
         gains: (kp, ki, kd) of the inverse dynamics controller (dynamic mode).
         meshcat: a pydrake.geometry.Meshcat, or None.
         master: a master system to use instead of MasterDevice (a LeafSystem with the output
-            port ``V_WE_command``, e.g. systems.master_input.LiveMasterDevice); ``motion``,
+            port ``V_WE_command``, e.g. systems.teleop.master_input.LiveMasterDevice); ``motion``,
             ``mapping`` and ``finish`` are then its business (no finishing input is wired).
         head_motion: the awake patient's head motion (kinematic mode only; module notes);
             None: the patient is still and the diagram is today's.
@@ -402,7 +405,7 @@ def build_teleop(
         raise InputError("head_motion", "expected mode kinematic with a head motion")
     tracking = head_motion is not None and follow
     builder = DiagramBuilder()
-    plant, scene_graph = _add_scene(builder, case, mode, plant_step)
+    plant, scene_graph = add_teleop_scene(builder, case, mode, plant_step)
     tcp = plant.GetFrameByName("tcp")
     q0 = np.asarray(case.q_start, dtype=float)
 

@@ -11,7 +11,7 @@ Frames, in the flange frame F (wrist3_Link: origin at the flange face centre, +z
   direction (F's -y), x = F's x: X_FA = (R_x(pi/2), p_FTip).
 
 Departure from the paper: it gives no rod length; 0.16 m (a contra-angle handpiece with its
-motor) is our default, a parameter. diagrams/tools.py turns these numbers into the URDF.
+motor) is our default, a parameter. diagrams/actuator_urdf.py turns these numbers into the URDF.
 """
 
 from __future__ import annotations

@@ -64,6 +64,17 @@ def rpy_to_rotation(rpy) -> np.ndarray:
     return rot_z(rpy[..., 2]) @ rot_y(rpy[..., 1]) @ rot_x(rpy[..., 0])
 
 
+def rotations(w: np.ndarray) -> np.ndarray:
+    """Rotation matrices (n, 3, 3) of rotation vectors w (n, 3) (Rodrigues, vectorized)."""
+    th = np.linalg.norm(w, axis=1)
+    k = w / np.where(th > 0, th, 1.0)[:, None]
+    K = np.zeros((len(w), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    s, c = np.sin(th)[:, None, None], np.cos(th)[:, None, None]
+    return np.eye(3) + s * K + (1 - c) * (K @ K)
+
+
 def rotation_angle(R: np.ndarray) -> np.ndarray:
     """Angle (rad) of rotation matrices, robust near 0 and pi."""
     R = np.asarray(R, dtype=float)
@@ -81,7 +92,8 @@ def wrap_angle(a) -> np.ndarray:
     differences, rod directions theta_T, yaw differences).
 
     a - 2 pi floor((a + pi) / 2 pi), and an angle already in [-pi, pi) comes back bit for bit (no
-    rounding through a + pi or exp/atan2). The compiled IK kernel (systems.kinematics) uses the
+    rounding through a + pi or exp/atan2). The compiled IK kernel (systems.robot.kinematics) uses
+    the
     same formula inside numba, then moves -pi to pi (its solutions are in (-pi, pi])."""
     a = np.asarray(a, dtype=float)
     r = a - 2.0 * np.pi * np.floor((a + np.pi) / (2.0 * np.pi))

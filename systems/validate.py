@@ -8,7 +8,7 @@ Every check takes the value and the dotted name of the field it came from, and r
 a mapping, rejects unknown keys, names missing required ones and runs each value through its
 check with the field's dotted name. Sections nest with :func:`section`, lists of sections with
 :func:`sections`. The case file (analyses.case) and the RASSCMAP inputs
-(systems.rasscmap_inputs) are read this way; the MOPRP scenario uses the same checks.
+(systems.capability.rasscmap_inputs) are read this way; the MOPRP scenario uses the same checks.
 """
 
 from __future__ import annotations

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from implantplan.systems import capability_map as cm
-from implantplan.systems import rasscmap as rm
-from implantplan.systems import setup_search as ss
+from implantplan.systems.capability import maps as cm
+from implantplan.systems.capability import rasscmap as rm
+from implantplan.systems.capability import setup_search as ss
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import write_text_atomic
 

@@ -74,7 +74,7 @@ def plot_fit(fpsm, mesh, out_dir) -> list[Path]:
     from matplotlib.collections import LineCollection
     from trimesh.intersections import mesh_plane
 
-    from implantplan.systems.fpsm import evaluate
+    from implantplan.systems.fpsm.model import evaluate
     from implantplan.systems.frames import apply, invert
 
     out_dir = Path(out_dir)

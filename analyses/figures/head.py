@@ -1,4 +1,4 @@
-"""Figures of the awake-patient study (analyses.head_study): per profile, against time, the
+"""Figures of the awake-patient study (analyses.studies.head_motion): per profile, against time, the
 head's motion, the tool's deviation from its path relative to the mouth (following vs ignoring
 the head; dotted: the time-indexed error, which also counts the supervisor's holds) and the
 exact clearance against the moving cavity with the margin."""

@@ -11,14 +11,14 @@ import numpy as np
 from implantplan.analyses.figures import save
 from implantplan.analyses.figures.fpsm import mesh_section
 from implantplan.systems.errors import InputError
-from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.fpsm.model import Fpsm
 from implantplan.systems.frames import invert
-from implantplan.systems.placement import Placement
+from implantplan.systems.placement.planner import Placement
 
 MM = 1e-3
 
 
-def _mesh_in_center(fpsm: Fpsm):
+def mesh_in_center(fpsm: Fpsm):
     """Vertices and faces of the FPSM's mesh in Center (m), or None when it is not available.
 
     The FPSM records the mesh path but (so far) not the file's units: ``settings["mesh_units"]``
@@ -27,7 +27,7 @@ def _mesh_in_center(fpsm: Fpsm):
     source = fpsm.settings.get("mesh")
     if not source or not Path(str(source)).is_file():
         return None
-    from implantplan.systems.oral_mesh import load_oral_mesh
+    from implantplan.systems.fpsm.oral_mesh import load_oral_mesh
 
     first = fpsm.settings.get("mesh_units", "mm")
     size = max(float(np.max(np.abs(fpsm.rho))), fpsm.z_range[1] - fpsm.z_range[0])
@@ -128,7 +128,7 @@ def plot_placement(fpsm: Fpsm, p: Placement, out_dir) -> list[Path]:
     implant = np.array([tool, tool - p.implant_length * p.X_CT[:3, 2]]) * mm
     hole = p.X_CH[:3, 3] * mm
     vf_lines = [ln * mm for ln in _vf_outline(p.vf)] if p.vf is not None else []
-    mesh = _mesh_in_center(fpsm)
+    mesh = mesh_in_center(fpsm)
 
     fig = plt.figure(figsize=(11, 10))
     views = (("XY", 0, 1), ("YZ", 1, 2), ("XZ", 0, 2))

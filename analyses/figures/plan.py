@@ -12,7 +12,7 @@ from implantplan.analyses.figures.robot import plot_placement as plot_robot
 from implantplan.analyses.figures.robot import write_layout_html
 from implantplan.analyses.figures.scene import write_site_scene
 from implantplan.analyses.figures.simulation import plot_feeding
-from implantplan.systems import moprp
+from implantplan.systems.robot import moprp
 
 
 def make_figures(case, fit, placements, robot, cap, sims, fig_dir: Path, *, html_scene: bool,

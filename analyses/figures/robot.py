@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from implantplan.analyses.figures import save
-from implantplan.systems import moprp
+from implantplan.systems.robot import moprp
 
 
 def plot_placement(sc: moprp.Scenario, out: dict, out_dir: Path, *, html: bool = True
@@ -75,8 +75,8 @@ def write_layout_html(sc: moprp.Scenario, xyz, branch: int, path: Path) -> Path:
     from pydrake.geometry import Meshcat, MeshcatParams
 
     from implantplan.diagrams.plant import build_plant
-    from implantplan.systems import kinematics as kin
     from implantplan.systems.files import write_text_atomic
+    from implantplan.systems.robot import kinematics as kin
 
     meshcat = Meshcat(MeshcatParams(port=0))
     X_WB = sc.X_WO @ moprp.base_pose(xyz)
@@ -106,7 +106,7 @@ def record_feed(diagram, plant, handles, q_path) -> None:
 def _plot_layout(sc, xyz, q, path, title) -> Path:
     import matplotlib.pyplot as plt
 
-    from implantplan.systems import arm_collision
+    from implantplan.systems.robot import arm_collision
 
     model = moprp.collision_model(sc)
     X_WB = sc.X_WO @ moprp.base_pose(xyz)

@@ -26,10 +26,10 @@ from pathlib import Path
 
 import numpy as np
 
-from implantplan.systems import kinematics as kin
-from implantplan.systems import moprp
 from implantplan.systems.files import write_text_atomic
 from implantplan.systems.frames import apply, frame_from_z, invert
+from implantplan.systems.robot import kinematics as kin
+from implantplan.systems.robot import moprp
 
 TISSUE = (0.90, 0.55, 0.55, 0.55)
 FPSM_BLUE = (0.15, 0.35, 0.85, 1.0)
@@ -76,7 +76,7 @@ def write_site_scene(path: Path, *, fit, placement, robot, site_index: int, feed
 
     Args:
         fit: the pipeline's FitResult (opened scan, FPSM with X_WC = Center in the mesh frame).
-        placement: the site's :class:`systems.placement.Placement`.
+        placement: the site's :class:`systems.placement.planner.Placement`.
         robot: the pipeline's RobotResult (scenario, base, branches, X_OT).
         site_index: the site's index in the plan.
     """
@@ -124,7 +124,7 @@ def draw_site(meshcat, *, opened, fpsm, X_WCenter, placement, prefix: str = "/ca
     Args:
         opened: the opened scan (mesh frame); fpsm: the FPSM (its X_WC = Center in the mesh
             frame); X_WCenter: Center in World; placement: anything with the placement's
-            X_CH, X_CT, line1, line2 and vf (systems.placement.Placement).
+            X_CH, X_CT, line1, line2 and vf (systems.placement.planner.Placement).
         slices: draw the FPSM slices (None: with the scan).
     """
     from pydrake.geometry import Capsule, Sphere

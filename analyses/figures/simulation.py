@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 
 from implantplan.diagrams.feeding import CIRCLE_LIMITS, circle_path, joint_error
-from implantplan.systems import kinematics as kin
-from implantplan.systems import moprp
 from implantplan.systems.frames import invert, transform
+from implantplan.systems.robot import kinematics as kin
+from implantplan.systems.robot import moprp
 
 
 def plot_layouts(result: dict, out_dir) -> list[Path]:

@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 from implantplan.analyses import studio as st
-from implantplan.systems.master_input import SLIDERS
+from implantplan.systems.teleop.master_input import SLIDERS
 from tests.analyses.browser import Browser, find_chromium
 from tests.analyses.test_studio_browser import SET_SLIDER, press
 

@@ -5,12 +5,12 @@ scan at every logged pose."""
 import numpy as np
 import pytest
 
-from implantplan.analyses import adversarial as A
+from implantplan.analyses.studies import adversarial as A
 from implantplan.diagrams.teleop import build_teleop
-from implantplan.systems.adversarial_operator import Directions, adversarial_motion
-from implantplan.systems.master_device import feeding_runs
-from implantplan.systems.safety_supervisor import Barrier
-from implantplan.systems.tool_clearance import ToolGeometry
+from implantplan.systems.placement.tool_clearance import ToolGeometry
+from implantplan.systems.teleop.adversarial_operator import Directions, adversarial_motion
+from implantplan.systems.teleop.master_device import feeding_runs
+from implantplan.systems.teleop.supervisor import Barrier
 
 MARGIN = Barrier().margin
 

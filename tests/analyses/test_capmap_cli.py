@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from implantplan.analyses.cli import main
-from implantplan.systems import capability_map as cm
+from implantplan.systems.capability import maps as cm
 from implantplan.systems.files import read_json
 from implantplan.systems.frames import rot_z, transform
 
@@ -31,7 +31,7 @@ def test_build_writes_a_loadable_map(map_path, capsys):
 
 
 def test_build_with_self_collision_and_actuator(tmp_path):
-    pytest.importorskip("implantplan.diagrams.tools")
+    pytest.importorskip("implantplan.diagrams.actuator_urdf")
     path = tmp_path / "a.h5"
     code = main(["capmap", "build", "--voxel-mm", "300", "--directions", "6", "--workers", "1",
                  "--tool", "actuator", "--rolls", "4", "--self-collision",

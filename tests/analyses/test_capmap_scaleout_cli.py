@@ -16,7 +16,7 @@ import psutil
 import pytest
 
 from implantplan.analyses.cli import main
-from implantplan.systems import capability_map as cm
+from implantplan.systems.capability import maps as cm
 
 # 21 blocks of <= 10k poses (tens of ms each): Ctrl-C lands with most of them left
 ARGS = ["capmap", "build", "--voxel-mm", "150", "--directions", "30", "--block-poses", "10000"]

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from implantplan.analyses.cli import main
-from implantplan.systems.fpsm import Fpsm
-from implantplan.systems.oral_mesh import DEFAULT_CAVITY, procedural_oral_cavity
+from implantplan.systems.fpsm.model import Fpsm
+from implantplan.systems.fpsm.oral_mesh import DEFAULT_CAVITY, procedural_oral_cavity
 
 
 @pytest.fixture(scope="module")

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from implantplan.analyses.head_study import path_distance
+from implantplan.analyses.studies.head_motion import path_distance
 
 
 def test_path_distance_is_the_distance_to_the_polyline():

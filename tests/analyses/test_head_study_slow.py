@@ -6,8 +6,8 @@ import os
 
 import pytest
 
-from implantplan.analyses.head_study import head_study, scan_cases
-from implantplan.systems.head_guard import GuardSettings
+from implantplan.analyses.studies.head_motion import head_study, scan_cases
+from implantplan.systems.teleop.head_guard import GuardSettings
 
 RUNS = int(os.environ.get("IMPLANTPLAN_HEAD_RUNS", "50"))
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from implantplan.analyses.cli import main
-from implantplan.systems.fpsm import Fpsm
-from implantplan.systems.virtual_fixture import VirtualFixture
+from implantplan.systems.fpsm.model import Fpsm
+from implantplan.systems.placement.fixture import VirtualFixture
 
 ORAL = "models/oral/oralCavityMesh.obj"
 
@@ -150,12 +150,12 @@ def test_real_oral_mesh_end_to_end(tmp_path):
     s = np.linspace(0, (fpsm.z_range[1] - start[2]) / u[2], 400)
     assert np.all(fpsm.d_safe(start + s[:, None] * u, radius=0.002) > -1e-4)
     # the plots find the fit's mesh and put it in Center, whatever units the settings claim
-    from implantplan.analyses.figures.placement import _mesh_in_center
+    from implantplan.analyses.figures.placement import mesh_in_center
 
-    v, _ = _mesh_in_center(fpsm)
+    v, _ = mesh_in_center(fpsm)
     d = fpsm.to_dict()
     d["settings"]["mesh_units"] = "m"  # wrong: the file is in mm
-    np.testing.assert_array_equal(_mesh_in_center(Fpsm.from_dict(d))[0], v)
+    np.testing.assert_array_equal(mesh_in_center(Fpsm.from_dict(d))[0], v)
     # the open cavity surrounds the slices: ~all slice-curve points are inside the mesh's box
     assert np.all(v.min(axis=0)[:2] < -0.02) and np.all(v.max(axis=0)[:2] > 0.02)
     paper_tool = ["--rod-radius-mm", "6", "--implant-length-mm", "31"]

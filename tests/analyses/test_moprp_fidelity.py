@@ -1,12 +1,13 @@
-"""The MOPRP fidelity study's pieces (analyses.moprp_fidelity)."""
+"""The MOPRP fidelity study's pieces (analyses.studies.moprp_fidelity)."""
 
 import numpy as np
 import pytest
 
-from implantplan.analyses import moprp_fidelity as mf
 from implantplan.analyses.cli import main
+from implantplan.analyses.studies import moprp_fidelity as mf
 from implantplan.diagrams import plant as scene
-from implantplan.systems import actuator, moprp
+from implantplan.systems import actuator
+from implantplan.systems.robot import moprp
 
 
 @pytest.fixture(scope="module")

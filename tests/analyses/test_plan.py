@@ -51,9 +51,9 @@ def test_demo_writes_a_complete_passing_plan(demo_plan):
 
 def test_feeding_targets_are_consistent_across_frames(demo_plan):
     """The End target from the plan's base pose and q reproduces the feeding target in World."""
-    from implantplan.diagrams import tools
-    from implantplan.systems import kinematics as kin
-    from implantplan.systems.moprp import R_OE
+    from implantplan.diagrams import actuator_urdf as tools
+    from implantplan.systems.robot import kinematics as kin
+    from implantplan.systems.robot.moprp import R_OE
 
     plan = json.loads((demo_plan / "plan.json").read_text())
     X_WB = np.array(plan["base"]["X_WBase"])
@@ -289,7 +289,7 @@ def test_rerun_into_the_same_folder_replaces_the_plan_without_simulation(tmp_pat
 
 
 def test_check_margins_and_limits():
-    from implantplan.analyses.plan import _check
+    from implantplan.analyses.checks import check as _check
 
     assert _check("a.alarms", "alarms", 0, 0, unit="runs", upper=True)["pass"]
     assert not _check("a.alarms", "alarms", 1, 0, unit="runs", upper=True)["pass"]

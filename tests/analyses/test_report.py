@@ -51,10 +51,10 @@ def test_a_cell_starting_with_a_bracket_is_not_trusted():
 
 
 def test_markup_cells_pass_through_and_plain_cells_do_not():
-    from implantplan.analyses.report import _cell
+    from implantplan.analyses.report import table_cell
 
-    assert _cell(Markup("<i>x</i>")) == "<i>x</i>"
-    assert _cell("<i>x</i>") == "&lt;i&gt;x&lt;/i&gt;"
-    assert _cell(3) == "3"
+    assert table_cell(Markup("<i>x</i>")) == "<i>x</i>"
+    assert table_cell("<i>x</i>") == "&lt;i&gt;x&lt;/i&gt;"
+    assert table_cell(3) == "3"
     page = render(plan(name="plain"), {})
     assert page.startswith("<!DOCTYPE html>") and "Implant plan: plain" in page

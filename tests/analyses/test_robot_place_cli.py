@@ -1,4 +1,4 @@
-"""``implantplan robot place`` (analyses.robot_place): outputs, exit codes, --plan."""
+"""``implantplan robot place`` (analyses.robot): outputs, exit codes, --plan."""
 
 import json
 
@@ -7,9 +7,9 @@ import pytest
 import yaml
 
 from implantplan.analyses.cli import main
-from implantplan.systems import moprp
 from implantplan.systems.files import read_json, read_yaml, write_json
-from implantplan.systems.nsga2 import domination_matrix
+from implantplan.systems.robot import moprp
+from implantplan.systems.robot.nsga2 import domination_matrix
 
 SMALL = ["--pop", "24", "--gen", "6", "--percentile-samples", "60", "--quiet"]
 
@@ -149,7 +149,7 @@ def test_drake_ik_path_matches_the_closed_form():
     closed-form branch, gives the same surviving branches and indices at a base."""
     import dataclasses
 
-    from implantplan.analyses.robot_place import drake_ik_solver
+    from implantplan.analyses.robot import drake_ik_solver
 
     sc = dataclasses.replace(moprp.load_scenario("lying"), feed_samples=2)
     xyz = np.array([[0.6, -0.3, 0.0]])
@@ -170,7 +170,7 @@ def test_drake_ik_on_the_scene_keeps_the_clearance():
     closed form's."""
     import dataclasses
 
-    from implantplan.analyses.robot_place import drake_ik_solver
+    from implantplan.analyses.robot import drake_ik_solver
     from implantplan.diagrams.arm_clearance import SceneGraphClearance
 
     sc = dataclasses.replace(moprp.load_scenario("lying"), feed_samples=2)
@@ -199,7 +199,7 @@ def test_bench_agreement_new_model_safe_old_capsules_not():
 def test_confirmation_drops_a_colliding_candidate_and_takes_the_next():
     """A front member whose reported configuration collides in SceneGraph is dropped, and the
     selection falls to the next-ranked member whose whole feed is clear."""
-    from implantplan.analyses.robot_place import confirm_front
+    from implantplan.analyses.robot import confirm_front
     from implantplan.diagrams import plant as scene
 
     sc = moprp.load_scenario("lying")

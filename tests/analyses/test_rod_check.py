@@ -1,12 +1,13 @@
 """The sound rod clearance against FCL on the real cavity and a transformed copy (issue 12
-acceptance, default-suite scale; the full 100,000-rod run is ``analyses.rod_check`` and the slow
+acceptance, default-suite scale; the full 100,000-rod run is ``analyses.studies.rod_check`` and the
+slow
 test below)."""
 
 import numpy as np
 import pytest
 
-from implantplan.analyses import rod_check
-from implantplan.systems.exact_clearance import ExactCavity
+from implantplan.analyses.studies import rod_check
+from implantplan.systems.placement.exact_clearance import ExactCavity
 
 MM = 1e-3
 

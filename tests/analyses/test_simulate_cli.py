@@ -6,7 +6,7 @@ import pytest
 
 from implantplan.analyses import simulate as S
 from implantplan.analyses.cli import main
-from implantplan.systems.fpsm import Fpsm
+from implantplan.systems.fpsm.model import Fpsm
 
 
 def read(path):

@@ -12,11 +12,11 @@ from implantplan.analyses import live_setup as ls
 from implantplan.analyses import studio as st
 from implantplan.analyses.cli import main
 from implantplan.diagrams.arm_clearance import SceneGraphClearance
-from implantplan.systems import moprp
 from implantplan.systems.files import read_json
-from implantplan.systems.master_device import load_csv
-from implantplan.systems.master_input import KeyboardMaster, LiveMasterDevice
-from implantplan.systems.safety_supervisor import Barrier
+from implantplan.systems.robot import moprp
+from implantplan.systems.teleop.master_device import load_csv
+from implantplan.systems.teleop.master_input import KeyboardMaster, LiveMasterDevice
+from implantplan.systems.teleop.supervisor import Barrier
 
 
 def _str(s: str) -> bytes:
@@ -304,14 +304,15 @@ def test_without_the_fixture_a_turn_passes_and_the_supervisor_still_filters(stud
 def test_turning_in_the_mouth_checked_against_the_exact_scan_clearance(studio):
     """False-safe check of the rotation commands: at both sites, with and without the fixture,
     feed in and then roll and tilt about every axis (20 deg/s, 1 s each); FCL between the whole
-    tool and the opened scan (analyses.scan_reference, as the adversarial study) at every logged
+    tool and the opened scan (analyses.studies.scan_reference, as the adversarial study) at every
+    logged
     pose never goes below the supervisor's margin, and no pose the barrier passed (h >= margin)
     is closer than the margin exactly."""
-    from implantplan.analyses.scan_reference import exact_for
+    from implantplan.analyses.studies.scan_reference import exact_for
     from implantplan.diagrams.teleop import X_ET
 
     sp = studio.sp
-    mesh = st._opened_scan(sp)
+    mesh = st.opened_scan(sp)
     margin = Barrier().margin
     for site in range(len(sp.names)):
         case = sp.teleop_case(site)
@@ -338,7 +339,7 @@ def test_turning_in_the_mouth_checked_against_the_exact_scan_clearance(studio):
 
 
 def test_slider_master_drives_teleop_and_switches_with_the_keyboard(studio):
-    from implantplan.systems.master_input import SLIDERS
+    from implantplan.systems.teleop.master_input import SLIDERS
 
     m = studio.meshcat
     click(m, st.MASTER)

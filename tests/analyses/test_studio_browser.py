@@ -17,7 +17,7 @@ import pytest
 
 from implantplan.analyses import studio as st
 from implantplan.analyses.cli import main
-from implantplan.systems.master_input import SLIDERS
+from implantplan.systems.teleop.master_input import SLIDERS
 from tests.analyses.browser import Browser, find_chromium
 
 CHROMIUM = find_chromium()

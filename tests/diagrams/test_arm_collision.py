@@ -8,8 +8,8 @@ from pydrake.geometry import Box, Capsule, Cylinder, Role, Sphere
 
 from implantplan.diagrams import arm_clearance as acl
 from implantplan.diagrams.plant import build_plant
-from implantplan.systems import arm_collision as ac
-from implantplan.systems import moprp
+from implantplan.systems.robot import arm_collision as ac
+from implantplan.systems.robot import moprp
 
 
 def _dims(shape) -> tuple[str, tuple]:

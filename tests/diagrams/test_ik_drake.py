@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 from implantplan import models
-from implantplan.diagrams import tools
+from implantplan.diagrams import actuator_urdf as tools
 from implantplan.diagrams.ik_drake import DrakeIk, ik_drake
 from implantplan.diagrams.plant import build_plant
-from implantplan.systems import kinematics
 from implantplan.systems.errors import InputError
 from implantplan.systems.frames import transform
-from implantplan.systems.moprp import R_OE
+from implantplan.systems.robot import kinematics
+from implantplan.systems.robot.moprp import R_OE
 
 LIM175 = np.deg2rad(175.0)
 

@@ -14,12 +14,12 @@ from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import MultibodyPlant
 
 from implantplan import models
+from implantplan.diagrams import actuator_urdf as tools
 from implantplan.diagrams import plant as scene
-from implantplan.diagrams import tools
 from implantplan.diagrams.plant import build_plant
-from implantplan.systems import kinematics, moprp
 from implantplan.systems.errors import InputError
 from implantplan.systems.frames import rpy_to_rotation
+from implantplan.systems.robot import kinematics, moprp
 
 AUBO = models.model_path("aubo_i10/aubo_i10.urdf")
 AUBO_360 = models.model_path("aubo_i10/aubo_i10_360.urdf")

@@ -15,10 +15,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from implantplan.diagrams import tools
+from implantplan.diagrams import actuator_urdf as tools
 from implantplan.diagrams.plant import build_plant, fk_jacobian_loop
-from implantplan.systems import kinematics
 from implantplan.systems.frames import rpy_to_rotation
+from implantplan.systems.robot import kinematics
 
 N = 10_000
 

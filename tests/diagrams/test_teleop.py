@@ -5,7 +5,7 @@ import pytest
 
 from implantplan.diagrams import feeding as S
 from implantplan.diagrams.teleop import X_ET, ToolPose, build_teleop, simulate
-from implantplan.systems.master_device import MasterMotion, feeding_runs
+from implantplan.systems.teleop.master_device import MasterMotion, feeding_runs
 
 
 @pytest.fixture(scope="module")
@@ -17,7 +17,7 @@ def case():
 
 def test_tool_pose_matches_the_kinematics_core(case):
     """ToolPose (Drake's plant: URDF base weld + actuator tcp frame) against the numpy FK with
-    diagrams.tools.X_FT and the layout's base pose."""
+    diagrams.actuator_urdf.X_FT and the layout's base pose."""
     motion = MasterMotion(dt=0.01, p_M=np.zeros((2, 3)))
     teleop = build_teleop(case, motion)
     system = ToolPose(teleop.plant, teleop.plant.GetFrameByName("tcp"))
@@ -71,7 +71,7 @@ def test_one_diagram_serves_every_run_of_a_case(case):
         assert np.array_equal(a.min_d_safe, b.min_d_safe)
     assert not np.array_equal(on_shared[0].q, on_shared[1].q)  # the runs really differ
     # the default context keeps the built motion; a run's context holds its own
-    assert shared.master.motion.duration == 1.0  # systems.master_device.STILL
+    assert shared.master.motion.duration == 1.0  # systems.teleop.master_device.STILL
     context = shared.diagram.CreateDefaultContext()
     shared.master.set_motion(context, m0)
     assert shared.master.motion_in(context) is m0

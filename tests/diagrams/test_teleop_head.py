@@ -7,15 +7,15 @@ import numpy as np
 import pytest
 from pydrake.systems.analysis import Simulator
 
-from implantplan.analyses.head_study import cylinder_cavity, measure
+from implantplan.analyses.studies.head_motion import cylinder_cavity, measure
 from implantplan.diagrams import feeding as S
 from implantplan.diagrams.teleop import X_ET, build_teleop, simulate
 from implantplan.systems.errors import InputError
-from implantplan.systems.head_guard import GuardSettings, guard_step, head_speed
-from implantplan.systems.head_motion import HeadMotion
-from implantplan.systems.master_device import feeding_runs
-from implantplan.systems.safety_supervisor import SafetySupervisor
-from implantplan.systems.tracker import TrackerParams
+from implantplan.systems.teleop.head_guard import GuardSettings, guard_step, head_speed
+from implantplan.systems.teleop.head_motion import HeadMotion
+from implantplan.systems.teleop.master_device import feeding_runs
+from implantplan.systems.teleop.supervisor import SafetySupervisor
+from implantplan.systems.teleop.tracker import TrackerParams
 
 
 @pytest.fixture(scope="module")

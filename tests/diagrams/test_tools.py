@@ -1,4 +1,5 @@
-"""The implanting actuator: one definition (systems.actuator) behind diagrams.tools' URDF and
+"""The implanting actuator: one definition (systems.actuator) behind diagrams.actuator_urdf' URDF
+and
 every other user; hand-derived frames and inertia."""
 
 import re
@@ -6,15 +7,15 @@ import re
 import numpy as np
 import pytest
 
-from implantplan.diagrams import tools
+from implantplan.diagrams import actuator_urdf as tools
 from implantplan.systems import actuator
 from implantplan.systems.errors import InputError
 
 
 def test_one_definition_of_the_actuator_everywhere():
     from implantplan.diagrams.teleop import TeleopCase
-    from implantplan.systems.fpsm_estimator import ToolLines
-    from implantplan.systems.moprp import Actuator
+    from implantplan.systems.robot.moprp import Actuator
+    from implantplan.systems.teleop.fpsm_estimator import ToolLines
 
     assert tools.X_FT is actuator.X_FT and tools.p_FTip is actuator.p_FTip
     assert (tools.ROD_RADIUS, tools.IMPLANT_LENGTH) == (0.006, 0.031)  # seed 000 Sec. 5.2
@@ -29,7 +30,7 @@ def test_one_definition_of_the_actuator_everywhere():
     np.testing.assert_array_equal(ToolLines.contra_angle().start_T, [[0.006, 0, 0],
                                                                      [0.006, 0, -0.031]])
     # the arm's fast collision model reads the actuator's shapes from the URDF tools writes
-    # (systems.arm_collision; checked shape by shape against SceneGraph in its own tests)
+    # (systems.robot.arm_collision; checked shape by shape against SceneGraph in its own tests)
 
 
 def test_frames_hand_derived():

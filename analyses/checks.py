@@ -1,0 +1,126 @@
+"""The plan's checks: one id, one bound and one pass/fail rule per requirement, shared by
+``plan`` (every check of a plan), ``studio`` (the layout's checks again when a layout is kept)
+and ``batch`` (which reads them from each plan).
+
+A check is a dict: ``id`` (stable, what the README's check table names), ``name``, ``site``
+(None for the case), ``value``, ``limit``, ``bound`` ("max": passes when value <= limit; "min":
+passes when value > limit, strictly, since a clearance of exactly 0 is contact), ``unit``,
+``margin`` (>= 0 on the passing side) and ``pass``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from implantplan.systems.frames import wrap_angle
+
+MAX_PENETRATION_DEPTH = 0.5e-3  # m, dense check of the FPSM fit
+GRID_TOL_D = 0.1e-3  # m, PSO vs exhaustive grid
+GRID_TOL_THETA = np.deg2rad(0.1)
+MIN_CAPABILITY = 0.5  # mean reachability index around a feeding target
+MAX_VF_VIOLATION = 1e-3  # m
+
+# The checks that depend on the robot's base: recomputed when the studio keeps another layout.
+LAYOUT_CHECK_IDS = ("robot.arm_clearance_scene_graph", "robot.ik_branches",
+                    "capability.neighbourhood_index")
+
+
+def check(check_id: str, name: str, value: float, limit: float, *, unit: str, upper: bool,
+          site=None) -> dict:
+    """A check and its margin: a maximum (``upper``) passes when value <= limit (so "0 alarms
+    <= 0" passes), a minimum when value > limit."""
+    margin = (limit - value) if upper else (value - limit)
+    passed = margin >= 0 if upper else margin > 0
+    return {"id": check_id, "name": name, "site": site, "value": float(value),
+            "limit": float(limit), "bound": "max" if upper else "min", "unit": unit,
+            "margin": float(margin), "pass": bool(passed)}
+
+
+def passed(checks: list[dict]) -> bool:
+    """The plan's verdict: every check passes."""
+    return all(c["pass"] for c in checks)
+
+
+def scene_graph_fields(feed_clearance: list[dict], k: int) -> dict:
+    """SceneGraph clearances of site k's reported configurations (empty before confirmation)."""
+    if k >= len(feed_clearance):
+        return {}
+    f = feed_clearance[k]
+    return {"scene_graph_clearance_m": f["distance_target"],
+            "scene_graph_clearance_pre_m": f["distance_pre"],
+            "feed_clearance": {"distance_m": f["distance"], "pair": f["pair"],
+                               "samples": f["samples"], "limit_m": f["limit"]}}
+
+
+def fpsm_checks(diagnostics: dict) -> list[dict]:
+    """The FPSM fit's dense check: no mesh point deeper than the bound outside the model."""
+    return [check("fpsm.penetration_depth", "fpsm dense-check penetration depth",
+                  diagnostics["dense_max_depth_m"], MAX_PENETRATION_DEPTH, unit="m", upper=True)]
+
+
+def placement_checks(site: str, placement, *, distance_to_tissue: float, tolerance: float,
+                     clearance_margin: float) -> list[dict]:
+    """A site on the tissue, and its instrument placement: both lines' clearances, the whole
+    tool's certified (FPSM) and exact (FCL) clearances over the feed and the fixture's region,
+    and PSO against the exhaustive grid where the grid ran."""
+    out = [check("site.on_tissue", "site on the scanned tissue", distance_to_tissue, tolerance,
+                 unit="m", upper=True, site=site),
+           check("placement.line1_clearance", "line1 (rod) clearance", placement.d_safe_min_line1,
+                 clearance_margin, unit="m", upper=False, site=site),
+           check("placement.line2_clearance", "line2 (implant path) clearance",
+                 placement.d_safe_min_line2, clearance_margin, unit="m", upper=False, site=site)]
+    ver = placement.verification
+    if ver:
+        out.append(check("placement.tool_clearance_certified", "tool clearance over the feed and "
+                         "the fixture's region (certified, FPSM)", ver["clearance_certified"],
+                         ver["clearance_margin"], unit="m", upper=False, site=site))
+        if ver.get("clearance_exact_min") is not None:
+            out.append(check("placement.tool_clearance_exact", "tool clearance over the feed and "
+                             "the fixture's region (exact, FCL against the scan)",
+                             ver["clearance_exact_min"], ver["clearance_margin"], unit="m",
+                             upper=False, site=site))
+    grid = placement.to_dict().get("grid_check") or {}
+    if "x" in grid:
+        out.append(check("placement.grid_d_T", "PSO vs grid optimum, d_T",
+                         abs(placement.d_T - float(grid["x"][0])), GRID_TOL_D, unit="m",
+                         upper=True, site=site))
+        out.append(check("placement.grid_theta_T", "PSO vs grid optimum, theta_T",
+                         abs(wrap_angle(placement.theta_T - float(grid["x"][1]))),
+                         GRID_TOL_THETA, unit="rad", upper=True, site=site))
+    return out
+
+
+def layout_checks(site: str, feed: dict | None, *, ik_branches: int,
+                  neighbourhood_index: float) -> list[dict]:
+    """The base layout at a site (:data:`LAYOUT_CHECK_IDS`): the arm's SceneGraph clearance
+    along the feed (once confirmed, ``feed``), IK branches at the target and the capability
+    index around it."""
+    out = []
+    if feed is not None:
+        out.append(check("robot.arm_clearance_scene_graph",
+                         "arm clearance along the feed (SceneGraph)", feed["distance"],
+                         feed["limit"], unit="m", upper=False, site=site)
+                   | {"pair": " / ".join(feed["pair"])})
+    out.append(check("robot.ik_branches", "IK branches at the feeding target", ik_branches, 0,
+                     unit="branches", upper=False, site=site))
+    out.append(check("capability.neighbourhood_index", "capability index around the target",
+                     neighbourhood_index, MIN_CAPABILITY, unit="1", upper=False, site=site))
+    return out
+
+
+def feeding_checks(site: str, runs: list[dict]) -> list[dict]:
+    """The simulated feeds at a site: every feed reaches the target, inside the fixture, with
+    the rod clear and no FPSM alarm (none when no feed ran)."""
+    if not runs:
+        return []
+    return [
+        check("feeding.missed_target", "feeds missing the target",
+              sum(not r["reached_target"] for r in runs), 0, unit="runs", upper=True, site=site),
+        check("feeding.vf_violation", "max VF violation",
+              max(r["max_vf_violation"] for r in runs), MAX_VF_VIOLATION, unit="m", upper=True,
+              site=site),
+        check("feeding.rod_d_safe", "min d_safe of the rod during feeds",
+              min(r["min_d_safe"] for r in runs), 0.0, unit="m", upper=False, site=site),
+        check("feeding.collision_alarms", "FPSM collision alarms",
+              sum(r["collision_alarm"] for r in runs), 0, unit="runs", upper=True, site=site),
+    ]

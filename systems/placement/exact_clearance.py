@@ -1,0 +1,236 @@
+"""Exact tool clearance against the scan mesh with FCL (python-fcl): the ground truth.
+
+The fast safety model (:mod:`systems.placement.tool_clearance`) certifies clearance against the
+FPSM;
+this module answers the same questions against the triangle mesh itself, with FCL's BVH
+(OBB-RSS) capsule-vs-mesh collision and distance queries (measured here: about 3 us per collide
+and 10-20 us per distance query near the walls). The tests use it as ground truth and the plan's
+final checks verify the planned tool with it.
+
+**The mesh as the FPSM sees it.** The scan is taken into the Center frame, its open cuts closed
+as the FPSM fit closes them (:func:`systems.fpsm.oral_mesh.close_open_cuts`), and cut at the mouth
+opening (the top slice plane z = z_top): above it the lips and cheeks are held back by a
+retractor, so nothing there is an obstacle (DESIGN.md section 4; the FPSM leaves it free too).
+
+**Signed clearance of a capsule** (axis p0-p1, radius r) whose start p0 lies in the cavity:
+with d the exact distance from the axis segment to the mesh, the clearance is d - r when the
+axis does not touch the mesh; when it does, the capsule is at least r deep and the value is -r
+(a penetration of at least r; the acceptance counts only the sign and small depths). Whether p0
+is in the cavity or in tissue is decided exactly too: the horizontal segment from the Center
+axis (0, 0, z_p0) to p0 lies inside the FPSM slice (every slice is star-shaped about the axis),
+which lies inside the cavity, so p0 is in tissue exactly when that segment crosses the mesh
+(then the value is -r as well).
+"""
+
+from __future__ import annotations
+
+import fcl
+import numpy as np
+import trimesh
+
+from implantplan.systems.errors import InputError
+from implantplan.systems.frames import invert, rotations
+
+
+def _rotation_to(u: np.ndarray) -> np.ndarray:
+    """A rotation whose z column is the unit vector ``u``."""
+    a = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = a - np.dot(a, u) * u
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(u, x), u])
+
+
+class ExactCavity:
+    """The cavity mesh (Center frame) as an FCL BVH, with capsule queries batched over tools.
+
+    Args:
+        mesh_Center: the cavity surface in the Center frame (m).
+        z_top: cut the mesh at this height (the mouth opening), keeping z <= z_top; None = as
+            given.
+    """
+
+    def __init__(self, mesh_Center: trimesh.Trimesh, *, z_top: float | None = None):
+        mesh = mesh_Center
+        if z_top is not None:
+            mesh = trimesh.intersections.slice_mesh_plane(
+                mesh, plane_normal=[0, 0, -1.0], plane_origin=[0, 0, float(z_top)]
+            )
+        if len(mesh.faces) == 0:
+            raise InputError("mesh", "no triangles left in the cavity below the mouth opening")
+        self.mesh = mesh
+        self.z_top = z_top
+        V = np.ascontiguousarray(mesh.vertices, dtype=float)
+        F = np.ascontiguousarray(mesh.faces, dtype=np.int32)
+        bvh = fcl.BVHModel()
+        bvh.beginModel(len(V), len(F))
+        bvh.addSubModel(V, F)
+        bvh.endModel()
+        self._mesh_obj = fcl.CollisionObject(bvh, fcl.Transform())
+        self._creq = fcl.CollisionRequest()
+        self._dreq = fcl.DistanceRequest()
+
+    @classmethod
+    def from_scan(cls, mesh_W: trimesh.Trimesh, fpsm, *, close_open_cuts: bool = True):
+        """The reference for an FPSM fitted to ``mesh_W`` (mesh frame): into Center, open cuts
+        closed as the fit closes them, cut at the model's top slice."""
+        from implantplan.systems.fpsm.oral_mesh import close_open_cuts as _close
+
+        mesh = mesh_W
+        if close_open_cuts:
+            mesh, _ = _close(mesh)
+        mesh = mesh.copy()
+        mesh.apply_transform(invert(np.asarray(fpsm.X_WC, dtype=float)))
+        return cls(mesh, z_top=fpsm.z_range[1])
+
+    # -- single queries -----------------------------------------------------------------------
+
+    def _segment_object(self, p0: np.ndarray, p1: np.ndarray, radius: float):
+        d = p1 - p0
+        length = float(np.linalg.norm(d))
+        if length < 1e-12:
+            return fcl.CollisionObject(fcl.Sphere(radius), fcl.Transform(np.eye(3), p0))
+        R = _rotation_to(d / length)
+        return fcl.CollisionObject(fcl.Capsule(radius, length), fcl.Transform(R, 0.5 * (p0 + p1)))
+
+    def _collides(self, obj) -> bool:
+        return fcl.collide(obj, self._mesh_obj, self._creq, fcl.CollisionResult()) > 0
+
+    def _distance(self, obj) -> float:
+        return float(fcl.distance(obj, self._mesh_obj, self._dreq, fcl.DistanceResult()))
+
+    # -- batched queries ----------------------------------------------------------------------
+
+    @staticmethod
+    def _batch(p0, p1, radius):
+        A = np.atleast_2d(np.asarray(p0, dtype=float))
+        B = np.atleast_2d(np.asarray(p1, dtype=float))
+        A, B = np.broadcast_arrays(A, B)
+        if A.shape[-1] != 3 or not (np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
+            raise InputError("p0", "expected finite (n, 3) points (m)")
+        r = np.broadcast_to(np.asarray(radius, dtype=float), (A.shape[0],))
+        if not np.all(np.isfinite(r)) or np.any(r < 0):
+            raise InputError("radius", "expected radii >= 0 m")
+        return A, B, r
+
+    def capsule_collides(self, p0, p1, radius) -> np.ndarray:
+        """(n,) True where the capsule (axis p0-p1, radius) touches the mesh (FCL collide)."""
+        A, B, r = self._batch(p0, p1, radius)
+        return np.array(
+            [self._collides(self._segment_object(A[k], B[k], r[k])) for k in range(len(A))],
+            dtype=bool,
+        )
+
+    def start_in_tissue(self, p0) -> np.ndarray:
+        """(n,) True where p0 is in tissue: the horizontal segment from the Center axis at its
+        height to p0 crosses the mesh (module notes; p0 inside the FPSM's slice range)."""
+        A = np.atleast_2d(np.asarray(p0, dtype=float))
+        out = np.zeros(len(A), dtype=bool)
+        for k, p in enumerate(A):
+            a = np.array([0.0, 0.0, p[2]])
+            if np.hypot(p[0], p[1]) > 1e-9:
+                out[k] = self._collides(self._segment_object(a, p, 0.0))
+        return out
+
+    def capsule_clearance(self, p0, p1, radius, *, check_start: bool = True) -> np.ndarray:
+        """(n,) exact signed clearance (m) of capsules starting in the cavity (module notes):
+        d - r with d the axis's distance to the mesh; -r when the axis touches the mesh or p0
+        is in tissue. ``check_start=False`` skips the start's test (a mesh that is not the
+        Center-axis star-shaped cavity, e.g. the opened scan of the teleop studies)."""
+        A, B, r = self._batch(p0, p1, radius)
+        tissue = self.start_in_tissue(A) if check_start else np.zeros(len(A), dtype=bool)
+        out = np.empty(len(A))
+        for k in range(len(A)):
+            if tissue[k]:
+                out[k] = -r[k]
+                continue
+            axis = self._segment_object(A[k], B[k], 0.0)
+            if self._collides(axis):
+                out[k] = -r[k]
+            else:
+                out[k] = self._distance(axis) - r[k]
+        return out
+
+    def tool_clearance(self, X_CTool, tool) -> np.ndarray:
+        """(n,) exact clearance (m) of the whole tool (rod, head, implant capsules of
+        :class:`systems.placement.tool_clearance.ToolGeometry`) at poses (n, 4, 4) of T in
+        Center."""
+        from implantplan.systems.placement.tool_clearance import rigid_poses, tool_capsules
+
+        X = rigid_poses(X_CTool)
+        A, B, r = tool_capsules(X, tool)
+        n, C = A.shape[:2]
+        c = self.capsule_clearance(A.reshape(-1, 3), B.reshape(-1, 3), np.tile(r, n))
+        return c.reshape(n, C).min(axis=1)
+
+    def tool_collides(self, X_CTool, tool) -> np.ndarray:
+        """(n,) True where any capsule of the tool touches the mesh (FCL collide)."""
+        from implantplan.systems.placement.tool_clearance import rigid_poses, tool_capsules
+
+        X = rigid_poses(X_CTool)
+        A, B, r = tool_capsules(X, tool)
+        n, C = A.shape[:2]
+        hit = self.capsule_collides(A.reshape(-1, 3), B.reshape(-1, 3), np.tile(r, n))
+        return hit.reshape(n, C).any(axis=1)
+
+
+def registration_monte_carlo(
+    exact: ExactCavity,
+    X_CT,
+    tool,
+    *,
+    depth: float,
+    sigma_translation: float = 0.0005,
+    sigma_rotation: float = np.radians(0.5),
+    samples: int = 1000,
+    seed: int = 0,
+    depth_step: float = 0.004,
+) -> dict:
+    """The planned feed under registration error of the Center frame (issue 12, item 6).
+
+    Each sample draws an error E of Center's pose (translation ~ N(0, sigma_translation^2) per
+    axis, rotation vector ~ N(0, sigma_rotation^2) per axis, about Center's origin): the robot
+    executes the plan in the registered frame, so relative to the true anatomy the tool is at
+    E^-1 X(s) for every depth s of the feed (the planned pose backed out along the rod axis,
+    0..``depth`` every ``depth_step``). The exact (FCL) clearance of the whole tool at those
+    poses, minimized over the feed, is the sample's value. Vectorized over samples and depths;
+    same seed, same result.
+
+    Returns:
+        dict: ``probability_clear`` (share of samples whose clearance stays > 0 along the whole
+        feed), ``clearance_p01`` (1st percentile, m), ``clearance_median``, ``clearance_min``,
+        the settings (SI units).
+    """
+
+    samples = int(samples)
+    if samples < 1:
+        raise InputError("samples", f"expected at least 1 sample, got {samples}")
+    for name, value in (("sigma_translation", sigma_translation),
+                        ("sigma_rotation", sigma_rotation)):
+        if not np.isfinite(value) or value < 0:
+            raise InputError(name, f"expected a standard deviation >= 0, got {value!r}")
+    rng = np.random.default_rng(seed)
+    t = rng.normal(0.0, sigma_translation, (samples, 3))
+    R = rotations(rng.normal(0.0, sigma_rotation, (samples, 3)))
+    E_inv = np.zeros((samples, 4, 4))
+    E_inv[:, :3, :3] = np.transpose(R, (0, 2, 1))
+    E_inv[:, :3, 3] = -np.einsum("nji,nj->ni", R, t)
+    E_inv[:, 3, 3] = 1.0
+    from implantplan.systems.placement.tool_clearance import feed_poses
+
+    P, _ = feed_poses(X_CT, depth, depth_step)  # (1, S, 4, 4)
+    poses = E_inv[:, None] @ P[0][None]  # (samples, S, 4, 4)
+    c = exact.tool_clearance(poses.reshape(-1, 4, 4), tool).reshape(samples, -1).min(axis=1)
+    return {
+        "samples": samples,
+        "seed": int(seed),
+        "sigma_translation": float(sigma_translation),
+        "sigma_rotation": float(sigma_rotation),
+        "depth": float(depth),
+        "depth_step": float(depth_step),
+        "probability_clear": float(np.mean(c > 0)),
+        "clearance_p01": float(np.percentile(c, 1)),
+        "clearance_median": float(np.median(c)),
+        "clearance_min": float(c.min()),
+        "units": "m, rad",
+        "reference": "exact (FCL) clearance of the whole tool to the scan, min over the feed",
+    }

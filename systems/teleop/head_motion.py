@@ -1,0 +1,235 @@
+"""The awake patient's head motion (DESIGN.md section 7, seed 001): seeded profiles or a CSV.
+
+The motion is a rigid displacement D(t) of the head in World, D(0) = identity: a rotation by the
+rotation vector w(t) about the pivot p (a World point, by default the Center origin) followed by
+a translation u(t),
+
+    D(t) x = R(w(t)) (x - p) + p + u(t),
+
+so the head frame (the case's Center frame, fixed in the head) is X_WHead(t) = D(t) X_WHead(0).
+Profiles (all amplitudes and times drawn from ``seed``):
+
+- ``breathing``: u = A (1 - cos 2 pi f t) / 2 along a mostly vertical unit vector, f in
+  [0.2, 0.3] Hz, peak-to-peak A in [1, 2] mm;
+- ``swallow``: one bump A sin^2(pi (t - t0) / 1 s) (rises A in [3, 5] mm within 0.5 s, returns
+  within the next 0.5 s), t0 in [1, 3] s;
+- ``startle``: a minimum-jerk step of A in [5, 10] mm and a rotation of [2, 4] deg within 0.2 s
+  at t0 in [1, 3] s; the head then stays where it went;
+- ``drift``: a constant velocity of [2, 5] mm/min and [0.5, 1] deg/min;
+- a CSV file (``t_s,x_m,y_m,z_m,rx_rad,ry_rad,rz_rad``: the displacement against time, rotation
+  vector about the pivot), linearly interpolated and held outside its time range.
+
+The core (:class:`HeadMotion`) is vectorized over times; velocities are central differences of
+the closed forms (1e-5 s). :class:`HeadMotionSource` is the LeafSystem over it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.systems.framework import BasicVector, LeafSystem
+
+from implantplan.systems.errors import InputError
+from implantplan.systems.frames import rotations
+
+PROFILES = ("still", "breathing", "swallow", "startle", "drift")
+CSV_HEADER = "t_s,x_m,y_m,z_m,rx_rad,ry_rad,rz_rad"
+STARTLE_SECONDS = 0.2
+SWALLOW_SECONDS = 1.0  # the whole bump: up within 0.5 s, back within the next 0.5 s
+_FD = 1e-5  # s: central-difference step of the velocities
+
+
+def _min_jerk(tau):
+    tau = np.clip(tau, 0.0, 1.0)
+    return tau**3 * (10.0 - 15.0 * tau + 6.0 * tau**2)
+
+
+def _direction(rng, vertical: float) -> np.ndarray:
+    """A random unit vector with at least ``vertical`` of it along World z."""
+    v = rng.normal(size=3)
+    v[2] = 0.0
+    v /= max(np.linalg.norm(v), 1e-12)
+    z = rng.uniform(vertical, 1.0)
+    return np.array([*(np.sqrt(1.0 - z * z) * v[:2]), z * rng.choice([-1.0, 1.0])])
+
+
+@dataclass
+class HeadMotion:
+    """A seeded head-motion profile (or a CSV recording) as a displacement of the head in World.
+
+    Attributes:
+        profile: one of ``PROFILES`` or ``"csv"``.
+        seed: the seed of its random parameters.
+        pivot: (3,) World point the rotation is about (m).
+        params: the drawn parameters (SI), for reports.
+        samples: (n, 7) [t, u (3), w (3)] of a CSV recording, else None.
+    """
+
+    profile: str
+    seed: int = 0
+    pivot: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    params: dict = field(default_factory=dict)
+    samples: np.ndarray | None = None
+
+    @classmethod
+    def make(cls, profile: str, *, seed: int = 0, pivot=None, start: float = 1.0,
+             window: float = 2.0) -> HeadMotion:
+        """Draw a profile's parameters from ``seed``; ``start``/``window``: the swallow's or the
+        startle's onset is uniform in [start, start + window] s."""
+        pivot = np.zeros(3) if pivot is None else np.asarray(pivot, dtype=float).reshape(3)
+        if profile not in PROFILES:
+            path = Path(profile)
+            if path.suffix.lower() == ".csv" or path.is_file():
+                return cls.from_csv(path, pivot=pivot)
+            raise InputError(
+                "--head-motion", f"expected one of {', '.join(PROFILES[1:])} or a CSV file, "
+                f"got {profile!r}")
+        rng = np.random.default_rng(seed)
+        p: dict = {}
+        if profile == "breathing":
+            p = {"frequency_hz": rng.uniform(0.2, 0.3), "amplitude_m": rng.uniform(0.001, 0.002),
+                 "direction": _direction(rng, 0.8)}
+        elif profile == "swallow":
+            p = {"onset_s": rng.uniform(start, start + window),
+                 "amplitude_m": rng.uniform(0.003, 0.005), "direction": _direction(rng, 0.8)}
+        elif profile == "startle":
+            axis = rng.normal(size=3)
+            p = {"onset_s": rng.uniform(start, start + window),
+                 "amplitude_m": rng.uniform(0.005, 0.010), "direction": _direction(rng, 0.0),
+                 "angle_rad": np.deg2rad(rng.uniform(2.0, 4.0)),
+                 "axis": axis / np.linalg.norm(axis)}
+        elif profile == "drift":
+            axis = rng.normal(size=3)
+            p = {"speed_m_s": rng.uniform(0.002, 0.005) / 60.0, "direction": _direction(rng, 0.0),
+                 "rate_rad_s": np.deg2rad(rng.uniform(0.5, 1.0)) / 60.0,
+                 "axis": axis / np.linalg.norm(axis)}
+        return cls(profile=profile, seed=int(seed), pivot=pivot, params=p)
+
+    @classmethod
+    def from_csv(cls, path, *, pivot=None) -> HeadMotion:
+        """A recorded displacement (``CSV_HEADER`` columns, SI, times increasing)."""
+        path = Path(path)
+        if not path.is_file():
+            raise InputError("--head-motion", f"expected a profile name or a CSV file, no file "
+                             f"{str(path)!r}")
+        try:
+            data = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+        except ValueError as err:
+            raise InputError("--head-motion", f"{path}: expected numeric rows ({err})") from None
+        if data.shape[1] != 7 or data.shape[0] < 2:
+            raise InputError("--head-motion", f"{path}: expected >= 2 rows of 7 columns "
+                             f"({CSV_HEADER}), got shape {data.shape}")
+        if not np.all(np.isfinite(data)) or np.any(np.diff(data[:, 0]) <= 0):
+            raise InputError("--head-motion", f"{path}: expected finite values and increasing t")
+        pivot = np.zeros(3) if pivot is None else np.asarray(pivot, dtype=float).reshape(3)
+        return cls(profile="csv", pivot=pivot, params={"file": str(path)}, samples=data)
+
+    def save_csv(self, path, t) -> Path:
+        """Write this motion sampled at times ``t`` as a CSV recording (atomic)."""
+        from implantplan.systems.files import write_text_atomic
+
+        u, w = self.displacement(t)
+        rows = np.column_stack([np.asarray(t, dtype=float), u, w])
+        lines = [CSV_HEADER] + [",".join(f"{x:.9g}" for x in r) for r in rows]
+        return write_text_atomic(Path(path), "\n".join(lines) + "\n")
+
+    # -- the core ---------------------------------------------------------------------------
+
+    def displacement(self, t) -> tuple[np.ndarray, np.ndarray]:
+        """(u (n, 3) translation in m, w (n, 3) rotation vector in rad) at times ``t`` (n,)."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        n = t.shape[0]
+        u, w = np.zeros((n, 3)), np.zeros((n, 3))
+        p = self.params
+        if self.profile == "breathing":
+            s = 0.5 * p["amplitude_m"] * (1.0 - np.cos(2.0 * np.pi * p["frequency_hz"] * t))
+            u = s[:, None] * p["direction"]
+        elif self.profile == "swallow":
+            tau = np.clip((t - p["onset_s"]) / SWALLOW_SECONDS, 0.0, 1.0)
+            u = (p["amplitude_m"] * np.sin(np.pi * tau) ** 2)[:, None] * p["direction"]
+        elif self.profile == "startle":
+            s = _min_jerk((t - p["onset_s"]) / STARTLE_SECONDS)
+            u = (p["amplitude_m"] * s)[:, None] * p["direction"]
+            w = (p["angle_rad"] * s)[:, None] * p["axis"]
+        elif self.profile == "drift":
+            tt = np.maximum(t, 0.0)
+            u = (p["speed_m_s"] * tt)[:, None] * p["direction"]
+            w = (p["rate_rad_s"] * tt)[:, None] * p["axis"]
+        elif self.profile == "csv":
+            d = self.samples
+            u = np.column_stack([np.interp(t, d[:, 0], d[:, 1 + i]) for i in range(3)])
+            w = np.column_stack([np.interp(t, d[:, 0], d[:, 4 + i]) for i in range(3)])
+            u, w = u - d[0, 1:4], w - d[0, 4:7]  # D(0) = identity: relative to the first row
+        return u, w
+
+    def D(self, t) -> np.ndarray:
+        """(n, 4, 4) the head's displacement in World at times ``t``."""
+        u, w = self.displacement(t)
+        R = rotations(np.atleast_2d(w))
+        X = np.repeat(np.eye(4)[None], R.shape[0], axis=0)
+        X[:, :3, :3] = R
+        X[:, :3, 3] = self.pivot - R @ self.pivot + u
+        return X
+
+    def velocity(self, t, point=None) -> np.ndarray:
+        """(n, 6) [angular velocity; velocity of ``point`` (World, default the pivot)] of the
+        head at times ``t``, by central differences of the closed forms."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        Xa, Xb = self.D(t + _FD), self.D(t - _FD)
+        q = self.pivot if point is None else np.asarray(point, dtype=float).reshape(3)
+        v = (Xa[:, :3, :3] @ q + Xa[:, :3, 3] - Xb[:, :3, :3] @ q - Xb[:, :3, 3]) / (2 * _FD)
+        dR = (Xa[:, :3, :3] - Xb[:, :3, :3]) / (2 * _FD)
+        Om = dR @ np.swapaxes(self.D(t)[:, :3, :3], 1, 2)
+        omega = np.stack([Om[:, 2, 1], Om[:, 0, 2], Om[:, 1, 0]], axis=1)
+        return np.concatenate([omega, v], axis=1)
+
+
+class HeadMotionSource(LeafSystem):
+    """The patient's head pose from a :class:`HeadMotion` (a function of time, no state).
+
+    .. pydrake_system::
+
+        name: HeadMotionSource
+        output_ports:
+        - X_WHead
+        - V_WHead
+        - D_W
+
+    ``X_WHead`` (abstract RigidTransform): the head frame (the case's Center, fixed in the head)
+    in World, D(t) X_WHead0. ``V_WHead`` (6): [angular velocity; velocity of the head frame's
+    origin] in World. ``D_W`` (abstract RigidTransform): the displacement D(t) itself (what moves
+    the head's geometry in the scene).
+
+    Args:
+        motion: the profile.
+        X_WHead0: (4, 4) the head frame at rest (t = 0).
+    """
+
+    def __init__(self, motion: HeadMotion, X_WHead0):
+        super().__init__()
+        self._motion = motion
+        self._X0 = np.asarray(X_WHead0, dtype=float)
+        self._X = self.DeclareAbstractOutputPort(
+            "X_WHead", lambda: AbstractValue.Make(RigidTransform()), self._calc_pose)
+        self.DeclareVectorOutputPort("V_WHead", 6, self._calc_velocity)
+        self.DeclareAbstractOutputPort(
+            "D_W", lambda: AbstractValue.Make(RigidTransform()), self._calc_displacement)
+
+    @property
+    def motion(self) -> HeadMotion:
+        return self._motion
+
+    def _calc_pose(self, context, value):
+        X = self._motion.D(context.get_time())[0] @ self._X0
+        value.set_value(RigidTransform(RotationMatrix(X[:3, :3]), X[:3, 3]))
+
+    def _calc_displacement(self, context, value):
+        X = self._motion.D(context.get_time())[0]
+        value.set_value(RigidTransform(RotationMatrix(X[:3, :3]), X[:3, 3]))
+
+    def _calc_velocity(self, context, output: BasicVector):
+        output.SetFromVector(self._motion.velocity(context.get_time(), self._X0[:3, 3])[0])

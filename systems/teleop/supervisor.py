@@ -1,0 +1,558 @@
+"""Control-barrier safety supervisor of the tool against the FPSM (DESIGN.md section 7).
+
+The barrier is the clearance h(X) of the whole tool body (rod, head, implant) at its pose X: the
+sound FPSM clearance of systems.placement.tool_clearance (a certified lower bound of the body's
+distance to
+the FPSM boundary; :class:`~implantplan.systems.placement.tool_clearance.ToolClearance`, prepared
+once),
+and the safe set is h >= margin. A commanded tool twist V = [w; v] (w the angular velocity, v
+the TCP's velocity, both in Center) is filtered so that
+
+    dh/dt = grad h . V >= b,   b = min(-alpha (h - margin), 0)
+
+(control-barrier style, Ames et al.): far from the wall any approach slower than
+alpha (h - margin) passes; at the margin no approach is left; below it (which the filter itself
+never causes) the command may not approach further but is not turned into a retreat, so the
+supervisor never amplifies a command. The fixture's return law brings the tool back.
+
+Discrete time (period dt). The commanded next pose X + dt V costs one clearance query; only a
+command that fails the condition enters one compiled kernel (no allocation per step) for the 12
+poses perturbed along the twist's coordinates (translations by +-eps_p, rotations about the TCP
+by +-eps_w: the central-difference gradient g of h with respect to the twist), the projection
+and the scale tries:
+
+1. if h(X + dt V) >= h + dt b - 10 nm (the discrete barrier condition holds for the command
+   itself, no linearization) or h is +inf (the tool is outside the mouth), V passes untouched;
+2. otherwise V is projected on the half-space g . V' >= 0.9 b (aiming at 90% of the allowed
+   approach: room for the linearization error of a non-smooth h) in the metric
+   |V|_M^2 = L^2 |w|^2 + |v|^2 (L = ``length_scale``: a rotation is "costly" in proportion to
+   the lever it swings): V' = V + lambda M^-1 g, lambda = (0.9 b - g . V) / (g^T M^-1 g) >= 0.
+   The half-space contains 0 (b <= 0), so the projection is non-expansive: |V'|_M <= |V|_M;
+3. h being a minimum over the tool's parts (not smooth), the projected command is checked on
+   h itself at X + dt V' and, only if that fails, at s = 3/4, 1/2, 1/4 of it in turn: the
+   largest s that meets the discrete condition is taken, s = 0 (stop) if none does.
+   Stopping always meets it, so the guarantee does not rest on the gradient: the LeafSystem
+   reuses one gradient over up to 4 consecutive steps at the wall.
+
+With the sound FPSM clearance (a certified lower bound of the exact clearance) h >= margin - a
+few tenths of a millimetre at every step thus bounds the exact distance of the tool to the
+tissue. The estimator's alarm stays as the second line of defence.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numba
+import numpy as np
+from pydrake.common.eigen_geometry import AngleAxis
+from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.systems.framework import BasicVector, LeafSystem
+
+from implantplan.systems.errors import InputError
+from implantplan.systems.fpsm.model import Fpsm
+from implantplan.systems.frames import invert
+from implantplan.systems.placement.tool_clearance import (
+    ToolClearance,
+    ToolGeometry,
+    tool_clearance_at,
+)
+from implantplan.systems.teleop.fixture_system import step_pose
+
+AIM = 0.9  # the projection aims at this share of the allowed approach rate
+SCALES = np.array([1.0, 0.75, 0.5, 0.25])  # tried on h itself after the projection
+GRADIENT_REUSE = 4  # consecutive steps at the wall that share one finite-difference gradient
+TOLERANCE = 1e-8  # m: rounding allowed in the discrete barrier condition per step
+FAR = 1.0e3  # stand-in for +inf (the tool wholly outside the mouth) on the output ports (m)
+
+
+def clearance(fpsm: Fpsm, X_CT: np.ndarray, tool: ToolGeometry) -> np.ndarray:
+    """The barrier h (m) at K poses ``X_CT`` (K, 4, 4) of the Tool frame in Center: the sound
+    FPSM clearance of the whole tool body (systems.placement.tool_clearance, a certified lower
+    bound of its
+    distance to the FPSM boundary). The supervisor holds a prepared :class:`ToolClearance`."""
+    return ToolClearance(fpsm, tool)(X_CT)
+
+
+@dataclass(frozen=True)
+class Barrier:
+    """Settings of the barrier filter (SI units).
+
+    Attributes:
+        margin: the clinical margin h must keep (m); default 1 mm.
+        alpha: the barrier's rate (1/s): an approach slower than alpha (h - margin) passes.
+        length_scale: L (m) of the twist metric L^2 |w|^2 + |v|^2.
+        eps_p, eps_w: finite-difference steps of the gradient (m, rad).
+    """
+
+    margin: float = 0.001
+    alpha: float = 20.0
+    length_scale: float = 10.0
+    eps_p: float = 1e-4
+    eps_w: float = 1e-3
+
+    def __post_init__(self):
+        for name in ("margin", "alpha", "length_scale", "eps_p", "eps_w"):
+            value = getattr(self, name)
+            if not np.isfinite(value) or value < 0 or (name != "margin" and value == 0):
+                raise InputError(f"barrier.{name}", f"expected a finite value > 0, got {value}")
+
+
+def perturbed_poses(X_CT: np.ndarray, eps_p: float, eps_w: float) -> np.ndarray:
+    """(K, 12, 4, 4): each pose rotated about its TCP by +eps_w about Center x, y, z, translated
+    by +eps_p along Center x, y, z (the twist's coordinates [w; v]), then the same by -eps."""
+    out = np.repeat(X_CT[:, None], 12, axis=1)
+    for half, sign in ((0, 1.0), (6, -1.0)):
+        c, s = np.cos(eps_w), sign * np.sin(eps_w)
+        for i in range(3):
+            j, k = (i + 1) % 3, (i + 2) % 3
+            Ri = np.eye(3)
+            Ri[j, j], Ri[j, k], Ri[k, j], Ri[k, k] = c, -s, s, c
+            out[:, half + i, :3, :3] = Ri @ X_CT[:, :3, :3]
+            out[:, half + 3 + i, i, 3] += sign * eps_p
+    return out
+
+
+def stepped_poses(X_CT: np.ndarray, V: np.ndarray, dt) -> np.ndarray:
+    """(K, 4, 4) poses after dt under twists V (K, 6) = [w; v] (w about the TCP; exact
+    rotation by Drake's AngleAxis, through :func:`systems.teleop.fixture_system.step_pose`)."""
+    dt = np.broadcast_to(np.asarray(dt, dtype=float), (X_CT.shape[0],))
+    out = X_CT.copy()
+    for i in range(X_CT.shape[0]):
+        p, R = step_pose(X_CT[i, :3, 3], X_CT[i, :3, :3], V[i], float(dt[i]))
+        out[i, :3, 3], out[i, :3, :3] = p, R
+    return out
+
+
+@numba.njit(cache=True)
+def _project(V, h, g, margin, alpha, length_scale, out) -> bool:
+    """Step 2 for one command: out = V projected on g . V' >= b (b = min(-alpha (h - margin),
+    0)) in the metric L^2 |w|^2 + |v|^2; True when the command was changed."""
+    finite = np.isfinite(h)
+    for i in range(6):
+        out[i] = V[i]
+        if not np.isfinite(g[i]):
+            finite = False
+    if not finite:
+        return False
+    b = min(-alpha * (h - margin), 0.0)
+    inv_l2 = 1.0 / (length_scale * length_scale)
+    gMg = 0.0
+    gV = 0.0
+    for i in range(6):
+        gMg += g[i] * g[i] * (inv_l2 if i < 3 else 1.0)
+        gV += g[i] * V[i]
+    if not (gV < b and gMg > 0.0):
+        return False
+    lam = (b - gV) / gMg
+    for i in range(6):
+        out[i] = V[i] + lam * g[i] * (inv_l2 if i < 3 else 1.0)
+    return True
+
+
+def barrier_filter(V, h, g, *, margin: float, alpha: float, length_scale: float):
+    """The projection of step 2 for K commands (the compiled kernel of the supervisor's step,
+    one command at a time).
+
+    Args:
+        V: (K, 6) commanded twists [w; v]; h: (K,) barrier values (m; +inf: no constraint);
+        g: (K, 6) gradients of h with respect to the twist.
+
+    Returns:
+        (V' (K, 6), b (K,) the required rate, active (K,) bool: the command was changed).
+    """
+    V = np.ascontiguousarray(V, dtype=float).reshape(-1, 6)
+    h = np.asarray(h, dtype=float).reshape(-1)
+    g = np.ascontiguousarray(g, dtype=float).reshape(-1, 6)
+    finite = np.isfinite(h) & np.all(np.isfinite(g), axis=1)
+    b = np.where(finite, np.minimum(-alpha * (np.where(finite, h, 0.0) - margin), 0.0), -np.inf)
+    out = np.empty_like(V)
+    active = np.zeros(V.shape[0], dtype=bool)
+    for k in range(V.shape[0]):
+        active[k] = _project(V[k], float(h[k]), g[k], float(margin), float(alpha),
+                             float(length_scale), out[k])
+    return out, b, active
+
+
+def barrier_holds(h, h_next, barrier: Barrier, dt: float) -> np.ndarray:
+    """The discrete barrier condition h_next >= h + dt b (b = min(-alpha (h - margin), 0)),
+    within ``TOLERANCE``; always true where h is +inf (outside the mouth)."""
+    h = np.asarray(h, dtype=float)
+    with np.errstate(invalid="ignore"):
+        b = np.minimum(-barrier.alpha * (h - barrier.margin), 0.0)
+        return ~np.isfinite(h) | (np.asarray(h_next) >= h + dt * b - TOLERANCE)
+
+
+@numba.njit(cache=True)
+def step_pose_into(X, V, dt, out):
+    """out = X one period dt on under the twist V = [w; v] (Center): p + v dt, exp([w] dt) R
+    (Rodrigues' formula: Drake's AngleAxis rotation, to rounding)."""
+    wx, wy, wz = V[0], V[1], V[2]
+    n = np.sqrt(wx * wx + wy * wy + wz * wz)
+    angle = n * dt
+    for i in range(3):
+        out[i, 3] = X[i, 3] + V[3 + i] * dt
+        out[3, i] = 0.0
+    out[3, 3] = 1.0
+    if angle == 0.0:
+        for i in range(3):
+            for j in range(3):
+                out[i, j] = X[i, j]
+        return
+    kx, ky, kz = wx / n, wy / n, wz / n
+    c, s = np.cos(angle), np.sin(angle)
+    C = 1.0 - c
+    r00, r01, r02 = c + kx * kx * C, kx * ky * C - kz * s, kx * kz * C + ky * s
+    r10, r11, r12 = ky * kx * C + kz * s, c + ky * ky * C, ky * kz * C - kx * s
+    r20, r21, r22 = kz * kx * C - ky * s, kz * ky * C + kx * s, c + kz * kz * C
+    for j in range(3):
+        x0, x1, x2 = X[0, j], X[1, j], X[2, j]
+        out[0, j] = r00 * x0 + r01 * x1 + r02 * x2
+        out[1, j] = r10 * x0 + r11 * x1 + r12 * x2
+        out[2, j] = r20 * x0 + r21 * x1 + r22 * x2
+
+
+@numba.njit(cache=True)
+def _filter_step(field, a, b, r,
+                 X, V, h, g, have_g, dt, margin, alpha, length_scale, eps_p, eps_w, scales,
+                 V_out, X_next, g_out, work):
+    """Steps 2-3 of the module docstring for one pose X (4, 4) and twist V (6,) in Center whose
+    command failed the discrete condition at barrier h: the gradient (12 perturbed poses, unless
+    ``have_g``: then ``g`` is used), the projection, the scales tried on h itself. Writes V_out,
+    X_next, g_out (the gradient used); returns (h at X_next, |V_out|_M / |V|_M). ``work`` is a
+    (4, 4) buffer; ``field`` (the tuple of the field's kernel arguments) and the tool's
+    capsules are ToolClearance's."""
+    if have_g:
+        for i in range(6):
+            g_out[i] = g[i]
+    else:
+        e = np.zeros(6)
+        for i in range(3):
+            for sign in (1.0, -1.0):
+                e[:] = 0.0
+                e[i] = sign
+                step_pose_into(X, e, eps_w, work)  # rotated about the TCP by sign eps_w about x_i
+                hr = tool_clearance_at(*field, work, a, b, r)
+                e[i] = 0.0
+                e[3 + i] = sign
+                step_pose_into(X, e, eps_p, work)  # moved by sign eps_p along x_i
+                hp = tool_clearance_at(*field, work, a, b, r)
+                if sign > 0.0:
+                    g_out[i], g_out[3 + i] = hr, hp
+                else:
+                    g_out[i] = (g_out[i] - hr) / (2.0 * eps_w)
+                    g_out[3 + i] = (g_out[3 + i] - hp) / (2.0 * eps_p)
+        for i in range(6):
+            if not np.isfinite(g_out[i]):  # out of the mouth: no limit
+                g_out[i] = 0.0
+    # aim at 90% of the allowed approach: room for the linearization of a non-smooth h
+    Vp = np.empty(6)
+    _project(V, h, g_out, margin, AIM * alpha, length_scale, Vp)
+    limit = h + dt * min(-alpha * (h - margin), 0.0) - TOLERANCE
+    h_next = h
+    chosen = 0.0
+    Vs = np.empty(6)
+    for k in range(scales.size):
+        for i in range(6):
+            Vs[i] = scales[k] * Vp[i]
+        step_pose_into(X, Vs, dt, work)
+        hs = tool_clearance_at(*field, work, a, b, r)
+        if hs >= limit:
+            chosen, h_next = scales[k], hs
+            X_next[:, :] = work
+            break
+    if chosen == 0.0:  # stopping always meets the condition
+        X_next[:, :] = X
+    l2 = length_scale * length_scale
+    num = 0.0
+    den = 0.0
+    for i in range(6):
+        V_out[i] = chosen * Vp[i]
+        m = l2 if i < 3 else 1.0
+        num += V_out[i] * V_out[i] * m
+        den += V[i] * V[i] * m
+    return h_next, (np.sqrt(num / den) if den > 0.0 else 1.0)
+
+
+@dataclass(frozen=True)
+class Supervised:
+    """One supervisor step for K poses (Center frame, SI); fields (K, ...).
+
+    Attributes:
+        V: (K, 6) the filtered twist.
+        X_next: (K, 4, 4) the pose one period ahead under V.
+        h: (K,) barrier value at the pose (m, +inf outside the mouth).
+        h_next: (K,) barrier value at X_next.
+        scale: (K,) |V|_M / |V_command|_M (1: untouched, 0: stopped).
+        active: (K,) the command was changed.
+        g: (K, 6) the gradient used where active (NaN elsewhere).
+    """
+
+    V: np.ndarray
+    X_next: np.ndarray
+    h: np.ndarray
+    h_next: np.ndarray
+    scale: np.ndarray
+    active: np.ndarray
+    g: np.ndarray
+
+
+def supervise(clear: ToolClearance, X_CT, V_C, barrier: Barrier, dt: float, *,
+              h=None, g=None) -> Supervised:
+    """Steps 1-3 of the module docstring for K tool poses ``X_CT`` (K, 4, 4) in Center and
+    commanded twists ``V_C`` (K, 6) in Center, over a period ``dt`` (s). ``h`` (K,): the
+    barrier at the poses if known (the supervisor keeps it from its previous step); ``g``
+    (K, 6): a gradient to use instead of the finite differences (the supervisor reuses one over
+    a few consecutive steps at the wall; it only shapes the projection, which step 3 checks on h
+    itself)."""
+    X = np.asarray(X_CT, dtype=float).reshape(-1, 4, 4)
+    V = np.asarray(V_C, dtype=float).reshape(-1, 6)
+    K = X.shape[0]
+    if V.shape[0] != K:
+        raise InputError("V_C", f"expected one twist per pose ({K}), got {V.shape[0]}")
+    X_cmd = np.empty_like(X)
+    for k in range(K):  # the compiled step (Drake's AngleAxis rejects a twist of ~1e-160)
+        step_pose_into(np.ascontiguousarray(X[k]), np.ascontiguousarray(V[k]), float(dt), X_cmd[k])
+    if h is None:
+        H = clear(np.concatenate([X, X_cmd]))
+        h, h_cmd = H[:K], H[K:]
+    else:
+        h, h_cmd = np.asarray(h, dtype=float).reshape(K), clear(X_cmd)
+    ok = barrier_holds(h, h_cmd, barrier, dt)
+    V_out, X_next, h_next = V.copy(), X_cmd, h_cmd.copy()
+    scale = np.ones(K)
+    g_out = np.full((K, 6), np.nan)
+    args = clear._args
+    a, b_, r = clear._a, clear._b, clear._r
+    work = np.empty((4, 4))
+    have_g = g is not None
+    g_in = (np.ascontiguousarray(g, dtype=float).reshape(K, 6) if have_g else np.zeros((K, 6)))
+    for k in np.flatnonzero(~ok):
+        Xk = np.ascontiguousarray(X[k])
+        g_k = np.empty(6)
+        Xn = np.empty((4, 4))
+        h_next[k], scale[k] = _filter_step(
+            args, a, b_, r, Xk, np.ascontiguousarray(V[k]), float(h[k]), g_in[k], have_g,
+            float(dt), barrier.margin, barrier.alpha, barrier.length_scale, barrier.eps_p,
+            barrier.eps_w, SCALES, V_out[k], Xn, g_k, work)
+        X_next[k], g_out[k] = Xn, g_k
+    return Supervised(V=V_out, X_next=X_next, h=h, h_next=h_next, scale=scale, active=~ok,
+                      g=g_out)
+
+
+@numba.njit(cache=True)
+def _world_pose_of_E(new, X_WC, X_TE):
+    """new[21:33] = the World pose of E (p_WE, R_WE row-major) from the Tool pose in Center in
+    new[0:12] (p_CT, R_CT row-major); E's origin is the Tool's."""
+    for i in range(3):
+        pw = X_WC[i, 3]
+        for j in range(3):
+            pw += X_WC[i, j] * new[j]
+        new[21 + i] = pw
+        for j in range(3):
+            acc = 0.0
+            for k in range(3):
+                RWk = 0.0
+                for m in range(3):
+                    RWk += X_WC[i, m] * new[3 + 3 * m + k]
+                acc += RWk * X_TE[k, j]
+            new[24 + 3 * i + j] = acc
+
+
+@numba.njit(cache=True)
+def _advance(x, V_W, dR, dt, R_CW, X_WC, X_TE, new, X1):
+    """The supervisor's state one period on under the twist V_W (World) left as it is: the Tool
+    pose in Center (p + v dt, dR R), the twist, scale 1, not active, the World pose of E; X1 the
+    new Tool pose in Center (4, 4). ``new[18]`` (h) is left to the caller."""
+    for i in range(3):
+        v = 0.0
+        for j in range(3):
+            v += R_CW[i, j] * V_W[3 + j]
+        new[i] = x[i] + v * dt
+        for j in range(3):
+            acc = 0.0
+            for k in range(3):
+                acc += dR[i, k] * x[3 + 3 * k + j]
+            new[3 + 3 * i + j] = acc
+    for i in range(6):
+        new[12 + i] = V_W[i]
+    new[19], new[20] = 1.0, 0.0
+    _world_pose_of_E(new, X_WC, X_TE)
+    for i in range(3):
+        X1[i, 3] = new[i]
+        for j in range(3):
+            X1[i, j] = new[3 + 3 * i + j]
+    X1[3, 0], X1[3, 1], X1[3, 2], X1[3, 3] = 0.0, 0.0, 0.0, 1.0
+
+
+@numba.njit(cache=True)
+def _commit(X, V, scale, R_CW, X_WC, X_TE, new):
+    """The supervisor's state after a filtered step: the Tool pose X (4, 4) in Center, the
+    filtered twist V (Center) in World, the scale, active, the World pose of E (``new[0:21]``
+    but h, and ``new[21:33]``)."""
+    for i in range(3):
+        new[i] = X[i, 3]
+        for j in range(3):
+            new[3 + 3 * i + j] = X[i, j]
+    for i in range(3):  # R_WC = R_CW^T
+        w = 0.0
+        v = 0.0
+        for j in range(3):
+            w += R_CW[j, i] * V[j]
+            v += R_CW[j, i] * V[3 + j]
+        new[12 + i], new[15 + i] = w, v
+    new[19], new[20] = scale, 1.0
+    _world_pose_of_E(new, X_WC, X_TE)
+
+
+class SafetySupervisor(LeafSystem):
+    """Filters the fixture's corrected twist with the FPSM barrier; integrates the desired pose.
+
+    .. pydrake_system::
+
+        name: SafetySupervisor
+        input_ports:
+        - V_WE_corrected
+        output_ports:
+        - X_WE_desired
+        - V_WE_filtered
+        - barrier
+
+    ``V_WE_corrected`` (6): the twist to filter, [w; v] in World (the fixture's output).
+    ``X_WE_desired`` (abstract RigidTransform): the desired tool pose, integrated every period
+    from the filtered twist (discrete state, kept as the Tool pose in Center), for differential
+    IK; the barrier is evaluated at it (the pose the command drives the tool to).
+    ``V_WE_filtered`` (6): the filtered twist of the last update, in World. ``barrier`` (3): [h
+    at the desired pose (m; 1e3 for +inf, the tool outside the mouth), scale
+    (|V_filtered|_M / |V_corrected|_M), active (1.0 when the command was changed at the last
+    update)].
+
+    Each update costs one clearance query (the commanded next pose: the barrier at the pose
+    itself is kept from the previous update); only a command that fails the discrete barrier
+    condition pays for the gradient (12 poses) and the check of the projection (4 poses).
+
+    Args:
+        fpsm: the surrogate model (Center frame).
+        X_WCenter: (4, 4) pose of Center in World.
+        X_WE_initial: (4, 4) initial desired pose.
+        tool: the tool for :class:`ToolClearance`, in its Tool frame.
+        R_ET: (3, 3) the Tool axes in E (identity if None); the Tool origin is E's.
+        barrier: the filter's settings.
+        period: update period (s).
+        enabled: False integrates the command unfiltered (experiments without the supervisor).
+        margin_input: declare a vector input port ``margin_extra`` (1, m) added to the
+            barrier's margin at every update (the awake patient: tracking lag and error).
+    """
+
+    def __init__(
+        self,
+        fpsm: Fpsm,
+        X_WCenter,
+        X_WE_initial,
+        tool: ToolGeometry,
+        *,
+        R_ET=None,
+        barrier: Barrier | None = None,
+        period: float = 0.005,
+        enabled: bool = True,
+        margin_input: bool = False,
+    ):
+        super().__init__()
+        if not np.isfinite(period) or period <= 0:
+            raise InputError("period", f"expected a period > 0 s, got {period}")
+        self._clear = ToolClearance(fpsm, tool)
+        self._barrier = barrier or Barrier()
+        self._period = float(period)
+        self._enabled = bool(enabled)
+        self._X_WC = np.asarray(X_WCenter, dtype=float)
+        self._X_CW = invert(self._X_WC)
+        self._R_CW = np.ascontiguousarray(self._X_CW[:3, :3])
+        self._X_WC = np.ascontiguousarray(self._X_WC)
+        R_ET = np.eye(3) if R_ET is None else np.asarray(R_ET, dtype=float)
+        self._X_ET = np.eye(4)
+        self._X_ET[:3, :3] = R_ET
+        self._X_TE = invert(self._X_ET)
+        # buffers of the compiled slow path (no allocation per step)
+        self._X0, self._Xn, self._work = np.eye(4), np.eye(4), np.eye(4)
+        self._Vc, self._Vo, self._g = np.zeros(6), np.zeros(6), np.zeros(6)
+        self._V_in = self.DeclareVectorInputPort("V_WE_corrected", 6)
+        self._margin_in = self.DeclareVectorInputPort("margin_extra", 1) if margin_input else None
+        # state: [p_CT (3), R_CT row-major (9), V filtered in World (6), h, scale, active,
+        #         p_WE (3), R_WE row-major (9), gradient (6), its age in steps]
+        self.DeclareDiscreteState(self._state_of(np.asarray(X_WE_initial, dtype=float)))
+        self.DeclarePeriodicDiscreteUpdateEvent(self._period, 0.0, self._update)
+        self._X_des = self.DeclareAbstractOutputPort(
+            "X_WE_desired",
+            lambda: AbstractValue.Make(RigidTransform()),
+            self._calc_desired,
+            prerequisites_of_calc={self.xd_ticket()},
+        )
+        self._V_out = self.DeclareVectorOutputPort(
+            "V_WE_filtered", 6, self._calc_filtered, prerequisites_of_calc={self.xd_ticket()}
+        )
+        self._h = self.DeclareVectorOutputPort(
+            "barrier", 3, self._calc_barrier, prerequisites_of_calc={self.xd_ticket()}
+        )
+
+    def _state_of(self, X_WE) -> np.ndarray:
+        X_CT = self._X_CW @ X_WE @ self._X_ET
+        h = self._clear(X_CT[None])[0]
+        return np.concatenate([X_CT[:3, 3], X_CT[:3, :3].ravel(), np.zeros(6),
+                               [min(h, FAR), 1.0, 0.0], X_WE[:3, 3], X_WE[:3, :3].ravel(),
+                               np.zeros(6), [GRADIENT_REUSE]])
+
+    def _update(self, context, discrete_state):
+        x = context.get_discrete_state(0).get_value()
+        V_W = np.asarray(self._V_in.Eval(context), dtype=float)
+        # the rotation of one period (Drake's AngleAxis; the operator's command has none)
+        w_C = self._R_CW @ V_W[:3]
+        angle = float(np.linalg.norm(w_C)) * self._period
+        dR = np.eye(3) if angle == 0.0 else RotationMatrix(
+            AngleAxis(angle, w_C * (self._period / angle))).matrix()
+        new = np.empty(40)
+        X1 = np.empty((4, 4))
+        _advance(x, V_W, dR, self._period, self._R_CW, self._X_WC, self._X_TE, new, X1)
+        h0 = np.inf if x[18] >= FAR else float(x[18])
+        if self._enabled:
+            h = self._clear.one(X1)
+            bar = self._barrier
+            if self._margin_in is not None:  # the awake patient: tracking lag and error
+                bar = replace(bar, margin=bar.margin + float(self._margin_in.Eval(context)[0]))
+            # barrier_holds, on floats (the common case must be cheap)
+            b = min(-bar.alpha * (h0 - bar.margin), 0.0) if h0 < np.inf else -np.inf
+            if h0 < np.inf and not h >= h0 + self._period * b - TOLERANCE:  # the slow path
+                X0 = self._X0
+                X0[:3, :3], X0[:3, 3] = x[3:12].reshape(3, 3), x[:3]
+                V = self._Vc
+                V[:3], V[3:] = w_C, self._R_CW @ V_W[3:]
+                age = int(x[39])
+                have_g = age < GRADIENT_REUSE
+                h, scale = _filter_step(
+                    self._clear._args, self._clear._a, self._clear._b, self._clear._r, X0, V,
+                    h0, x[33:39], have_g, self._period, bar.margin, bar.alpha,
+                    bar.length_scale, bar.eps_p, bar.eps_w, SCALES, self._Vo, self._Xn,
+                    self._g, self._work)
+                new[33:39] = self._g
+                new[39] = age + 1 if have_g else 1
+                _commit(self._Xn, self._Vo, scale, self._R_CW, self._X_WC, self._X_TE, new)
+            new[18] = min(h, FAR)
+        else:
+            new[18] = min(h0, FAR)
+        if new[20] == 0.0:  # not at the wall this step: the next slow step computes afresh
+            new[33:39], new[39] = 0.0, GRADIENT_REUSE
+        discrete_state.get_mutable_vector(0).SetFromVector(new)
+
+    def _calc_desired(self, context, value):
+        x = context.get_discrete_state(0).get_value()
+        value.set_value(RigidTransform(RotationMatrix(x[24:33].reshape(3, 3)), x[21:24]))
+
+    def _calc_filtered(self, context, output: BasicVector):
+        output.SetFromVector(context.get_discrete_state(0).get_value()[12:18])
+
+    def _calc_barrier(self, context, output: BasicVector):
+        output.SetFromVector(context.get_discrete_state(0).get_value()[18:21])
+
+    def set_desired_pose(self, context, X_WE) -> None:
+        """Reset the desired pose (e.g. to the tool's pose at the start of a run)."""
+        context.SetDiscreteState(0, self._state_of(np.asarray(X_WE, dtype=float)))

@@ -1,0 +1,375 @@
+"""Capability map core: reach / no reach, index range, roll handling, blocks, HDF5 round trip."""
+
+from concurrent.futures import ThreadPoolExecutor
+
+import h5py
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from implantplan.systems.capability import maps as cm
+from implantplan.systems.errors import InputError
+from implantplan.systems.frames import rot_x, transform
+from implantplan.systems.robot.kinematics import fk, ik
+
+
+@pytest.fixture(scope="module")
+def coarse():
+    """A 15 cm / 30-direction map sampled at voxel centres (the query machinery; a certified map
+    this coarse certifies almost nothing)."""
+    return cm.build(cm.make_params(0.15, 30, cell="centre"), workers=1)
+
+
+REGIONS = {  # name: (centre of a 12 cm ball in base_link, m): where the default suite checks
+    "outer reach": cm.SHOULDER + np.array([0.62, -0.55, 0.58]),  # ~1.02 m from the shoulder
+    "shoulder cylinder": np.array([0.05, 0.24, 0.45]),  # wrist centre near d4 of joint 1's axis
+    "mid workspace": cm.SHOULDER + np.array([-0.35, 0.45, -0.2]),
+}
+
+
+def regional_map(centre, params=None, radius=0.12):
+    """The certified 5 cm / 100-direction map over the voxels that meet a ball (built like the
+    plan's capability check: only the voxels needed)."""
+    params = params or cm.make_params(0.05, 100)
+    grid = cm.make_grid(params)
+    ids = np.arange(grid.size)
+    near = np.linalg.norm(grid.centres(ids) - centre, axis=1) <= radius + grid.voxel
+    vox, reach, allr = cm.build_block(params, ids[near])
+    return cm.CapabilityMap(params, grid, vox, reach, allr)
+
+
+@pytest.fixture(scope="module")
+def regional():
+    return {name: regional_map(c) for name, c in REGIONS.items()}
+
+
+def test_golden_spiral_unit_and_spread():
+    d = cm.golden_spiral(200)
+    assert d.shape == (200, 3)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-12)
+    # near-uniform: the mean vector of a uniform point set is ~0, z spacing is 2/K
+    assert np.linalg.norm(d.mean(axis=0)) < 0.02
+    np.testing.assert_allclose(np.diff(d[:, 2]), -2.0 / 200, atol=1e-12)
+
+
+@given(st.floats(-1, 1), st.floats(-np.pi, np.pi))
+@settings(max_examples=100, deadline=None)
+def test_nearest_direction_within_a_cell_of_the_true_nearest(z, phi):
+    m = _tiny_map()
+    s = np.sqrt(1 - z * z)
+    v = np.array([s * np.cos(phi), s * np.sin(phi), z])
+    chosen = m.directions[m.nearest_direction(v[None])[0]] @ v
+    best = np.max(m.directions @ v)
+    n_theta = m._table.shape[0]
+    # the table's pick is at most one cell diameter worse than the true nearest (poles included)
+    assert np.arccos(min(1.0, chosen)) <= np.arccos(min(1.0, best)) + 1.5 * np.pi / n_theta
+    # the compiled query kernel and the numpy lookup agree
+    cell = m.centres()[0]
+    X = transform(cm.frames_from_z(v), cell)
+    assert m.query(X[None])[0][0] == m.reach_rows([0])[0, m.nearest_direction(v[None])[0]]
+
+
+_TINY = []
+
+
+def _tiny_map():
+    if not _TINY:
+        _TINY.append(cm.build(cm.make_params(0.3, 50), workers=1))
+    return _TINY[0]
+
+
+def test_obviously_reachable_and_unreachable(coarse):
+    full = np.flatnonzero(coarse.index == 1.0)
+    assert len(full) > 0
+    c = coarse.centres()[full[0]]
+    X = transform(rot_x(2.0), c)  # any direction in a voxel whose every direction is reachable
+    reach, index = coarse.query(X[None])
+    assert reach[0] and index[0] == 1.0
+    # 3 m away from the base: beyond the 1.65 m reach
+    reach, index = coarse.query(transform(np.eye(3), [3.0, 0.0, 0.5])[None])
+    assert not reach[0] and index[0] == 0.0
+    # a real arm pose: its voxel centre is 'reachable' in the map at the pose's direction
+    q = np.array([0.3, 0.4, 1.2, 0.2, 1.0, 0.0])
+    assert cm.reach_at(coarse.params, fk(q)[None, :3, 3], fk(q)[None, :3, 2])[0][0, 0]
+
+
+def test_index_in_unit_interval_and_matches_bits(coarse):
+    assert np.all((coarse.index > 0) & (coarse.index <= 1))
+    rows = coarse.reach_rows()
+    np.testing.assert_allclose(coarse.index, rows.mean(axis=1))
+    # stored voxels all lie within the reach sphere about the shoulder
+    assert np.all(np.linalg.norm(coarse.centres() - cm.SHOULDER, axis=1) <= cm.ARM_REACH + 0.15)
+
+
+def test_voxel_index_seen_from_many_bases(coarse):
+    rng = np.random.default_rng(6)
+    pts = rng.uniform(-1.5, 1.5, (300, 3))
+    X_BW = np.stack([transform(rot_x(a), [0.1 * a, 0.0, -0.2]) for a in (0.0, 0.5, 2.0)])
+    got = coarse.voxel_index(pts, X_BW)
+    for b in range(3):
+        p_B = pts @ X_BW[b, :3, :3].T + X_BW[b, :3, 3]
+        np.testing.assert_array_equal(got[b], coarse.query_points(p_B, np.ones_like(p_B))[1])
+    assert got.max() > 0 and got.min() == 0.0
+
+
+def test_roll_free_with_360_limits():
+    p = cm.make_params(0.2, 20, limits="360")
+    m = cm.build(p, workers=1)
+    np.testing.assert_array_equal(m.reach_bits, m.all_roll_bits)
+
+
+def test_roll_with_175_limits_matches_sampled_rolls():
+    p = cm.make_params(0.2, 20, limits="175")
+    rng = np.random.default_rng(3)
+    centres = cm.SHOULDER + rng.uniform(-1.2, 1.2, (60, 3))
+    dirs = cm.golden_spiral(20)
+    some, every = cm.reach_at(p, centres, dirs)
+    # brute force: 720 rolls (0.5 deg) with the true +-175 deg limits on every joint
+    gam = np.deg2rad(np.arange(0, 360, 0.5))
+    Rz = np.zeros((len(gam), 4, 4))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1] = (
+        np.cos(gam),
+        -np.sin(gam),
+        np.sin(gam),
+        np.cos(gam),
+    )
+    Rz[:, 2, 2] = Rz[:, 3, 3] = 1
+    base = np.zeros((60, 20, 4, 4))
+    base[..., :3, :3] = cm.frames_from_z(dirs)[None]
+    base[..., :3, 3] = centres[:, None]
+    base[..., 3, 3] = 1
+    per_roll = ik(base[:, :, None] @ Rz, limits="175").valid.any(-1)  # (60, 20, 720)
+    np.testing.assert_array_equal(some, per_roll.any(-1))
+    np.testing.assert_array_equal(every, per_roll.all(-1))
+    assert some.sum() > every.sum() > 0  # the 10 deg gap matters for single-branch pairs
+
+
+def test_self_collision_option_removes_folded_branches():
+    q = np.zeros((2, 6))
+    q[1, 2] = np.radians(170)  # forearm folded back onto the upper arm
+    np.testing.assert_array_equal(cm.self_collision_free(q), [True, False])
+    free = cm.make_params(0.2, 20)
+    checked = cm.make_params(0.2, 20, self_collision=True)
+    assert free.key() != checked.key()
+    rng = np.random.default_rng(8)
+    centres = cm.SHOULDER + rng.uniform(-1.0, 1.0, (80, 3))
+    dirs = cm.golden_spiral(20)
+    a, _ = cm.reach_at(free, centres, dirs)
+    b, _ = cm.reach_at(checked, centres, dirs)
+    assert np.all(a | ~b)  # collision checking only removes pairs
+    assert b.sum() < a.sum()
+
+
+def test_tool_not_coaxial_samples_roll():
+    X_FT = transform(rot_x(np.pi / 2), [0.0, 0.0, 0.1])  # tool axis perpendicular to the flange z
+    p = cm.make_params(0.2, 10, X_FT=X_FT, tool="test")
+    assert p.rolls == 12
+    assert not cm.roll_is_free(X_FT)
+    with pytest.raises(InputError, match="rolls"):
+        cm.make_params(0.2, 10, rolls=4)
+
+
+def test_blocks_through_any_executor_give_the_same_map(coarse):
+    with ThreadPoolExecutor(2) as ex:
+        m = cm.build(coarse.params, executor=ex, poses_per_block=5000)
+    np.testing.assert_array_equal(m.voxel_ids, coarse.voxel_ids)
+    np.testing.assert_array_equal(m.reach_bits, coarse.reach_bits)
+    assert sum(len(b) for b in cm.blocks_of(coarse.params, 5000)) >= len(m.voxel_ids)
+
+
+def test_hdf5_round_trip_and_parameter_check(coarse, tmp_path):
+    path = tmp_path / "map.h5"
+    coarse.save(path)
+    m = cm.load(path, expect={"limits": "175", "directions": 30, "voxel": 0.15})
+    assert m.params == coarse.params
+    np.testing.assert_array_equal(m.reach_bits, coarse.reach_bits)
+    X = cm.random_poses(2000, seed=5)
+    np.testing.assert_array_equal(m.query(X)[0], coarse.query(X)[0])
+    with pytest.raises(InputError, match="limits"):
+        cm.load(path, expect={"limits": "360"})
+    with h5py.File(path, "a") as f:
+        f.attrs["schema_version"] = 99
+    with pytest.raises(InputError, match="schema_version"):
+        cm.load(path)
+    with pytest.raises(InputError, match="does not exist"):
+        cm.load(tmp_path / "missing.h5")
+
+
+def test_accuracy_counts_add_up(coarse):
+    X = cm.random_poses(5000, seed=2)
+    acc = cm.accuracy(coarse, X)
+    assert acc["TP"] + acc["FP"] + acc["FN"] + acc["TN"] == pytest.approx(1.0)
+    assert acc["correct"] > 0.85  # a 15 cm / 30-direction centre map is still mostly right
+    assert acc["FP"] > 0 and acc["false_safe"] == round(acc["FP"] * 5000)
+    assert acc["rejected_reachable"] == pytest.approx(acc["FN"] / (acc["TP"] + acc["FN"]))
+
+
+def test_bad_params_are_input_errors():
+    with pytest.raises(InputError, match="voxel"):
+        cm.make_params(0.0, 10)
+    with pytest.raises(InputError, match="directions"):
+        cm.make_params(0.1, 0)
+    with pytest.raises(InputError, match="limits"):
+        cm.make_params(0.1, 10, limits="180")
+    with pytest.raises(InputError, match="poses"):
+        cm.build(cm.make_params(0.3, 4), workers=1).query(np.zeros((3, 3)))
+
+
+def _hand_map():
+    """A 4x4x4 grid of 0.1 m voxels at the origin with two stored voxels: (1, 1, 1) reaching 8
+    of 8 directions (index 1) and (1, 1, 2) reaching 2 of 8 (index 0.25)."""
+    params = cm.make_params(0.1, 8)
+    grid = cm.Grid(origin=np.zeros(3), voxel=0.1, shape=(4, 4, 4))
+    ids = np.ravel_multi_index(np.array([[1, 1], [1, 1], [1, 2]]), grid.shape)
+    bits = np.array([[0xFF], [0b11000000]], dtype=np.uint8)
+    return cm.CapabilityMap(params, grid, ids, bits, bits.copy())
+
+
+def test_neighbourhood_ids_hand_derived():
+    g = _hand_map().grid
+    near = g.neighbourhood(np.array([[0.15, 0.15, 0.15], [0.05, 0.05, 0.05], [-1.0, 0.0, 0.0]]))
+    assert near.shape == (3, 27)
+    # interior voxel (1,1,1): all 27 inside, offsets in C order, the centre is entry 13
+    expect = [np.ravel_multi_index((1 + i, 1 + j, 1 + k), g.shape)
+              for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)]
+    assert near[0].tolist() == expect and near[0, 13] == np.ravel_multi_index((1, 1, 1), g.shape)
+    # corner voxel (0,0,0): only the 2x2x2 cells with non-negative indices are inside
+    assert int(np.sum(near[1] >= 0)) == 8
+    assert np.all(near[2] == -1)  # far outside
+
+
+def test_neighbourhood_index_hand_derived():
+    m = _hand_map()
+    # around (1,1,1): both stored voxels are neighbours -> (1 + 0.25) / 27; around (1,1,3): only
+    # (1,1,2) -> 0.25 / 27 (the cells with k = 4 are outside the grid and count 0)
+    got = m.neighbourhood_index(np.array([[0.15, 0.15, 0.15], [0.15, 0.15, 0.35]]))
+    np.testing.assert_allclose(got, [1.25 / 27, 0.25 / 27], rtol=1e-15)
+    # batches keep their leading shape
+    assert m.neighbourhood_index(np.zeros((2, 5, 3))).shape == (2, 5)
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.lists(st.floats(-0.1, 0.5), min_size=3, max_size=3))
+def test_neighbourhood_index_is_the_mean_voxel_index_of_the_neighbour_centres(p):
+    m = _hand_map()
+    near = m.grid.neighbourhood(np.array(p))
+    centres = m.grid.centres(np.maximum(near, 0))
+    ref = np.where(near >= 0, m.voxel_index(centres), 0.0).mean()
+    assert m.neighbourhood_index(np.array(p)) == pytest.approx(ref, abs=1e-15)
+
+
+# -- the certified (conservative) map ----------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", [20261201, 4711, 99])
+@pytest.mark.parametrize("region", list(REGIONS))
+def test_certified_map_is_never_false_safe(regional, region, seed):
+    """0 poses the map calls reachable where exact IK at the pose fails: poses uniform in the
+    region (position in the ball, SO(3) rotation) and poses within 1e-7 of the exact
+    reachability boundary (seeds not tuned)."""
+    m, c = regional[region], REGIONS[region]
+    X = np.concatenate([
+        cm.random_poses(2000, seed=seed, radius=0.12, center=c),
+        cm.boundary_poses(m.params, 1000, seed=seed + 1, radius=0.12, center=c),
+    ])  # fmt: skip
+    acc = cm.accuracy(m, X)
+    assert acc["false_safe"] == 0
+    assert acc["TP"] > 0.01  # it still says reachable for many poses
+
+
+def test_centre_sampled_map_is_false_safe_near_the_boundary(regional):
+    """The old map (IK at voxel centres) accepts poses exact IK rejects; the certified map's
+    reachable cells are a subset of the centre map's."""
+    c = REGIONS["outer reach"]
+    safe = regional["outer reach"]
+    old = regional_map(c, cm.make_params(0.05, 100, cell="centre"))
+    X = cm.boundary_poses(old.params, 2000, seed=5, radius=0.12, center=c)
+    assert cm.accuracy(old, X)["false_safe"] > 0
+    assert cm.accuracy(safe, X)["false_safe"] == 0
+    rows = np.searchsorted(old.voxel_ids, safe.voxel_ids)
+    assert np.array_equal(old.voxel_ids[rows], safe.voxel_ids)
+    assert np.all(old.reach_rows(rows) | ~safe.reach_rows())
+    assert 0 < safe.index.mean() < old.index.mean()
+
+
+def test_boundary_poses_straddle_the_exact_boundary():
+    params = cm.make_params(0.15, 30)
+    X = cm.boundary_poses(params, 400, seed=3)
+    assert X.shape == (400, 4, 4)
+    truth = cm.exact_reachable(params, X)
+    assert np.array_equal(truth[0::2], ~truth[1::2])  # pairs: one reachable, one not
+    gap = np.linalg.norm(X[0::2, :3, 3] - X[1::2, :3, 3], axis=1)
+    assert gap.max() < 1e-5
+    np.testing.assert_array_equal(X, cm.boundary_poses(params, 400, seed=3))
+
+
+def _wrap(x):
+    return (x + np.pi) % (2 * np.pi) - np.pi
+
+
+def test_certified_cells_follow_their_definition():
+    """The compiled kernel against a plain numpy reading of the rule (flange, +-175 deg): one
+    branch valid at every corner x neighbour direction, each joint's room to its limits over the
+    samples >= slack + half its spread, and for every roll two such branches whose q6 difference
+    stays farther from 0 (mod 2 pi) than the 10 deg gap + 2 slack + half its spread."""
+    params = cm.make_params(0.05, 100)
+    grid = cm.make_grid(params)
+    ids = np.ravel_multi_index(grid.cells(REGIONS["mid workspace"] + np.array([[0, 0, 0],
+                               [0.05, 0, 0], [0, 0.3, 0.1]])).T, grid.shape)
+    dirs = cm.golden_spiral(100)
+    got = cm.certified_cells(params, grid, ids, dirs)
+    nb = cm.direction_neighbours(dirs)
+    ijk = np.stack(np.unravel_index(ids, grid.shape), -1)
+    corners = grid.origin + (ijk[:, None] + cm.CORNERS[None]) * grid.voxel
+    q, ok = cm.branch_samples(params, corners.reshape(-1, 3), dirs)
+    q, ok = q.reshape(len(ids), 8, 100, 8, 6), ok.reshape(len(ids), 8, 100, 8)
+    lim = np.radians(175.0)
+    slack, gap = params.slack, np.radians(10.0)
+    expect = np.zeros_like(got)
+    for v in range(len(ids)):
+        for d in range(100):
+            S, O = q[v][:, nb[d]].reshape(-1, 8, 6), ok[v][:, nb[d]].reshape(-1, 8)
+            good = []
+            for b in range(8):
+                x = S[:, b, :5]
+                x = x[0] + _wrap(x - x[0])
+                room = slack + 0.5 * (x.max(0) - x.min(0))
+                if O[:, b].all() and np.all(lim - np.abs(x).max(0) >= room - 1e-12):
+                    good.append(b)
+            for i, a in enumerate(good):
+                for b in good[i + 1:]:
+                    dq = S[:, a, 5] - S[:, b, 5]
+                    u = dq[0] % (2 * np.pi) + _wrap(dq - dq[0] % (2 * np.pi))
+                    room = gap + 2 * slack + 0.5 * (u.max() - u.min())
+                    expect[v, d] |= u.min() >= room and u.max() <= 2 * np.pi - room
+    np.testing.assert_array_equal(got, expect)
+    assert 0 < got.sum() < got.size
+
+
+def test_direction_neighbours_are_symmetric_and_near():
+    d = cm.golden_spiral(100)
+    nb = cm.direction_neighbours(d)
+    assert np.all(nb[:, 0] == np.arange(100))
+    assert all(a in nb[b] for a in range(100) for b in nb[a])
+    assert 5 <= min(len(set(r)) - 1 for r in nb) and max(len(set(r)) - 1 for r in nb) <= 8
+    # every direction's Voronoi cell lies closer to it than its farthest neighbour
+    cos = np.einsum("ij,ikj->ik", d, d[nb]).min(axis=1)
+    assert np.all(np.arccos(cos) < 0.6)
+
+
+def test_schema_1_maps_are_refused_naming_the_file(coarse, tmp_path):
+    path = tmp_path / "old.h5"
+    coarse.save(path)
+    with h5py.File(path, "a") as f:
+        f.attrs["schema_version"] = 1
+    with pytest.raises(InputError, match="old.h5.*rebuild"):
+        cm.load(path)
+
+
+def test_cell_and_slack_are_validated():
+    with pytest.raises(InputError, match="cell"):
+        cm.make_params(0.1, 10, cell="corner")
+    with pytest.raises(InputError, match="slack"):
+        cm.make_params(0.1, 10, cell="centre", slack=0.1)
+    assert cm.make_params(0.1, 10).key() != cm.make_params(0.1, 10, cell="centre").key()

@@ -1,0 +1,95 @@
+import numpy as np
+import pytest
+from pydrake.systems.framework import DiagramBuilder
+
+from implantplan.systems.errors import InputError
+from implantplan.systems.frames import rotation_angle
+from implantplan.systems.teleop.head_motion import HeadMotion, HeadMotionSource
+
+T = np.linspace(0.0, 6.0, 6001)
+PIVOT = np.array([0.3, -0.1, 0.8])
+
+
+def _u(m, t=T):
+    return m.D(t)[:, :3, 3] - (PIVOT - m.D(t)[:, :3, :3] @ PIVOT)
+
+
+@pytest.mark.parametrize("profile", ["breathing", "swallow", "startle", "drift"])
+def test_profiles_are_seeded_and_start_at_rest(profile):
+    a, b = HeadMotion.make(profile, seed=3, pivot=PIVOT), HeadMotion.make(profile, seed=3,
+                                                                           pivot=PIVOT)
+    c = HeadMotion.make(profile, seed=4, pivot=PIVOT)
+    np.testing.assert_array_equal(a.D(T), b.D(T))
+    assert not np.allclose(a.D(T), c.D(T))
+    np.testing.assert_allclose(a.D(0.0)[0], np.eye(4), atol=1e-15)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_amplitudes_and_timing_match_the_issue(seed):
+    br = HeadMotion.make("breathing", seed=seed, pivot=PIVOT)
+    ptp = np.linalg.norm(_u(br), axis=1).max()
+    assert 0.001 - 1e-9 <= ptp <= 0.002 + 1e-9
+    assert 0.2 <= br.params["frequency_hz"] <= 0.3
+    sw = HeadMotion.make("swallow", seed=seed, pivot=PIVOT)
+    on = sw.params["onset_s"]
+    d = np.linalg.norm(_u(sw), axis=1)
+    assert 0.003 - 1e-9 <= d.max() <= 0.005 + 1e-9
+    assert T[np.argmax(d)] == pytest.approx(on + 0.5, abs=2e-3)  # up within 0.5 s
+    assert d[T > on + 1.0].max() < 1e-9 and d[T < on].max() == 0.0  # and back
+    st = HeadMotion.make("startle", seed=seed, pivot=PIVOT)
+    on = st.params["onset_s"]
+    X = st.D(np.array([on, on + 0.2, on + 1.0]))
+    jump = np.linalg.norm(_u(st, np.array([on + 0.2]))[0])
+    assert 0.005 - 1e-9 <= jump <= 0.010 + 1e-9
+    angle = np.rad2deg(rotation_angle(X[1, :3, :3]))
+    assert 2.0 - 1e-6 <= angle <= 4.0 + 1e-6
+    np.testing.assert_allclose(X[1], X[2], atol=1e-12)  # stays where it went
+    dr = HeadMotion.make("drift", seed=seed, pivot=PIVOT)
+    per_min = np.linalg.norm(_u(dr, np.array([60.0]))[0])
+    assert 0.002 - 1e-9 <= per_min <= 0.005 + 1e-9
+
+
+@pytest.mark.parametrize("profile", ["breathing", "swallow", "startle"])
+def test_velocity_is_the_derivative_of_the_pose(profile):
+    m = HeadMotion.make(profile, seed=1, pivot=PIVOT)
+    point = PIVOT + np.array([0.02, 0.05, -0.03])
+    t = np.linspace(0.5, 4.0, 3501)
+    X = m.D(t)
+    p = X[:, :3, :3] @ point + X[:, :3, 3]
+    v_fd = np.gradient(p, t, axis=0)
+    V = m.velocity(t, point)
+    np.testing.assert_allclose(V[1:-1, 3:], v_fd[1:-1], atol=2e-4)
+
+
+def test_csv_round_trip_and_errors(tmp_path):
+    m = HeadMotion.make("startle", seed=2, pivot=PIVOT)
+    t = np.linspace(0.0, 5.0, 501)
+    path = m.save_csv(tmp_path / "head.csv", t)
+    r = HeadMotion.make(str(path), pivot=PIVOT)
+    assert r.profile == "csv"
+    np.testing.assert_allclose(r.D(t), m.D(t), atol=1e-8)
+    (tmp_path / "bad.csv").write_text("t_s,x_m\n0,1\n1,2\n")
+    with pytest.raises(InputError, match="7 columns"):
+        HeadMotion.make(str(tmp_path / "bad.csv"))
+    (tmp_path / "back.csv").write_text("h\n1,0,0,0,0,0,0\n0,0,0,0,0,0,0\n")
+    with pytest.raises(InputError, match="increasing"):
+        HeadMotion.from_csv(tmp_path / "back.csv")
+    with pytest.raises(InputError, match="--head-motion"):
+        HeadMotion.make("sneeze")
+
+
+def test_source_outputs_the_moved_head_frame():
+    m = HeadMotion.make("startle", seed=5, pivot=PIVOT)
+    X0 = np.eye(4)
+    X0[:3, 3] = PIVOT + [0.0, 0.01, 0.02]
+    builder = DiagramBuilder()
+    src = builder.AddSystem(HeadMotionSource(m, X0))
+    diagram = builder.Build()
+    ctx = diagram.CreateDefaultContext()
+    t = m.params["onset_s"] + 0.1
+    ctx.SetTime(t)
+    sc = src.GetMyContextFromRoot(ctx)
+    X = src.GetOutputPort("X_WHead").Eval(sc).GetAsMatrix4()
+    np.testing.assert_allclose(X, m.D(t)[0] @ X0, atol=1e-12)
+    V = src.GetOutputPort("V_WHead").Eval(sc)
+    np.testing.assert_allclose(V, m.velocity(t, X0[:3, 3])[0], atol=1e-12)

@@ -1,0 +1,171 @@
+import numpy as np
+import pytest
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.primitives import LogVectorOutput
+
+from implantplan.systems.errors import InputError
+from implantplan.systems.frames import rotation_angle
+from implantplan.systems.teleop.head_motion import HeadMotion, HeadMotionSource
+from implantplan.systems.teleop.tracker import (
+    Tracker,
+    TrackerParams,
+    camera_noise,
+    camera_samples,
+    predict_pose,
+)
+
+PIVOT = np.array([0.2, 0.0, 0.7])
+
+
+def _run(params, motion, t_end, dt=0.005):
+    """Simulate source -> tracker; sample the tracker's outputs every dt."""
+    X0 = np.eye(4)
+    X0[:3, 3] = PIVOT
+    builder = DiagramBuilder()
+    src = builder.AddSystem(HeadMotionSource(motion, X0))
+    trk = builder.AddSystem(Tracker(params, X0))
+    builder.Connect(src.GetOutputPort("X_WHead"), trk.GetInputPort("X_WHead"))
+    lost = LogVectorOutput(trk.GetOutputPort("lost"), builder, dt)
+    vel = LogVectorOutput(trk.GetOutputPort("V_WHead_estimated"), builder, dt)
+    diagram = builder.Build()
+    sim = Simulator(diagram)
+    ctx = sim.get_mutable_context()
+    times = np.arange(1, int(round(t_end / dt)) + 1) * dt
+    est, pred = [], []
+    for t in times:
+        sim.AdvanceTo(t)
+        est.append(trk.estimate(trk.GetMyContextFromRoot(ctx)))
+        pred.append(trk.predicted(trk.GetMyContextFromRoot(ctx)))
+    n = len(times)  # the loggers' samples at the same times (theirs start at 0)
+    return (times, lost.FindLog(ctx).data()[0][1:n + 1], vel.FindLog(ctx).data().T[1:n + 1],
+            np.array(est), X0, np.array(pred))
+
+
+def test_noise_is_seeded_and_has_the_stated_spread():
+    p = TrackerParams(seed=7)
+    ticks = np.arange(4000)
+    a, b = camera_noise(p, ticks), camera_noise(p, ticks)
+    np.testing.assert_array_equal(a, b)
+    assert not np.allclose(a, camera_noise(TrackerParams(seed=8), ticks))
+    np.testing.assert_allclose(a[:, 3:].std(axis=0), p.noise_position, rtol=0.08)
+    np.testing.assert_allclose(a[:, :3].std(axis=0), p.noise_angle, rtol=0.08)
+    X = camera_samples(p, np.repeat(np.eye(4)[None], 4000, axis=0), ticks)
+    err = np.linalg.norm(X[:, :3, 3], axis=1) + p.reach * rotation_angle(X[:, :3, :3])
+    assert np.mean(err > p.error_bound()) < 0.01
+
+
+@pytest.mark.parametrize("rate,latency", [(30.0, 0.02), (60.0, 0.05), (40.0, 0.03)])
+def test_estimate_lags_by_the_latency_at_the_camera_rate(rate, latency):
+    motion = HeadMotion.make("startle", seed=1, pivot=PIVOT)
+    on = motion.params["onset_s"]
+    p = TrackerParams(rate=rate, latency=latency, noise_position=0.0, noise_angle=0.0)
+    t, lost, V, est, X0, _ = _run(p, motion, on + 0.5)
+    assert not lost.any()
+    for k in range(0, len(t), 7):
+        # the newest camera tick at or before t - latency
+        tick = np.floor((t[k] - latency) * rate + 1e-6) / rate
+        if tick < 0:
+            np.testing.assert_allclose(est[k], X0, atol=1e-12)
+            continue
+        np.testing.assert_allclose(est[k], motion.D(tick)[0] @ X0, atol=1e-9)
+    # the velocity estimate sees the startle (>= 30 mm/s) only after it started + latency
+    speed = np.linalg.norm(V[:, 3:], axis=1)
+    first = t[np.argmax(speed > 0.03)]
+    assert on + latency < first < on + 0.2 + latency
+
+
+def test_dropout_raises_lost_and_holds_the_last_estimate():
+    motion = HeadMotion.make("breathing", seed=2, pivot=PIVOT)
+    p = TrackerParams(rate=40.0, latency=0.03, dropouts=((1.0, 1.5),), seed=3)
+    t, lost, V, est, X0, _ = _run(p, motion, 2.5)
+    assert not lost[t < 1.0 + p.latency - 1e-9].any()
+    assert lost[(t > 1.0 + p.latency + p.period) & (t < 1.5 + p.latency)].all()
+    assert not lost[t > 1.5 + p.latency + p.period].any()
+    held = est[(t > 1.0 + p.latency + p.period) & (t < 1.5 + p.latency)]
+    np.testing.assert_array_equal(held, np.repeat(held[:1], len(held), axis=0))
+
+
+def _samples(times, X):
+    """Rows [t, good, p, R] of poses X (n, 4, 4) at ``times``."""
+    return np.array([[t, 1.0, *Xi[:3, 3], *Xi[:3, :3].ravel()]
+                     for t, Xi in zip(times, X, strict=True)])
+
+
+def _constant_twist(t, w, v):
+    """(n, 4, 4) poses moving at the constant World twist [w; v] from a tilted start."""
+    from implantplan.systems.frames import rotations
+
+    R0 = rotations(np.array([[0.1, -0.2, 0.3]]))[0]
+    X = np.repeat(np.eye(4)[None], len(t), axis=0)
+    X[:, :3, :3] = rotations(np.outer(t, w)) @ R0
+    X[:, :3, 3] = PIVOT + np.outer(t, v)
+    return X
+
+
+@pytest.mark.parametrize("k", [2, 3, 6])
+def test_prediction_is_exact_for_a_constant_twist_outside_the_dead_zone(k):
+    w, v = np.array([0.0, 0.0, 0.5]), np.array([0.05, -0.02, 0.01])  # 0.5 rad/s, 55 mm/s
+    times = np.arange(k) / 40.0
+    X = _constant_twist(times, w, v)
+    t_now = times[-1] + 0.045
+    # no dead zone: the line through the samples carried to t_now
+    got = predict_pose(_samples(times, X), t_now, (0.0, 0.0))
+    want = _constant_twist(np.array([t_now]), w, v)[0]
+    np.testing.assert_allclose(got[:3, 3], want[:3, 3], atol=1e-12)
+    # the rotation vector of a small relative rotation is taken to first order (sin x ~ x)
+    assert rotation_angle((got[:3, :3] @ want[:3, :3].T)[None])[0] < 1e-4
+    # a dead zone shortens the extrapolated slope by the gate (m/s) and never turns it around
+    gate = 0.02
+    got = predict_pose(_samples(times, X), t_now, (gate, 0.0))
+    shrunk = v * (1 - gate / np.linalg.norm(v))
+    np.testing.assert_allclose(got[:3, 3], X[-1, :3, 3] + shrunk * 0.045, atol=1e-12)
+    got = predict_pose(_samples(times, X), t_now, (1.0, 0.0))
+    np.testing.assert_allclose(got[:3, 3], X[-1, :3, 3], atol=1e-12)
+
+
+def test_prediction_adds_no_noise_to_a_still_head_and_follows_a_startle():
+    p = TrackerParams(seed=4)
+    ticks = np.arange(3000)
+    X = camera_samples(p, np.repeat(np.eye(4)[None], len(ticks), axis=0), ticks)
+    rows = _samples(ticks / p.rate, X)
+    k = p.predict_samples
+    pred = np.array([predict_pose(rows[i - k + 1:i + 1], rows[i, 0] + p.latency, p.gates())
+                     for i in range(k, len(rows))])
+    # the still head's fitted slope stays in the dead zone: the prediction is the line's value
+    # at the newest sample, spread no wider than a single sample's noise
+    assert pred[:, :3, 3].std(axis=0).max() <= p.noise_position
+    assert np.mean(np.linalg.norm(pred[:, :3, 3], axis=1) > p.error_bound()) < 0.01
+    # in the loop, noise-free: during a startle the prediction is nearer the true pose than the
+    # delayed estimate (what the arm following the mouth gains)
+    motion = HeadMotion.make("startle", seed=1, pivot=PIVOT)
+    on = motion.params["onset_s"]
+    q = TrackerParams(noise_position=0.0, noise_angle=0.0)
+    t, lost, V, est, X0, pred = _run(q, motion, on + 0.4)
+    true = motion.D(t) @ X0
+    e_est = np.linalg.norm(est[:, :3, 3] - true[:, :3, 3], axis=1)
+    e_pred = np.linalg.norm(pred[:, :3, 3] - true[:, :3, 3], axis=1)
+    assert e_pred.max() < 0.7 * e_est.max()
+    # without prediction the output is the estimate
+    t, lost, V, est, X0, pred = _run(TrackerParams(predict_samples=0), motion, on + 0.4)
+    np.testing.assert_array_equal(pred, est)
+
+
+def test_prediction_never_extrapolates_across_a_dropout():
+    motion = HeadMotion.make("breathing", seed=2, pivot=PIVOT)
+    p = TrackerParams(rate=40.0, latency=0.03, dropouts=((1.0, 1.5),), seed=3)
+    t, lost, V, est, X0, pred = _run(p, motion, 2.0)
+    gap = (t > 1.0 + p.latency + 2 * p.period + 1e-6) & (t < 1.5 + p.latency)
+    assert gap.any()
+    np.testing.assert_array_equal(pred[gap], est[gap])
+
+
+def test_bad_settings_are_input_errors():
+    with pytest.raises(InputError, match="tracker.rate"):
+        TrackerParams(rate=100.0)
+    with pytest.raises(InputError, match="tracker.latency"):
+        TrackerParams(latency=-0.01)
+    with pytest.raises(InputError, match="tracker.dropouts"):
+        TrackerParams(dropouts=((2.0, 1.0),))
+    with pytest.raises(InputError, match="tracker.predict_samples"):
+        TrackerParams(predict_samples=1)
