@@ -20,7 +20,7 @@ Prints, measured side by side in one run:
    perturbed by up to 10 deg and 20 mm): false-free (must be 0) and false-reject counts, for
    the new model and for the old capsules.
 
-Full-scale figures of issue 11: ``python -m implantplan.analyses.bench_moprp --agreement-bases
+Full-scale figures: ``python -m implantplan.analyses.bench_moprp --agreement-bases
 100 --per-base 500`` (100,000 random configurations + the near-target ones).
 
 The issue's reference numbers: pymoo NSGA-II ~56 s of its own bookkeeping at 500 x 500, pygmo
@@ -36,11 +36,12 @@ import time
 
 import numpy as np
 
+from implantplan.systems import seeds
 from implantplan.systems.robot import collision_primitives as cp
 from implantplan.systems.robot import moprp
 from implantplan.systems.robot.nsga2 import hypervolume, nsga2
 
-# The old hand-written capsule model (before issue 11), reconstructed for the comparison only:
+# The old hand-written capsule model (before the generated one), reconstructed for the comparison:
 # DESIGN.md section 8's primitives as capsules, the actuator as capsules, a hand list of self
 # pairs and of parts tested against the environment.
 # Its arm capsules: the cylinder housings' segments over the middle ~70% of the cylinder (the rims
@@ -263,7 +264,7 @@ def main(argv=None) -> int:
           f"difference {diff:.2e}")
 
     if not args.skip_paper_run:
-        r, t_front, r2, hv2 = paper_run(sc, seed=sc.seed + 1)
+        r, t_front, r2, hv2 = paper_run(sc, seed=seeds.seed(sc.seed, moprp.STREAM_NSGA))
         print(f"\n== paper setting {sc.pop} x {sc.gen} ({sc.name})")
         print(f"total               : {r.seconds_total:8.2f} s   front {r.front.size}")
         print(f"problem evaluation  : {r.seconds_eval:8.2f} s   "

@@ -20,7 +20,7 @@ Run: ``python -m implantplan.analyses.bench_placement [--fpsm FPSM.json --hole-m
    ``Fpsm.line_safety`` once per rod; with the ratios (target >= 100,000 rods/s). The rod
    radius is ``--fpsm-rod-radius-mm`` when an FPSM is given, else ``--rod-radius-mm``.
 
-3. The sound tool clearance (issue 12) beside FCL's exact capsule-vs-mesh collide on the same
+3. The sound tool clearance beside FCL's exact capsule-vs-mesh collide on the same
    random rods of the real cavity, with Eq. 12 for reference and the whole tool's single-query
    latency (``--sound-rods``, ``--fcl-rods``; ``--no-sound`` skips it).
 
@@ -245,7 +245,7 @@ TARGET_SOUND_OVER_FCL = 20.0
 
 
 def bench_sound(n: int, n_fcl: int, repeats: int) -> str:
-    """The sound clearance (issue 12) beside FCL's exact capsule-vs-mesh collide on the same
+    """The sound clearance beside FCL's exact capsule-vs-mesh collide on the same
     rods of the default case's real cavity (analyses.studies.rod_check's random rods), and the
     single-query latency of the whole tool (the 200 Hz / 1 kHz path)."""
     import os
@@ -283,7 +283,7 @@ def bench_sound(n: int, n_fcl: int, repeats: int) -> str:
     one_s, _ = _median(lambda: [tc.one(X) for _ in range(1000)], repeats)
     safe_fcl = int(np.sum((c[:k] > 0) & hit))
     return "\n".join([
-        "\n== sound tool clearance (issue 12) vs FCL exact collide, same rods ==",
+        "\n== sound tool clearance vs FCL exact collide, same rods ==",
         f"load average {os.getloadavg()[0]:.2f}; real cavity, {n:,} rods (radius 2-8 mm, "
         f"within 60 deg of the opening axis, half near the walls); FCL on the first {k:,}",
         f"field build (once per FPSM): {build:.2f} s",

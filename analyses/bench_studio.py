@@ -1,4 +1,4 @@
-"""Benchmark: the studio's responsiveness (issue 14 targets: slider change -> updated indices
+"""Benchmark: the studio's responsiveness (targets: slider change -> updated indices
 <= 100 ms; the teleop loop >= 5x real time at rate 1.0).
 
 Run: ``python -m implantplan.analyses.bench_studio --plan DIR [--moves N] [--seconds T]``

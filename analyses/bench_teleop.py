@@ -2,7 +2,7 @@
 
 Run: ``python -m implantplan.analyses.bench_teleop [--runs K] [--seed S] [--case default|cylinder]``
 
-Prints, side by side in one run (targets from issue 12: safety layer <= 50 us per 200 Hz step,
+Prints, side by side in one run (targets: safety layer <= 50 us per 200 Hz step,
 kinematic >= 20x real time, dynamic >= 5x):
 
 - **the safety layer per 200 Hz step** (``timeit.repeat``, best of 7, over the poses and commands
@@ -222,7 +222,7 @@ def main(argv=None) -> int:
     parser.add_argument("--case", choices=("default", "cylinder"), default="default",
                         help="default: site 36 of the bundled case; cylinder: seed 000's check")
     parser.add_argument("--head-motion", help="also time the kinematic diagram with this head "
-                        "motion on (breathing|swallow|startle|drift; issue 16: target >= 5x)")
+                        "motion on (breathing|swallow|startle|drift; target >= 5x)")
     args = parser.parse_args(argv)
 
     if args.case == "default":
@@ -305,7 +305,7 @@ def main(argv=None) -> int:
     for mode, full, bare in rows:
         target = ">= 20x" if mode == "kinematic" else ">= 5x"
         print(f"{mode:<10} {full:>13.1f}x {bare:>10.1f}x {full / bare:>10.2f} {target:>8}")
-    print("before issue 12 (issue author): kinematic 7-9x, bare loop 58x")
+    print("before the safety layer (measured then): kinematic 7-9x, bare loop 58x")
     print()
     print(
         f"Python systems in the kinematic runs ({kin_sim:.1f} s simulated, "

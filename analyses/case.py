@@ -69,7 +69,7 @@ class Case:
     sim_mode: str
     site_tolerance: float = 1e-3  # m: largest distance of a site from the scanned tissue
     extra: dict = field(default_factory=dict)
-    # safety (issue 12): clinical margin, the fixture's admissible region, registration error
+    # safety: clinical margin, the fixture's admissible region, registration error
     clearance_margin: float = 0.001
     lateral_tolerance: float = 0.0005
     angle_tolerance: float = float(np.radians(1.0))

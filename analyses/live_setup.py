@@ -35,7 +35,7 @@ from pydrake.systems.analysis import Simulator
 from implantplan.analyses import pipeline
 from implantplan.diagrams.arm_clearance import SceneGraphClearance, confirm_feed
 from implantplan.diagrams.teleop import X_ET, FeedRun, TeleopCase, build_teleop, simulate
-from implantplan.systems import actuator
+from implantplan.systems import actuator, seeds
 from implantplan.systems.capability import maps as cm
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import read_json
@@ -120,7 +120,7 @@ def load_plan(folder, *, field: str = "--plan", reference: bool = True) -> Studi
         raise InputError(field, f"{path}: its scenario {plan['frames']['scenario']!r} cannot "
                          f"be loaded by name ({exc})") from None
     seed = int(plan["case"]["seed"])
-    sc = dataclasses.replace(sc, seed=seed)
+    sc = dataclasses.replace(sc, seed=seeds.seed(seed, seeds.ROBOT))  # as the plan's robot stage
     fpsm = Fpsm.load(path.parent / plan["fpsm"]["file"], field=f"{field} fpsm")
     X_WO_inv = invert(sc.X_WO)
     X_OT = np.array([X_WO_inv @ np.asarray(s["feeding_target"]["X_WT"], dtype=float)
@@ -178,7 +178,7 @@ def evaluate_layout(sp: StudioPlan, xyz) -> Layout:
     if not np.all(np.isfinite(xyz)):
         raise InputError("base_xyz", f"expected finite coordinates (m), got {xyz}")
     sc = sp.sc
-    rng = np.random.default_rng(sp.seed)
+    rng = moprp.evaluation_rng(sc)
     evs = [moprp.evaluate_bases(xyz[None], sc, rng, model=sp.model, X_OT=T) for T in sp.X_OT]
     F, _ = pipeline.combine_sites(evs)
     branch = np.array([int(e.branch[0]) for e in evs])

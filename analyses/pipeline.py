@@ -6,8 +6,7 @@
 
 Each stage takes what the previous one made and returns plain results; the ``plan`` command
 (analyses.plan) writes them out and builds the report. Stages call cores only (systems, diagrams,
-analyses.case), never a command module (tests/test_layers.py; the one listed exception,
-robot_place.initial_population, leaves with issue 11's single MOPRP search).
+analyses.case), never a command module (tests/test_layers.py).
 """
 
 from __future__ import annotations
@@ -23,7 +22,7 @@ from implantplan.analyses.case import Case
 from implantplan.diagrams.arm_clearance import SceneGraphClearance, confirm_feed
 from implantplan.diagrams.feeding import run_feeding
 from implantplan.diagrams.teleop import TeleopCase
-from implantplan.systems import actuator
+from implantplan.systems import actuator, seeds
 from implantplan.systems.capability import maps as cm
 from implantplan.systems.errors import InputError, PlanningFailure
 from implantplan.systems.fpsm.fit import fit_fpsm
@@ -120,7 +119,7 @@ def placement_stage(case: Case, fpsm: Fpsm, *, progress=None, require_valid: boo
                 rod_radius=site.rod_radius,
                 implant_length=site.implant_length,
                 objective=case.objective,
-                seed=case.seed + k,
+                seed=seeds.seed(case.seed, seeds.PLACEMENT, k),
                 tool=ToolGeometry(rod_radius=site.rod_radius,
                                   implant_length=site.implant_length),
                 lateral_tolerance=case.lateral_tolerance,
@@ -141,7 +140,7 @@ def placement_stage(case: Case, fpsm: Fpsm, *, progress=None, require_valid: boo
                                             implant_length=site.implant_length),
                 depth=p.verification["feed_depth"], sigma_translation=reg["sigma_translation"],
                 sigma_rotation=reg["sigma_rotation"], samples=reg["samples"],
-                seed=case.seed + k)
+                seed=seeds.seed(case.seed, seeds.PLACEMENT, k, 1))
         if require_valid and not p.valid:
             raise PlanningFailure(f"site {site.name}: no collision-free instrument placement "
                                   f"({p.reason})", result={"site": site.name, **p.to_dict()})
@@ -210,7 +209,7 @@ def percentile_reference(sc, evaluate) -> np.ndarray:
     """Indices (n, 3) of up to ``sc.percentile_samples`` uniformly random bases in the bounds that
     serve every site (``evaluate(X, rng) -> (F, violation)``), seeded by the scenario: what the
     selection's percentile ranks are taken against (the plan and the studio)."""
-    rng_pct = np.random.default_rng(sc.seed + 2)
+    rng_pct = seeds.rng(sc.seed, moprp.STREAM_PERCENTILES)
     F_rand = []
     for _ in range(20):
         Xr = sc.lower + rng_pct.random((2000, 3)) * (sc.upper - sc.lower)
@@ -228,7 +227,8 @@ def robot_stage(case: Case, placements: list[Placement], *, progress=None) -> Ro
     and a base is feasible only if every site has a surviving branch."""
     t0 = time.perf_counter()
     sc = moprp.load_scenario(case.scenario, X_FT=actuator.X_FT())
-    sc = dataclasses.replace(sc, pop=case.pop, gen=case.gen, seed=case.seed)
+    sc = dataclasses.replace(sc, pop=case.pop, gen=case.gen,
+                             seed=seeds.seed(case.seed, seeds.ROBOT))
     X_OC = center_in_oral(case.posture, placements)
     targets = np.array([X_OC @ p.X_CT for p in placements])
     model = moprp.collision_model(sc)
@@ -259,10 +259,10 @@ def robot_stage(case: Case, placements: list[Placement], *, progress=None) -> Ro
     res = moprp.search(sc, evaluate, explain=explain, on_start=on_start, on_generation=on_gen)
     Xf, F = res.X, res.F
     # SceneGraph confirms the selection along every site's whole feed; a base that fails is
-    # dropped and the next-ranked one taken (issue 11 item 2)
+    # dropped and the next-ranked one taken
     dropped = 0
     for k in moprp.selection_order(F):
-        evs = _site_evaluations(Xf[k : k + 1], sc, np.random.default_rng(sc.seed), targets,
+        evs = _site_evaluations(Xf[k : k + 1], sc, moprp.evaluation_rng(sc), targets,
                                 model)
         checker = SceneGraphClearance(sc, Xf[k])
         feeds = [confirm_feed(checker, sc, int(e.branch[0]), X_OT=T)
@@ -392,7 +392,8 @@ def simulation_stage(case: Case, fit: FitResult, placements: list[Placement],
     out = []
     for k, (site, tc) in enumerate(zip(case.sites, teleop_cases(case, fit, placements, robot),
                                        strict=True)):
-        res = run_feeding(tc, runs=runs, seed=case.seed + k, mode=case.sim_mode)
+        res = run_feeding(tc, runs=runs, seed=seeds.seed(case.seed, seeds.FEEDING, k),
+                          mode=case.sim_mode)
         res["site"] = site.name
         out.append(res)
         if progress is not None:

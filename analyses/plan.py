@@ -33,11 +33,12 @@ from implantplan.analyses.case import Case, default_case_path, load_case
 from implantplan.analyses.figures.plan import make_figures
 from implantplan.analyses.progress import Progress
 from implantplan.analyses.provenance import provenance
+from implantplan.systems import seeds
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import write_json
 
 DEMO_OUT = "out/implantplan-demo"  # out/ is where every README command writes
-# Pass/fail limits of the checks (DESIGN.md section 4 and issue 6 acceptance figures).
+# Pass/fail limits of the checks (DESIGN.md section 4).
 
 
 def register(subparsers) -> None:
@@ -238,7 +239,9 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims, sites_checked) -> d
                                         neighbourhood_index=cap.neighbourhood_index[k])
         checks += checks_.feeding_checks(n, sim["runs"] if sim is not None else [])
     return {
-        "case": {"name": case.name, "source": str(case.source), "seed": case.seed},
+        "case": {"name": case.name, "source": str(case.source), "seed": case.seed,
+                 "random_streams": "numpy SeedSequence(seed) spawned per stage ("
+                                   + ", ".join(seeds.STAGES) + ") and site (systems.seeds)"},
         "fpsm": {
             "file": "fpsm.json",
             "slices": fit.fpsm.slices,

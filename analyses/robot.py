@@ -50,7 +50,7 @@ import numpy as np
 
 from implantplan.analyses.figures.robot import plot_placement
 from implantplan.analyses.progress import Progress
-from implantplan.systems import validate
+from implantplan.systems import seeds, validate
 from implantplan.systems.errors import InputError, PlanningFailure
 from implantplan.systems.files import read_json, write_json
 from implantplan.systems.frames import wrap_angle
@@ -249,7 +249,7 @@ def _explain(sc: moprp.Scenario, ik_solver):
 
 
 def confirm_front(sc: moprp.Scenario, Xf, ev: moprp.BaseEvaluation, order) -> dict:
-    """SceneGraph confirmation of what the placement reports (issue 11 item 2): each front
+    """SceneGraph confirmation of what the placement reports: each front
     member's pre-feed and target configurations, and for the selection its whole feed (steps
     of at most 1 mm / 0.5 deg); candidates are tried in ``order`` (the selection rule's ranking)
     and the first whose feed is clear is selected.
@@ -291,8 +291,9 @@ def run_placement(sc: moprp.Scenario, *, ik: str = "closed-form", weights=None,
     t_start = time.perf_counter()
     ik_solver = moprp.ik_closed_form
     if ik == "drake":
-        ik_solver = drake_ik_solver(starts=drake_starts, seed=sc.seed, limits=sc.limits,
-                                    X_FT=sc.X_FT, scenario=sc)
+        ik_solver = drake_ik_solver(starts=drake_starts,
+                                    seed=seeds.seed(sc.seed, moprp.STREAM_DRAKE_IK),
+                                    limits=sc.limits, X_FT=sc.X_FT, scenario=sc)
     elif ik != "closed-form":
         raise InputError("--ik", f"expected closed-form or drake, got {ik!r}")
     evaluate = moprp.problem(sc, ik_solver=ik_solver)
@@ -311,7 +312,7 @@ def run_placement(sc: moprp.Scenario, *, ik: str = "closed-form", weights=None,
 
     # branches and q of the front (fixed generator), then SceneGraph confirms what is reported
     Xf = res.X
-    ev = moprp.evaluate_bases(Xf, sc, np.random.default_rng(sc.seed), ik_solver=ik_solver)
+    ev = moprp.evaluate_bases(Xf, sc, moprp.evaluation_rng(sc), ik_solver=ik_solver)
     t0 = time.perf_counter()
     conf = confirm_front(sc, Xf, ev, moprp.selection_order(ev.objectives, weights))
     t_confirm = time.perf_counter() - t0
@@ -333,12 +334,12 @@ def run_placement(sc: moprp.Scenario, *, ik: str = "closed-form", weights=None,
 
     # percentile ranks against random feasible bases (closed form: the reference population)
     t0 = time.perf_counter()
-    rng_pct = np.random.default_rng(sc.seed + 2)
+    rng_pct = seeds.rng(sc.seed, moprp.STREAM_PERCENTILES)
     X_rand, F_rand = moprp.random_feasible(sc, sc.percentile_samples, rng_pct)
     pct = moprp.percentiles(ev.objectives[sel], F_rand)
-    ev_rand = moprp.evaluate_bases(X_rand, sc, np.random.default_rng(sc.seed + 3))
+    ev_rand = moprp.evaluate_bases(X_rand, sc, seeds.rng(sc.seed, moprp.STREAM_RANDOM_EVALUATE))
     ang = ev_rand.angular_error_range[np.isfinite(ev_rand.angular_error_range)]
-    g = moprp.gii(Xf[sel], int(ev.branch[sel]), sc, np.random.default_rng(sc.seed + 4))
+    g = moprp.gii(Xf[sel], int(ev.branch[sel]), sc, seeds.rng(sc.seed, moprp.STREAM_GII))
     t_post = time.perf_counter() - t0
 
     selected = _entry(Xf, ev, sel)

@@ -58,7 +58,7 @@ from implantplan.diagrams.feeding import (  # the case and the runs (bench_teleo
     run_circle,
     run_feeding,
 )
-from implantplan.systems import actuator, validate
+from implantplan.systems import actuator, seeds, validate
 from implantplan.systems.errors import InputError, PlanningFailure
 from implantplan.systems.files import read_json, write_json, write_text_atomic
 from implantplan.systems.fpsm.model import Fpsm
@@ -151,7 +151,7 @@ def analyze_layouts(
     sc, sc_plant = load_scenario(scenario)
     scene = _scene_name(sc)
     xyz_sel, b_sel, source = select_layout(sc, seed=seed, robot_placement=robot_placement)
-    rng = np.random.default_rng(seed + 1)
+    rng = seeds.rng(seed, 1)
     xyz_r, _ = moprp.random_feasible(sc, 4 * random_layouts, rng)
     ev = moprp.evaluate_bases(xyz_r, sc, rng)
     layouts = [("win", xyz_sel, b_sel)]

@@ -3,7 +3,7 @@
 ``ComputeSignedDistancePairwiseClosestPoints`` on the scenario's plant (:func:`diagrams.plant.
 build_plant`, the base welded where the planner put it) over every pair SceneGraph does not
 filter: the arm and actuator against themselves, the cart, the patient and the chair. This is
-what the planner's reported configurations are confirmed with (issue 11 item 2): the selected
+what the planner's reported configurations are confirmed with: the selected
 base along its whole feed, every Pareto member written out; ``systems.robot.arm_collision`` is the
 fast conservative model checked against it.
 """

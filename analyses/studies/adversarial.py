@@ -1,4 +1,4 @@
-"""The adversarial-operator study of the safety layer on the default case (issue 12 acceptance).
+"""The adversarial-operator study of the safety layer on the default case.
 
 Run: ``python -m implantplan.analyses.studies.adversarial [--seeds 4] [--normal 3] [--no-fixture]
 [--json FILE]``
@@ -24,7 +24,7 @@ At every logged pose (200 Hz) of every run:
 - the fixture's body violation (the TCP and the rod's entry crossing against delta);
 - the supervisor's barrier h (the FPSM clearance at the desired pose).
 
-Pass (issue 12): exact clearance never below 0 nor below margin - 0.2 mm, fixture violation
+Pass: exact clearance never below 0 nor below margin - 0.2 mm, fixture violation
 below 0.5 mm, and every normal feed reaching the target (within 1 mm). The printed table has one
 row per kind; the JSON holds every run.
 """
@@ -44,6 +44,7 @@ from implantplan.analyses.studies.scan_reference import (  # noqa: F401  (the st
 )
 from implantplan.diagrams.feeding import FINISH_SECONDS, TARGET_TOLERANCE
 from implantplan.diagrams.teleop import TeleopCase, build_teleop, simulate
+from implantplan.systems import seeds as streams
 from implantplan.systems.files import write_json
 from implantplan.systems.teleop.adversarial_operator import KINDS, Directions, adversarial_motion
 from implantplan.systems.teleop.master_device import feeding_runs
@@ -91,7 +92,8 @@ def study(*, seeds: int = 4, normal: int = 3, seed: int = 0, barrier: Barrier | 
                                              seed=np.random.SeedSequence([seed, k, j, i])))
                 for j, kind in enumerate(kinds) for i in range(seeds)]
         todo += [("normal", i, m) for i, m in
-                 enumerate(feeding_runs(start, target, runs=normal, seed=seed + k))
+                 enumerate(feeding_runs(start, target, runs=normal,
+                                        seed=streams.seed(seed, k)))
                  if normal > 0]
         for kind, i, motion in todo:
             r = run_one(teleop, tc, motion, exact)

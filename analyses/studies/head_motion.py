@@ -1,9 +1,10 @@
-"""The awake patient study (issue 16; DESIGN.md section 7): seeded feeds under head motion.
+"""The awake patient study (DESIGN.md section 7): seeded feeds under head motion.
 
     implantplan analyze head-motion --out DIR [--runs 50] [--profiles breathing,swallow,...]
 
 Per profile, ``runs`` seeded runs (run i: operator motion i of ``feeding_runs(seed)``, head
-motion seed ``seed + i``, tracker noise seed ``seed + i``) on the default case, each three ways:
+motion and tracker noise on the streams (i, 0) and (i, 1) below ``seed``, systems.seeds) on
+the default case, each three ways:
 
 - *still*: the patient does not move (the reference path);
 - *following*: head motion on, tracker, the arm following the tracked mouth, the HeadGuard;
@@ -43,6 +44,7 @@ import trimesh
 
 from implantplan.diagrams import feeding as F
 from implantplan.diagrams.teleop import TeleopCase, build_teleop, simulate
+from implantplan.systems import seeds
 from implantplan.systems.errors import InputError
 from implantplan.systems.placement.exact_clearance import ExactCavity
 from implantplan.systems.teleop.head_guard import GuardSettings
@@ -198,9 +200,9 @@ def head_study(case: TeleopCase, inst, *, profiles=STUDY_PROFILES, runs: int = 5
     for prof in profiles:
         rows = []
         for i, m in enumerate(motions):
-            hm = HeadMotion.make(prof, seed=seed + i, pivot=pivot)
+            hm = HeadMotion.make(prof, seed=seeds.seed(seed, i, 0), pivot=pivot)
             T = m.duration + F.FINISH_SECONDS
-            trk = dataclasses.replace(base, seed=seed + i)
+            trk = dataclasses.replace(base, seed=seeds.seed(seed, i, 1))
             fol = simulate(build_teleop(case, head_motion=hm, tracker=trk), T, motion=m)
             ign = simulate(build_teleop(case, head_motion=hm, follow=False), T, motion=m)
             on = hm.params.get("onset_s") if prof == "startle" else None
@@ -399,7 +401,7 @@ def _never_below_zero(sites: dict) -> bool:
 def register_analysis(sub) -> None:
     """Add ``head-motion`` to the ``analyze`` subcommands (analyses.simulate)."""
     p = sub.add_parser("head-motion", help="the awake patient: seeded feeds under head motion, "
-                       "following vs ignoring the head, exact clearance (issue 16)")
+                       "following vs ignoring the head, exact clearance")
     p.add_argument("--runs", type=int, default=50, help="seeded runs per profile (default 50)")
     p.add_argument("--profiles", default=",".join(STUDY_PROFILES),
                    help="comma-separated profiles (default all four)")

@@ -1,4 +1,4 @@
-"""Acceptance of the sound rod clearance against the exact mesh (issue 12): random rods on the
+"""Acceptance of the sound rod clearance against the exact mesh: random rods on the
 real cavity and on transformed copies, the fast verdict against FCL.
 
 Run: ``python -m implantplan.analyses.studies.rod_check [--rods 100000] [--seed 0] [--variants

@@ -35,13 +35,6 @@ class PoseSpec:
         return transform(rpy_to_rotation(np.deg2rad(self.rpy_deg)), self.xyz)
 
 
-def parse_pose(d, where: str) -> np.ndarray:
-    """A :class:`PoseSpec` mapping -> 4x4."""
-    if not isinstance(d, dict):
-        raise InputError(where, "expected a mapping with 'xyz' (m) and optional 'rpy_deg'")
-    return v.parse(PoseSpec, d, where).X
-
-
 @dataclass(frozen=True)
 class BodySpec:
     arc_length: float = v.spec(v.positive)

@@ -162,16 +162,6 @@ class ExactCavity:
         c = self.capsule_clearance(A.reshape(-1, 3), B.reshape(-1, 3), np.tile(r, n))
         return c.reshape(n, C).min(axis=1)
 
-    def tool_collides(self, X_CTool, tool) -> np.ndarray:
-        """(n,) True where any capsule of the tool touches the mesh (FCL collide)."""
-        from implantplan.systems.placement.tool_clearance import rigid_poses, tool_capsules
-
-        X = rigid_poses(X_CTool)
-        A, B, r = tool_capsules(X, tool)
-        n, C = A.shape[:2]
-        hit = self.capsule_collides(A.reshape(-1, 3), B.reshape(-1, 3), np.tile(r, n))
-        return hit.reshape(n, C).any(axis=1)
-
 
 def registration_monte_carlo(
     exact: ExactCavity,
@@ -185,7 +175,7 @@ def registration_monte_carlo(
     seed: int = 0,
     depth_step: float = 0.004,
 ) -> dict:
-    """The planned feed under registration error of the Center frame (issue 12, item 6).
+    """The planned feed under registration error of the Center frame (item 6).
 
     Each sample draws an error E of Center's pose (translation ~ N(0, sigma_translation^2) per
     axis, rotation vector ~ N(0, sigma_rotation^2) per axis, about Center's origin): the robot

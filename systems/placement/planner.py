@@ -80,12 +80,13 @@ def hole_frame(hole_Center_m, axis_Center) -> np.ndarray:
         raise InputError("hole", f"expected 3 finite coordinates (m), got {t.tolist()}")
     z = unit(axis_Center, field="hole_axis")
     zy, zz = z[1], z[2]
-    n = np.hypot(zy, zz)
-    if n < 1e-9:  # D_hz (anti)parallel to Center x: Eq. 16 is 0/0
+    m = max(abs(zy), abs(zz))
+    if m == 0.0:  # D_hz (anti)parallel to Center x: Eq. 16 is 0/0
         x = np.array([0.0, 0.0, 1.0])
-    else:
+    else:  # Eq. 16, exact for any (zy, zz) != 0; scaled by m first so tiny values keep |x| = 1
         s = 1.0 if zy >= 0 else -1.0
-        x = np.array([0.0, -s * zz, abs(zy)]) / n  # Eq. 16
+        v = np.array([0.0, -s * zz / m, abs(zy) / m])
+        x = v / np.linalg.norm(v)
     R = np.stack([x, np.cross(z, x), z], axis=-1)  # Eq. 17
     return transform(R, t)
 
@@ -426,7 +427,7 @@ def verify_placement(
     exact=None,
     depth_step: float = 0.002,
 ) -> dict:
-    """Verify the whole admissible region of a placement (issue 12): the tool at every lateral
+    """Verify the whole admissible region of a placement: the tool at every lateral
     offset up to ``lateral`` and turn up to ``angle`` from the planned pose X_CT, at every depth
     of the feed (backed out along the rod axis until it is out of the mouth).
 

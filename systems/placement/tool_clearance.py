@@ -917,7 +917,7 @@ def feed_clearance(
     mouth opening). Clearance is 1-Lipschitz in s (a translation moves every point by |ds|), so
     sampled poses c_i at spacing t give min over the feed >= min_i (c_i + c_{i+1} - t) / 2.
 
-    The admissible region of the fixture (issue 12): the tool axis within ``lateral`` (m) of the
+    The admissible region of the fixture: the tool axis within ``lateral`` (m) of the
     planned line and its orientation within ``angle`` (rad) of the planned one, at every depth.
     Every body point then lies within ``lateral + angle * reach`` of its planned position, with
     reach its distance from the rod axis (0 on the rod, the head radius, the implant length), so

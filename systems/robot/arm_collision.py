@@ -1,6 +1,6 @@
 """The arm's fast conservative collision model, generated from the plant's collision geometry.
 
-One collision model of the arm (DESIGN.md section 5, issue 11): the shapes are read from the
+One collision model of the arm (DESIGN.md section 5): the shapes are read from the
 model files the Drake plant loads (``models/aubo_i10/*.urdf``, the actuator URDF welded to the
 flange) and from the MOPRP scenario (the patient/chair obstacles in World and the cart box under
 the base, the geometry diagrams/plant.py registers), and the pairs are every pair the plant's

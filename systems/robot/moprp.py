@@ -43,6 +43,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from implantplan.systems import seeds
 from implantplan.systems.errors import InputError, PlanningFailure
 from implantplan.systems.frames import invert, rpy_to_rotation, transform
 from implantplan.systems.robot import arm_collision
@@ -507,6 +508,18 @@ class Front:
     initial_samples: int
 
 
+# Random streams below the scenario's seed (systems.seeds), one per use. The evaluation stream is
+# the same wherever a base is evaluated (the search's front, SceneGraph's confirmation, the
+# studio), so a base gets the same indices everywhere.
+(STREAM_INIT, STREAM_NSGA, STREAM_EVALUATE, STREAM_PERCENTILES, STREAM_RANDOM_EVALUATE, STREAM_GII,
+ STREAM_DRAKE_IK) = range(7)
+
+
+def evaluation_rng(sc: Scenario) -> np.random.Generator:
+    """The generator a base's evaluation draws from (the same for every caller)."""
+    return seeds.rng(sc.seed, STREAM_EVALUATE)
+
+
 def search(sc: Scenario, evaluate, *, explain=None, on_start=None, on_generation=None) -> Front:
     """The MOPRP search (NSGA-II, systems.robot.nsga2) over the base position, for one target or
     many.
@@ -524,7 +537,7 @@ def search(sc: Scenario, evaluate, *, explain=None, on_start=None, on_generation
         PlanningFailure: no feasible base among the initial samples or on the final front.
     """
     t0 = time.perf_counter()
-    rng = np.random.default_rng(sc.seed)
+    rng = seeds.rng(sc.seed, STREAM_INIT)
     X0, n0, (Xs, cvs) = initial_population(sc, evaluate, rng, sc.pop)
     t_init = time.perf_counter() - t0
     n_ok = int(np.sum(cvs <= 0))
@@ -533,11 +546,11 @@ def search(sc: Scenario, evaluate, *, explain=None, on_start=None, on_generation
                               f"no feasible base among {Xs.shape[0]} samples of the bounds")
     if on_start is not None:
         on_start(n_ok, n0)
-    res = nsga2(evaluate, sc.lower, sc.upper, pop=sc.pop, gen=sc.gen, seed=sc.seed + 1,
-                initial=X0, patience=sc.patience, hv_tol=sc.hv_tol,
-                on_generation=on_generation)
+    res = nsga2(evaluate, sc.lower, sc.upper, pop=sc.pop, gen=sc.gen,
+                seed=seeds.seed(sc.seed, STREAM_NSGA), initial=X0, patience=sc.patience,
+                hv_tol=sc.hv_tol, on_generation=on_generation)
     Xf = res.X[res.front]
-    F, cv = evaluate(Xf, np.random.default_rng(sc.seed))
+    F, cv = evaluate(Xf, evaluation_rng(sc))
     keep = np.flatnonzero(cv <= 0)
     keep = keep[non_dominated_sort(F[keep]) == 0]
     if keep.size == 0:

@@ -1,4 +1,4 @@
-"""Adversarial operator motions: what a careless or startled hand does on the master (issue 12).
+"""Adversarial operator motions: what a careless or startled hand does on the master.
 
 The scripted operator of systems.teleop.master_device is calm (10 mm/s, sub-millimetre jitter).
 These

@@ -14,7 +14,7 @@ two lines ride on the *measured* tool pose, so the estimator says, every step, h
 actuator is where it actually is:
 
     min_d_safe = the certified clearance of the whole tool body (rod, head, implant) against the
-                 FPSM (systems.placement.tool_clearance; issue 12), or with method="paper" the
+                 FPSM (systems.placement.tool_clearance), or with method="paper" the
                  paper's
                  min(d_safe_min(line1), d_safe_min(line2)),
     alarm = min_d_safe <= alarm_margin.
@@ -180,8 +180,8 @@ def tool_safety(
 
     f_safe of each line by Eq. 13, both lines of all poses in one compiled call
     (:class:`LinesAtPoses`); the clearance ``min_d_safe`` that the alarm watches is, by default
-    (``method="sound"``), the certified clearance of the whole tool body (rod, head, implant;
-    issue 12), or the paper's smallest line sample (``"paper"``, Eq. 12).
+    (``method="sound"``), the certified clearance of the whole tool body (rod, head,
+    implant), or the paper's smallest line sample (``"paper"``, Eq. 12).
     """
     if method not in ("sound", "paper"):
         raise InputError("method", f"expected 'sound' or 'paper', got {method!r}")

@@ -99,21 +99,6 @@ class Barrier:
                 raise InputError(f"barrier.{name}", f"expected a finite value > 0, got {value}")
 
 
-def perturbed_poses(X_CT: np.ndarray, eps_p: float, eps_w: float) -> np.ndarray:
-    """(K, 12, 4, 4): each pose rotated about its TCP by +eps_w about Center x, y, z, translated
-    by +eps_p along Center x, y, z (the twist's coordinates [w; v]), then the same by -eps."""
-    out = np.repeat(X_CT[:, None], 12, axis=1)
-    for half, sign in ((0, 1.0), (6, -1.0)):
-        c, s = np.cos(eps_w), sign * np.sin(eps_w)
-        for i in range(3):
-            j, k = (i + 1) % 3, (i + 2) % 3
-            Ri = np.eye(3)
-            Ri[j, j], Ri[j, k], Ri[k, j], Ri[k, k] = c, -s, s, c
-            out[:, half + i, :3, :3] = Ri @ X_CT[:, :3, :3]
-            out[:, half + 3 + i, i, 3] += sign * eps_p
-    return out
-
-
 def stepped_poses(X_CT: np.ndarray, V: np.ndarray, dt) -> np.ndarray:
     """(K, 4, 4) poses after dt under twists V (K, 6) = [w; v] (w about the TCP; exact
     rotation by Drake's AngleAxis, through :func:`systems.teleop.fixture_system.step_pose`)."""

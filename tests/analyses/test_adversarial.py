@@ -1,4 +1,4 @@
-"""The adversarial operator against the safety layer on the default case (issue 12): a few runs
+"""The adversarial operator against the safety layer on the default case: a few runs
 in the default suite, the 54-run study as a slow test. Exact clearance by FCL against the opened
 scan at every logged pose."""
 

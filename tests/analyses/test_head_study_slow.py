@@ -1,4 +1,4 @@
-"""Issue 16's acceptance at paper scale: 50 seeded runs per head-motion profile on the bundled
+"""The acceptance at paper scale: 50 seeded runs per head-motion profile on the bundled
 default case, each site, FCL against the moving opened scan (slow: about 20 min on 2 cores;
 ``IMPLANTPLAN_HEAD_RUNS`` sets fewer for a quick look)."""
 

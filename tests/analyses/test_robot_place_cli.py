@@ -186,7 +186,7 @@ def test_drake_ik_on_the_scene_keeps_the_clearance():
 
 def test_bench_agreement_new_model_safe_old_capsules_not():
     """The benchmark's SceneGraph comparison: the fast model has no false free; the old capsule
-    model (reconstructed in the bench) calls SceneGraph collisions free (issue 11's finding)."""
+    model (reconstructed in the bench) calls SceneGraph collisions free."""
     from implantplan.analyses.bench_moprp import agreement
 
     res = agreement(n_bases=3, per_base=250, near_per_base=5, seed=3)

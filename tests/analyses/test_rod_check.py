@@ -1,7 +1,6 @@
-"""The sound rod clearance against FCL on the real cavity and a transformed copy (issue 12
-acceptance, default-suite scale; the full 100,000-rod run is ``analyses.studies.rod_check`` and the
-slow
-test below)."""
+"""The sound rod clearance against FCL on the real cavity and a transformed copy (the
+acceptance at default-suite scale; the full 100,000-rod run is ``analyses.studies.rod_check``
+and the slow test below)."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""The fast collision model against the Drake plant it is generated from (issue 11)."""
+"""The fast collision model against the Drake plant it is generated from."""
 
 from __future__ import annotations
 
@@ -82,7 +82,7 @@ def test_fast_model_never_calls_a_scene_graph_collision_free():
 
 @pytest.mark.slow
 def test_fast_model_never_calls_a_scene_graph_collision_free_at_scale():
-    """Issue 11 acceptance: 100,000 random configurations over 200 random bases (both
+    """Acceptance: 100,000 random configurations over 200 random bases (both
     scenarios) and more than 10,000 near the feeding targets."""
     total, near = _agreement(n_bases=100, per_base=500, near_per_base=20, seed=12)
     print(f"random: {total}; near target: {near}")

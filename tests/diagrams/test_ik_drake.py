@@ -1,4 +1,4 @@
-"""Drake multi-start IK against the closed form (issue 2: branch counts on a sample of poses)."""
+"""Drake multi-start IK against the closed form (branch counts on a sample of poses)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Drake's MultibodyPlant (built from the URDF) against the numpy kinematics core.
 
-Acceptance (issue 2): FK and Jacobians agree to 1e-9 on 10,000 random configurations. The numpy
+Acceptance: FK and Jacobians agree to 1e-9 on 10,000 random configurations. The numpy
 side is one batched call; the Drake side a loop over one context (SetPositions, then
 CalcRelativeTransform and two CalcJacobianSpatialVelocity calls), a few seconds in all.
 

@@ -144,7 +144,7 @@ def test_pairs_are_the_unfiltered_ones_in_three_groups():
     sc = moprp.load_scenario("lying")
     model = moprp.collision_model(sc)
     names = {frozenset(model.pair_names(m)) for m in range(len(model.pairs))}
-    # the pairs the old hand list missed (issue 11) are checked
+    # the pairs the old hand list missed are checked
     assert frozenset({"aubo::foreArm_Link_collision_1", "aubo::wrist3_Link_collision_0"}) in names
     assert frozenset({"aubo::upperArm_Link_collision_1", "aubo::wrist1_Link_collision_0"}) in names
     # adjacent links, welded bodies, the actuator vs the patient: filtered
