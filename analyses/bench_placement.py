@@ -251,12 +251,8 @@ def bench_sound(n: int, n_fcl: int, repeats: int) -> str:
     import os
 
     from implantplan.analyses.studies import rod_check
-    from implantplan.systems.placement.tool_clearance import (
-        ToolClearance,
-        ToolGeometry,
-        rod_clearance,
-        rod_safe,
-    )
+    from implantplan.systems.instrument import Instrument
+    from implantplan.systems.placement.tool_clearance import ToolClearance, rod_clearance, rod_safe
 
     v = rod_check.make_variants(("real",))[0]
     p0, p1, r = rod_check.random_rods(v.fpsm, n, seed=0)
@@ -273,7 +269,7 @@ def bench_sound(n: int, n_fcl: int, repeats: int) -> str:
     paper_s, _ = _median(lambda: rod_clearance(v.fpsm, p0, p1, r, method="paper"), repeats)
     sound_rate, fcl_rate, paper_rate = n / sound_s, k / fcl_s, n / paper_s
     verdict_rate = n / verdict_s
-    tc = ToolClearance(v.fpsm, ToolGeometry())
+    tc = ToolClearance(v.fpsm, Instrument.paper())
     X = np.eye(4)
     X[:3, 0] = [0, 0, 1]  # the rod out of the mouth (Center +z), the implant along -x
     X[:3, 2] = [-1, 0, 0]

@@ -103,8 +103,8 @@ def placement_stage(case: Case, fpsm: Fpsm, *, progress=None, require_valid: boo
     margin (case ``safety``): certified on the FPSM and, with the scan ``mesh`` (mesh frame, as
     fitted), exactly with FCL; then the registration Monte Carlo of the exact clearance along
     the feed (``placement.verification["registration"]``)."""
+    from implantplan.systems.instrument import Instrument
     from implantplan.systems.placement.exact_clearance import ExactCavity, registration_monte_carlo
-    from implantplan.systems.placement.tool_clearance import ToolGeometry
 
     exact = None
     if mesh is not None:
@@ -120,7 +120,7 @@ def placement_stage(case: Case, fpsm: Fpsm, *, progress=None, require_valid: boo
                 implant_length=site.implant_length,
                 objective=case.objective,
                 seed=seeds.seed(case.seed, seeds.PLACEMENT, k),
-                tool=ToolGeometry(rod_radius=site.rod_radius,
+                tool=Instrument.paper(rod_radius=site.rod_radius,
                                   implant_length=site.implant_length),
                 lateral_tolerance=case.lateral_tolerance,
                 angle_tolerance=case.angle_tolerance,
@@ -136,7 +136,7 @@ def placement_stage(case: Case, fpsm: Fpsm, *, progress=None, require_valid: boo
         reg = case.registration
         if exact is not None and p.valid and reg["samples"] > 0:
             p.verification["registration"] = registration_monte_carlo(
-                exact, p.X_CT, ToolGeometry(rod_radius=site.rod_radius,
+                exact, p.X_CT, Instrument.paper(rod_radius=site.rod_radius,
                                             implant_length=site.implant_length),
                 depth=p.verification["feed_depth"], sigma_translation=reg["sigma_translation"],
                 sigma_rotation=reg["sigma_rotation"], samples=reg["samples"],

@@ -86,8 +86,8 @@ from implantplan.systems import actuator
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm.model import Fpsm
 from implantplan.systems.frames import invert, transform
+from implantplan.systems.instrument import Instrument
 from implantplan.systems.placement.fixture import VirtualFixture
-from implantplan.systems.placement.tool_clearance import ToolGeometry
 from implantplan.systems.robot import kinematics as kin
 from implantplan.systems.robot.moprp import R_OE
 from implantplan.systems.teleop.fixture_system import VirtualFixtureForceLaw
@@ -132,10 +132,10 @@ class TeleopCase:
     label: str = ""
 
     @property
-    def tool(self) -> ToolGeometry:
+    def tool(self) -> Instrument:
         """The tool body the supervisor bounds (rod, head, implant;
         systems.placement.tool_clearance)."""
-        return ToolGeometry(rod_radius=self.rod_radius, implant_length=self.implant_length)
+        return Instrument.paper(rod_radius=self.rod_radius, implant_length=self.implant_length)
 
     @property
     def X_FE(self) -> np.ndarray:

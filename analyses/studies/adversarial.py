@@ -16,7 +16,7 @@ At every logged pose (200 Hz) of every run:
 - the **exact tool clearance**: FCL (python-fcl) distance between the tool's body and the opened
   scan mesh (a BVH of its triangles; without the lips and cheeks in front of the mouth opening,
   which the case takes as retracted: :func:`exact_for`), the tool as the capsules of
-  systems.placement.tool_clearance.ToolGeometry (the body the supervisor bounds: the handle rod,
+  systems.placement.tool_clearance.Instrument (the body the supervisor bounds: the handle rod,
   radius
   r, from P1 = [r, 0, 0] along Tool x for 0.2 m; the head, a sphere of radius r at the TCP; the
   implant from [r, 0, 0] to [r, 0, -d12], its axis, here of radius 0.1 mm):

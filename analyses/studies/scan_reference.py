@@ -3,7 +3,7 @@ operator, analyses.studies.adversarial; the awake patient, analyses.studies.head
 planned as
 ``implantplan plan`` does, and FCL (python-fcl) between the whole tool and the opened scan.
 
-The tool is systems.placement.tool_clearance's :class:`ToolGeometry` (the body the barrier bounds):
+The tool is systems.placement.tool_clearance's :class:`Instrument` (the body the barrier bounds):
 each
 capsule's clearance is its axis's FCL distance to the scan minus its radius (exact while the
 axis is free), and minus its radius where the axis itself touches the scan (at or below the
@@ -19,8 +19,9 @@ import trimesh
 from implantplan.analyses import pipeline
 from implantplan.analyses.case import default_case_path, load_case
 from implantplan.diagrams.teleop import TeleopCase
+from implantplan.systems.instrument import Instrument
 from implantplan.systems.placement.exact_clearance import ExactCavity
-from implantplan.systems.placement.tool_clearance import ToolGeometry, tool_capsules
+from implantplan.systems.placement.tool_clearance import tool_capsules
 
 IMPLANT_AXIS_RADIUS = 1e-4  # m: the implant as its axis (a thin capsule for FCL)
 
@@ -29,12 +30,12 @@ class ExactClearance:
     """FCL clearance of the tool's capsules to a triangle mesh (both in the mesh frame, m):
     systems.placement.exact_clearance.ExactCavity's capsule clearance (the axis's distance minus r,
     -r
-    where the axis touches), each capsule of :class:`ToolGeometry` with a radius of at least
+    where the axis touches), each capsule of :class:`Instrument` with a radius of at least
     ``IMPLANT_AXIS_RADIUS`` (the implant's radius-0 axis as a thin capsule). No start-in-tissue
     test: the opened scan is not the Center-axis star-shaped cavity that test assumes.
     """
 
-    def __init__(self, vertices, faces, tool: ToolGeometry):
+    def __init__(self, vertices, faces, tool: Instrument):
         mesh = trimesh.Trimesh(np.asarray(vertices, dtype=float), np.asarray(faces), process=False)
         self._cavity = ExactCavity(mesh)
         self._tool = tool

@@ -152,7 +152,7 @@ class ExactCavity:
 
     def tool_clearance(self, X_CTool, tool) -> np.ndarray:
         """(n,) exact clearance (m) of the whole tool (rod, head, implant capsules of
-        :class:`systems.placement.tool_clearance.ToolGeometry`) at poses (n, 4, 4) of T in
+        :class:`systems.placement.tool_clearance.Instrument`) at poses (n, 4, 4) of T in
         Center."""
         from implantplan.systems.placement.tool_clearance import rigid_poses, tool_capsules
 

@@ -53,8 +53,8 @@ import numpy as np
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm.model import Fpsm
 from implantplan.systems.frames import rot_z, transform, unit, wrap_angle
+from implantplan.systems.instrument import Instrument
 from implantplan.systems.placement.tool_clearance import (
-    ToolGeometry,
     admissible_poses,
     feed_clearance,
     feed_depth,
@@ -111,7 +111,7 @@ class FeedingLines:
 
 def feeding_lines(X_CH, d_T, theta_T, rod_radius: float, implant_length: float) -> FeedingLines:
     """Eq. 19 for a batch of (d_T, theta_T) (each (K,)), without building 4x4 matrices: the
-    Tool-frame lines of :meth:`ToolGeometry.lines_T` carried by X_CT = X_CH (Rz(theta), d_T z)."""
+    Tool-frame lines of :meth:`Instrument.lines_T` carried by X_CT = X_CH (Rz(theta), d_T z)."""
     d_T = np.atleast_1d(np.asarray(d_T, dtype=float))
     theta_T = np.atleast_1d(np.asarray(theta_T, dtype=float))
     R = X_CH[:3, :3]
@@ -126,9 +126,9 @@ def feeding_lines(X_CH, d_T, theta_T, rod_radius: float, implant_length: float) 
 
 
 def _lines_T(rod_radius: float, implant_length: float):
-    # Eq. 19 lives in ToolGeometry.lines_T; a zero rod radius is allowed here (the paper's
+    # Eq. 19 lives in Instrument.lines_T; a zero rod radius is allowed here (the paper's
     # line check), so build the geometry only for its lines
-    return ToolGeometry(rod_radius=rod_radius, implant_length=implant_length).lines_T()
+    return Instrument.paper(rod_radius=rod_radius, implant_length=implant_length).lines_T()
 
 
 # -- objective (Eq. 13, 14, 21, 22) ------------------------------------------------------------
@@ -419,7 +419,7 @@ CLEARANCE_MARGIN = 0.001  # m: the clinical margin every clearance check keeps
 def verify_placement(
     fpsm: Fpsm,
     X_CT: np.ndarray,
-    tool: ToolGeometry,
+    tool: Instrument,
     *,
     lateral: float = LATERAL_TOLERANCE,
     angle: float = ANGLE_TOLERANCE,
@@ -545,7 +545,7 @@ def place_instrument(
     restarts: int = 3,
     verify: bool = True,
     vf_options: dict | None = None,
-    tool: ToolGeometry | None = None,
+    tool: Instrument | None = None,
     lateral_tolerance: float = LATERAL_TOLERANCE,
     angle_tolerance: float = ANGLE_TOLERANCE,
     clearance_margin: float = CLEARANCE_MARGIN,
@@ -571,7 +571,7 @@ def place_instrument(
         verify: also run the exhaustive grid check (:func:`verify_by_grid`).
         vf_options: keyword arguments for :meth:`VirtualFixture.from_placement`.
         tool: the tool body checked by the verification (default: the paper's model with
-            ``rod_radius`` and ``implant_length``, :class:`ToolGeometry`).
+            ``rod_radius`` and ``implant_length``, :class:`Instrument`).
         lateral_tolerance, angle_tolerance: the fixture's admissible region (m, rad).
         clearance_margin: clinical margin (m): a placement whose verified clearance is below
             it is invalid (:func:`verify_placement`).
@@ -597,7 +597,7 @@ def place_instrument(
         raise InputError("restarts", f"expected an integer >= 0, got {restarts!r}")
     restarts = int(restarts)
     if tool is None:
-        tool = ToolGeometry(rod_radius=rod_radius, implant_length=implant_length)
+        tool = Instrument.paper(rod_radius=rod_radius, implant_length=implant_length)
     for name, value in (("lateral_tolerance", lateral_tolerance),
                         ("angle_tolerance", angle_tolerance),
                         ("clearance_margin", clearance_margin)):

@@ -57,117 +57,14 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from implantplan.systems import actuator, validate
+from implantplan.systems import validate
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm.model import SPLINE_BASIS, TWO_PI, Fpsm, point_d_safe
+from implantplan.systems.instrument import Instrument
 
 METHODS = ("sound", "paper")
 OUTSIDE = -1.0  # the bound (m) outside the grid box at z <= z_top: a collision, not a distance
 ROUNDING = 1e-9  # m taken off the square-root bound (rounding of the squared interpolation)
-
-
-# -- the tool ----------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class ToolGeometry:
-    """The contra-angle implanting tool in its Tool frame T (seed 000 Eq. 19; SI units).
-
-    Lengths default to the one actuator definition (systems.actuator); the head and implant
-    default to the paper's model (a head as thick as the rod, the implant as its axis, line2);
-    :meth:`actuator` gives the bundled actuator's thicker head (8 mm) and implant (2 mm).
-
-    T: origin at the head, x along the handle rod (out of the mouth), z along the implant axis
-    (the implant points to -z). Three capsules (segment + radius) make the body:
-
-    - rod: from P1 = [r, 0, 0] along +x for ``rod_length``, radius ``rod_radius`` (line1);
-    - head: a sphere of ``head_radius`` (default: the rod radius) at the origin;
-    - implant: from [r, 0, 0] to P2 = [r, 0, -d12] (``implant_length``), radius
-      ``implant_radius`` (0: its axis, as line2 of Eq. 19 is checked against the unshrunk model).
-
-    Attributes:
-        rod_radius: r (m), >= 0.
-        implant_length: d12 (m), > 0.
-        rod_length: length of the handle rod from P1 (m), > 0; inf for a ray.
-        implant_radius: radius of the implant and drill (m), >= 0.
-        head_radius: radius of the head sphere (m); None = rod_radius.
-    """
-
-    rod_radius: float = actuator.ROD_RADIUS
-    implant_length: float = actuator.IMPLANT_LENGTH
-    rod_length: float = actuator.ROD_LENGTH
-    implant_radius: float = 0.0
-    head_radius: float | None = None
-
-    @classmethod
-    def actuator(cls, rod_radius: float = actuator.ROD_RADIUS,
-                 implant_length: float = actuator.IMPLANT_LENGTH) -> ToolGeometry:
-        """The bundled actuator's full body (systems.actuator): its head and implant radii
-        instead of the paper's lines (head = rod radius, implant = its axis)."""
-        return cls(rod_radius=rod_radius, implant_length=implant_length,
-                   head_radius=actuator.HEAD_RADIUS, implant_radius=actuator.IMPLANT_RADIUS)
-
-    def lines_T(self) -> tuple[np.ndarray, np.ndarray]:
-        """Eq. 19 in T, written once: the starts P1 = [r, 0, 0] (line1, the rod) and
-        P2 = [r, 0, -d12] (line2, the implant tip's path), (2, 3), and their common direction
-        +x (3,)."""
-        r, d12 = self.rod_radius, self.implant_length
-        return np.array([[r, 0.0, 0.0], [r, 0.0, -d12]]), np.array([1.0, 0.0, 0.0])
-
-    def __post_init__(self):
-        for name, positive in (
-            ("rod_radius", False),
-            ("implant_length", True),
-            ("rod_length", True),
-            ("implant_radius", False),
-        ):
-            value = getattr(self, name)
-            try:
-                value = float(value)
-            except (TypeError, ValueError):
-                raise InputError(f"tool.{name}", f"expected a number (m), got {value!r}") from None
-            bad = np.isnan(value) or value < 0 or (positive and value == 0)
-            if bad or (name != "rod_length" and not np.isfinite(value)):
-                raise InputError(
-                    f"tool.{name}", f"expected a {'positive' if positive else '>= 0'} length (m)"
-                )
-            object.__setattr__(self, name, value)
-        if self.head_radius is not None:
-            h = float(self.head_radius)
-            if not np.isfinite(h) or h < 0:
-                raise InputError("tool.head_radius", "expected a radius >= 0 m (or null)")
-            object.__setattr__(self, "head_radius", h)
-
-    @property
-    def head(self) -> float:
-        return self.rod_radius if self.head_radius is None else float(self.head_radius)
-
-    def capsules_T(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(3, 3) segment starts, (3, 3) segment ends and (3,) radii of rod, head and implant in
-        T. An infinite rod ends 1 m out (far above any mouth opening)."""
-        r, d12 = self.rod_radius, self.implant_length
-        length = min(self.rod_length, 1.0)
-        a = np.array([[r, 0.0, 0.0], [0.0, 0.0, 0.0], [r, 0.0, 0.0]])
-        b = np.array([[r + length, 0.0, 0.0], [0.0, 0.0, 0.0], [r, 0.0, -d12]])
-        return a, b, np.array([r, self.head, self.implant_radius])
-
-    def reach_T(self) -> np.ndarray:
-        """(3,) for rod, head and implant the largest distance of a point of its axis from the
-        rod axis (m): a rotation by a small angle a moves that point by at most a * reach
-        relative to the rod axis (the head's centre is on the axis and a sphere turns into
-        itself)."""
-        return np.array([0.0, 0.0, self.implant_length])
-
-    def to_dict(self) -> dict:
-        return {
-            "rod_radius": self.rod_radius,
-            "implant_length": self.implant_length,
-            "rod_length": self.rod_length,
-            "implant_radius": self.implant_radius,
-            "head_radius": self.head,
-            "units": "m",
-            "frame": "Tool: x along the rod, z along the implant axis, origin at the head",
-        }
 
 
 # -- curve bounds ------------------------------------------------------------------------------
@@ -768,7 +665,7 @@ def _capsule_batch(p0, p1, radius):
     return np.ascontiguousarray(A), np.ascontiguousarray(B), np.ascontiguousarray(r)
 
 
-def tool_capsules(X_CT: np.ndarray, tool: ToolGeometry):
+def tool_capsules(X_CT: np.ndarray, tool: Instrument):
     a, b, r = tool.capsules_T()
     R, p = X_CT[:, :3, :3], X_CT[:, :3, 3]
     A = np.einsum("kij,cj->kci", R, a) + p[:, None, :]
@@ -788,7 +685,7 @@ def rigid_poses(X, name: str = "X_CTool") -> np.ndarray:
 def tool_clearance(
     fpsm: Fpsm,
     X_CTool,
-    tool: ToolGeometry | None = None,
+    tool: Instrument | None = None,
     *,
     method: str = "sound",
     step: float | None = None,
@@ -798,13 +695,13 @@ def tool_clearance(
 
     Args:
         X_CTool: (n, 4, 4) or (4, 4) poses of T in Center.
-        tool: the geometry (default :class:`ToolGeometry`).
+        tool: the geometry (default :class:`Instrument`).
         method: ``"sound"`` (default, certified lower bound) or ``"paper"`` (Eq. 12).
 
     Returns:
         (n,) signed clearance (> 0 free; for ``sound`` a certified lower bound).
     """
-    tool = tool or ToolGeometry()
+    tool = tool or Instrument.paper()
     X = rigid_poses(X_CTool)
     A, B, r = tool_capsules(X, tool)
     if method == "paper":
@@ -812,7 +709,7 @@ def tool_clearance(
         out = rod_clearance(
             fpsm, A.reshape(-1, 3), B.reshape(-1, 3), np.tile(r, K), method="paper"
         )
-        return out.reshape(K, 3).min(axis=1)
+        return out.reshape(K, -1).min(axis=1)
     if method not in METHODS:
         raise InputError("method", f"expected one of {METHODS}, got {method!r}")
     return ToolClearance(fpsm, tool, step=step)(X)
@@ -826,9 +723,9 @@ class ToolClearance:
     (4, 4) poses of T in Center; :meth:`one` takes one (4, 4) pose (no checks) -> float.
     """
 
-    def __init__(self, fpsm: Fpsm, tool: ToolGeometry | None = None, *, step=None):
+    def __init__(self, fpsm: Fpsm, tool: Instrument | None = None, *, step=None):
         self.fpsm = fpsm
-        self.tool = tool or ToolGeometry()
+        self.tool = tool or Instrument.paper()
         self.field = clearance_field(fpsm)
         self._args = _field_args(self.field, step, fpsm)
         a, b, r = self.tool.capsules_T()
@@ -862,7 +759,7 @@ def feed_poses(X_CTool, depth: float, step: float) -> tuple[np.ndarray, float]:
     return P, (depth / (S - 1) if S > 1 else 0.0)
 
 
-def feed_depth(fpsm: Fpsm, X_CTool, tool: ToolGeometry) -> float:
+def feed_depth(fpsm: Fpsm, X_CTool, tool: Instrument) -> float:
     """How far (m) the tools at poses X must back out along their rod axis (Tool +x) until the
     tool origin is above the mouth opening by the head and the implant length (the largest over
     the poses; MAX_FEED when an axis does not rise out of the mouth)."""
@@ -903,7 +800,7 @@ def admissible_poses(X_CTool, lateral: float, angle: float, *, directions: int =
 def feed_clearance(
     fpsm: Fpsm,
     X_CTool,
-    tool: ToolGeometry | None = None,
+    tool: Instrument | None = None,
     *,
     depth: float | None = None,
     step: float = 0.001,
@@ -926,7 +823,7 @@ def feed_clearance(
     Returns:
         (n,) the certified minimum over the region (m).
     """
-    tool = tool or ToolGeometry()
+    tool = tool or Instrument.paper()
     X = rigid_poses(X_CTool)
     for name, value in (("lateral", lateral), ("angle", angle)):
         if not np.isfinite(value) or value < 0:

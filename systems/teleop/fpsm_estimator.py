@@ -38,11 +38,8 @@ from implantplan.systems.actuator import IMPLANT_LENGTH, ROD_RADIUS
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm.model import Fpsm, line_kernel
 from implantplan.systems.frames import apply, invert
-from implantplan.systems.placement.tool_clearance import (
-    ToolClearance,
-    ToolGeometry,
-    clearance_field,
-)
+from implantplan.systems.instrument import Instrument
+from implantplan.systems.placement.tool_clearance import ToolClearance, clearance_field
 
 
 @dataclass(frozen=True)
@@ -58,23 +55,23 @@ class ToolLines:
     start_T: np.ndarray
     direction_T: np.ndarray
     radius: np.ndarray
-    tool: ToolGeometry | None = None  # the whole body, for the sound clearance
+    tool: Instrument | None = None  # the whole body, for the sound clearance
     X_AT: np.ndarray | None = None  # pose of seed 000's Tool frame in the lines' frame
 
     @classmethod
     def contra_angle(cls, rod_radius: float = ROD_RADIUS,
                      implant_length: float = IMPLANT_LENGTH,
-                     tool: ToolGeometry | None = None) -> ToolLines:
-        """Eq. 19 in the Tool frame (:meth:`ToolGeometry.lines_T`): P1 = [r, 0, 0],
+                     tool: Instrument | None = None) -> ToolLines:
+        """Eq. 19 in the Tool frame (:meth:`Instrument.lines_T`): P1 = [r, 0, 0],
         P2 = [r, 0, -d12], both along +x; ``tool`` is the body the sound clearance checks
-        (default: :class:`ToolGeometry` of that rod radius and implant length)."""
+        (default: :class:`Instrument` of that rod radius and implant length)."""
         r, d12 = float(rod_radius), float(implant_length)
         if not np.isfinite(r) or r < 0:
             raise InputError("rod_radius", f"expected a radius >= 0 m, got {rod_radius}")
         if not np.isfinite(d12) or d12 <= 0:
             raise InputError("implant_length", f"expected a length > 0 m, got {implant_length}")
-        tool = tool or ToolGeometry(rod_radius=r, implant_length=d12)
-        starts, u = ToolGeometry(rod_radius=r, implant_length=d12).lines_T()
+        tool = tool or Instrument.paper(rod_radius=r, implant_length=d12)
+        starts, u = Instrument.paper(rod_radius=r, implant_length=d12).lines_T()
         return cls(
             start_T=starts,
             direction_T=np.stack([u, u]),
@@ -205,13 +202,13 @@ _CLEARANCES: dict = {}
 
 def _sound(fpsm: Fpsm, lines: ToolLines):
     """X_CenterA (K, 4, 4) -> (K,) certified whole-tool clearance, for lines given in frame A."""
-    tool = lines.tool or ToolGeometry(rod_radius=float(lines.radius[0]))
+    tool = lines.tool or Instrument.paper(rod_radius=float(lines.radius[0]))
     X_AT = np.eye(4) if lines.X_AT is None else np.asarray(lines.X_AT, dtype=float)
     clearance = _clearance(fpsm, tool)
     return lambda X: np.atleast_1d(clearance(np.asarray(X, dtype=float) @ X_AT))
 
 
-def _clearance(fpsm: Fpsm, tool: ToolGeometry) -> ToolClearance:
+def _clearance(fpsm: Fpsm, tool: Instrument) -> ToolClearance:
     key = (id(fpsm), tool)
     hit = _CLEARANCES.get(key)
     if hit is None or hit.fpsm is not fpsm or hit.field is not clearance_field(fpsm):

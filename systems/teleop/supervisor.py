@@ -53,11 +53,8 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm.model import Fpsm
 from implantplan.systems.frames import invert
-from implantplan.systems.placement.tool_clearance import (
-    ToolClearance,
-    ToolGeometry,
-    tool_clearance_at,
-)
+from implantplan.systems.instrument import Instrument
+from implantplan.systems.placement.tool_clearance import ToolClearance, tool_clearance_at
 from implantplan.systems.teleop.fixture_system import step_pose
 
 AIM = 0.9  # the projection aims at this share of the allowed approach rate
@@ -67,7 +64,7 @@ TOLERANCE = 1e-8  # m: rounding allowed in the discrete barrier condition per st
 FAR = 1.0e3  # stand-in for +inf (the tool wholly outside the mouth) on the output ports (m)
 
 
-def clearance(fpsm: Fpsm, X_CT: np.ndarray, tool: ToolGeometry) -> np.ndarray:
+def clearance(fpsm: Fpsm, X_CT: np.ndarray, tool: Instrument) -> np.ndarray:
     """The barrier h (m) at K poses ``X_CT`` (K, 4, 4) of the Tool frame in Center: the sound
     FPSM clearance of the whole tool body (systems.placement.tool_clearance, a certified lower
     bound of its
@@ -435,7 +432,7 @@ class SafetySupervisor(LeafSystem):
         fpsm: Fpsm,
         X_WCenter,
         X_WE_initial,
-        tool: ToolGeometry,
+        tool: Instrument,
         *,
         R_ET=None,
         barrier: Barrier | None = None,

@@ -7,7 +7,7 @@ import pytest
 
 from implantplan.analyses.studies import adversarial as A
 from implantplan.diagrams.teleop import build_teleop
-from implantplan.systems.placement.tool_clearance import ToolGeometry
+from implantplan.systems.instrument import Instrument
 from implantplan.systems.teleop.adversarial_operator import Directions, adversarial_motion
 from implantplan.systems.teleop.master_device import feeding_runs
 from implantplan.systems.teleop.supervisor import Barrier
@@ -78,7 +78,7 @@ def test_exact_reference_by_hand():
 
     box = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
     ex = A.ExactClearance(box.vertices, box.faces,
-                          ToolGeometry(rod_radius=0.006, implant_length=0.031, rod_length=0.04))
+                          Instrument.paper(rod_radius=0.006, implant_length=0.031, rod_length=0.04))
     X = np.eye(4)
     X[:3, :3] = np.array([[0.0, 0, -1], [0, 1, 0], [1, 0, 0]])  # Tool x -> +z, Tool z -> -x
     X[:3, 3] = [0.0, 0.034, 0.0]  # the rod's axis at y = 34 mm, the box's wall at y = 50 mm

@@ -7,10 +7,10 @@ import pytest
 
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm.model import Fpsm
+from implantplan.systems.instrument import Instrument
 from implantplan.systems.placement.tool_clearance import (
     RESOLVE,
     ToolClearance,
-    ToolGeometry,
     clearance_field,
     curve_bounds,
     feed_clearance,
@@ -139,7 +139,7 @@ def test_paper_method_is_eq12(cylinder):
 
 
 def test_tool_clearance_batch_single_and_fast_path_agree(cylinder):
-    tool = ToolGeometry(rod_radius=0.004, implant_length=0.02)
+    tool = Instrument.paper(rod_radius=0.004, implant_length=0.02)
     X = np.tile(np.eye(4), (5, 1, 1))
     X[:, :3, :3] = [[0, 0, -1], [0, 1, 0], [1, 0, 0]]  # Tool x = Center z (out of the mouth)
     X[:, 0, 3] = np.linspace(-0.02, 0.02, 5)
@@ -156,7 +156,7 @@ def test_tool_clearance_batch_single_and_fast_path_agree(cylinder):
 
 
 def test_feed_clearance_bounds_every_depth_and_offset(cylinder):
-    tool = ToolGeometry(rod_radius=0.004, implant_length=0.02)
+    tool = Instrument.paper(rod_radius=0.004, implant_length=0.02)
     X = np.eye(4)
     X[:3, :3] = [[0, 0, -1], [0, 1, 0], [1, 0, 0]]
     X[:3, 3] = [0.0, 0.0, 0.03]
@@ -171,7 +171,7 @@ def test_input_errors(cylinder):
         rod_clearance(cylinder, [0, 0, 0], [0, 0, 1], -1.0)
     with pytest.raises(InputError, match="method"):
         rod_clearance(cylinder, [0, 0, 0], [0, 0, 1], 0.0, method="x")
-    with pytest.raises(InputError, match="tool.rod_radius"):
-        ToolGeometry(rod_radius=-1)
+    with pytest.raises(InputError, match="instrument.rod_radius"):
+        Instrument.paper(rod_radius=-1)
     with pytest.raises(InputError, match="X_CTool"):
         tool_clearance(cylinder, np.eye(3))

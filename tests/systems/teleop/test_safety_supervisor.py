@@ -12,7 +12,8 @@ from hypothesis.extra.numpy import arrays
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm.model import Fpsm
 from implantplan.systems.frames import transform
-from implantplan.systems.placement.tool_clearance import ToolClearance, ToolGeometry
+from implantplan.systems.instrument import Instrument
+from implantplan.systems.placement.tool_clearance import ToolClearance
 from implantplan.systems.teleop.supervisor import (
     Barrier,
     SafetySupervisor,
@@ -26,7 +27,7 @@ from implantplan.systems.teleop.supervisor import (
 # A cylinder FPSM of radius 50 mm from z = 0 to 100 mm (opening at the top); the tool's rod
 # (radius 6 mm) points up the cylinder (Tool x = Center z), its implant along Tool -z = Center -x.
 CYL = Fpsm.cylinder(0.05, 0.0, 0.1, slices=11)
-TOOL = ToolGeometry(rod_radius=0.006, implant_length=0.031)
+TOOL = Instrument.paper(rod_radius=0.006, implant_length=0.031)
 # Tool x, y, z = Center z, -y, x
 R_CT = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])
 DT = 0.005

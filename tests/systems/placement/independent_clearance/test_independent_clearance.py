@@ -29,9 +29,9 @@ from groundtruth import spline, verdict  # noqa: E402
 from harness import MM, MODELS, evaluate, families, ratchet, region  # noqa: E402
 
 from implantplan.systems.errors import InputError  # noqa: E402
+from implantplan.systems.instrument import Instrument  # noqa: E402
 from implantplan.systems.placement.tool_clearance import (  # noqa: E402
     ToolClearance,
-    ToolGeometry,
     feed_clearance,
     rod_clearance,
     tool_clearance,
@@ -145,7 +145,7 @@ def test_tool_and_feed_no_false_safe(models, n_rods):
         f, G = models[name]
         X = toolcheck.random_poses(G, rng, max(n_rods, 20))
         for k in range(len(X)):
-            tool = ToolGeometry(rod_radius=rng.uniform(0.5, 6) * MM,
+            tool = Instrument.paper(rod_radius=rng.uniform(0.5, 6) * MM,
                                 implant_length=rng.uniform(5, 31) * MM,
                                 rod_length=rng.uniform(20, 200) * MM,
                                 implant_radius=rng.uniform(0, 2) * MM,
@@ -155,7 +155,7 @@ def test_tool_and_feed_no_false_safe(models, n_rods):
             if v > 0:
                 assert toolcheck.truth_tool(G, X[k], tool) >= v - G.eps, (name, X[k], tool, v)
         Xf = toolcheck.random_poses_feed(G, rng, 3)
-        tool = ToolGeometry(rod_radius=0.002, implant_length=0.008, rod_length=0.1)
+        tool = Instrument.paper(rod_radius=0.002, implant_length=0.008, rod_length=0.1)
         for k in range(len(Xf)):
             v = feed_clearance(f, Xf[k], tool)[0]
             if v <= 0:
@@ -232,7 +232,7 @@ def test_non_rigid_pose_is_rejected_not_shrunk(models):
     """A pose whose rotation part is not a rotation shrinks the tool in the kernel: a colliding
     tool position must not come out as safe."""
     f, _ = models["cylinder"]
-    tool = ToolGeometry(rod_radius=0.003, implant_length=0.031)
+    tool = Instrument.paper(rod_radius=0.003, implant_length=0.031)
     X = np.eye(4)
     X[:3, :3] = np.column_stack([[0, 0, 1], [0, 1, 0], [-1, 0, 0]])
     X[:3, 3] = [0.025, 0, 0.05]  # implant tip at x = 56 mm, the wall at 50 mm
