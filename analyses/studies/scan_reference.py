@@ -3,15 +3,17 @@ operator, analyses.studies.adversarial; the awake patient, analyses.studies.head
 planned as
 ``implantplan plan`` does, and FCL (python-fcl) between the whole tool and the opened scan.
 
-The tool is systems.placement.tool_clearance's :class:`Instrument` (the body the barrier bounds):
-each
-capsule's clearance is its axis's FCL distance to the scan minus its radius (exact while the
-axis is free), and minus its radius where the axis itself touches the scan (at or below the
-true value). FCL's contact depths of a capsule in a mesh are not used: zero or denormal depths
-were seen for real contacts, which made a 0.61 mm contact read as 0.
+The instrument is the teleop case's :class:`systems.instrument.Instrument` (the body the
+barrier bounds), each solid as it is: a capsule's clearance is its axis's FCL distance to the scan
+minus its radius (exact while the axis is free), minus its radius where the axis itself touches
+the scan (at or below the true value); a cylinder's is FCL's cylinder-to-mesh distance while it
+is free. FCL's contact depths in a mesh are not used: zero or denormal depths were seen for real
+contacts, which made a 0.61 mm contact read as 0.
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import trimesh
@@ -21,37 +23,37 @@ from implantplan.analyses.case import default_case_path, load_case
 from implantplan.diagrams.teleop import TeleopCase
 from implantplan.systems.instrument import Instrument
 from implantplan.systems.placement.exact_clearance import ExactCavity
-from implantplan.systems.placement.tool_clearance import tool_capsules
 
 IMPLANT_AXIS_RADIUS = 1e-4  # m: the implant as its axis (a thin capsule for FCL)
 
 
 class ExactClearance:
-    """FCL clearance of the tool's capsules to a triangle mesh (both in the mesh frame, m):
-    systems.placement.exact_clearance.ExactCavity's capsule clearance (the axis's distance minus r,
-    -r
-    where the axis touches), each capsule of :class:`Instrument` with a radius of at least
-    ``IMPLANT_AXIS_RADIUS`` (the implant's radius-0 axis as a thin capsule). No start-in-tissue
-    test: the opened scan is not the Center-axis star-shaped cavity that test assumes.
+    """FCL clearance of the whole instrument to a triangle mesh (both in the mesh frame, m):
+    :meth:`systems.placement.exact_clearance.ExactCavity.tool_clearance` (every solid as it is),
+    the implant's radius-0 axis of the paper tool as a capsule of ``IMPLANT_AXIS_RADIUS``. No
+    start-in-tissue test: the opened scan is not the Center-axis star-shaped cavity that test
+    assumes.
     """
 
     def __init__(self, vertices, faces, tool: Instrument):
         mesh = trimesh.Trimesh(np.asarray(vertices, dtype=float), np.asarray(faces), process=False)
         self._cavity = ExactCavity(mesh)
-        self._tool = tool
-        self._r = np.maximum(tool.capsules_T()[2], IMPLANT_AXIS_RADIUS)
+        self._tool = thickened(tool, IMPLANT_AXIS_RADIUS)
 
     def __call__(self, X_MT: np.ndarray) -> np.ndarray:
-        """(K,) clearance (m) of the tool at poses X_MT (K, 4, 4) of its Tool frame in the mesh
-        frame: the smallest over its capsules; exact while a capsule's axis is free, at or
-        below the true value where it touches (FCL's contact depths of a capsule in a mesh are
-        not used: zero or denormal depths were seen for real contacts)."""
-        X = np.asarray(X_MT, dtype=float).reshape(-1, 4, 4)
-        A, B, _ = tool_capsules(X, self._tool)
-        n, C = A.shape[:2]
-        c = self._cavity.capsule_clearance(A.reshape(-1, 3), B.reshape(-1, 3),
-                                           np.tile(self._r, n), check_start=False)
-        return c.reshape(n, C).min(axis=1)
+        """(K,) clearance (m) of the instrument at poses X_MT (K, 4, 4) of its Tool frame in the
+        mesh frame: the smallest over its solids; exact while a solid is free, at or below the
+        true value where it touches (FCL's contact depths in a mesh are not used: zero or
+        denormal depths were seen for real contacts)."""
+        return self._cavity.tool_clearance(np.asarray(X_MT, dtype=float).reshape(-1, 4, 4),
+                                           self._tool, check_start=False)
+
+
+def thickened(tool: Instrument, radius: float) -> Instrument:
+    """The instrument with every solid at least ``radius`` thick (a radius-0 axis becomes a
+    thin capsule FCL can measure)."""
+    shapes = tuple(dataclasses.replace(s, radius=max(s.radius, radius)) for s in tool.shapes)
+    return dataclasses.replace(tool, shapes=shapes)
 
 
 def default_case_sites(*, progress=None):

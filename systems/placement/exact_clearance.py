@@ -150,18 +150,42 @@ class ExactCavity:
                 out[k] = self._distance(axis) - r[k]
         return out
 
-    def tool_clearance(self, X_CTool, tool) -> np.ndarray:
-        """(n,) exact clearance (m) of the whole tool (rod, head, implant capsules of
-        :class:`systems.placement.tool_clearance.Instrument`) at poses (n, 4, 4) of T in
-        Center."""
-        from implantplan.systems.placement.tool_clearance import rigid_poses, tool_capsules
+    def cylinder_clearance(self, p0, p1, radius, *, check_start: bool = True) -> np.ndarray:
+        """(n,) exact signed clearance (m) of solid cylinders (axis p0-p1, radius) starting in
+        the cavity: FCL's cylinder-to-mesh distance while the cylinder is free; where it
+        touches, the value of the capsule about its axis (d - r, or -r where the axis touches or
+        p0 is in tissue), negative and at least as deep as the cylinder's contact, since the
+        cylinder lies inside that capsule."""
+        A, B, r = self._batch(p0, p1, radius)
+        out = self.capsule_clearance(A, B, r, check_start=check_start)
+        for k in np.flatnonzero(out > -r):  # the axis is free: the cylinder itself decides
+            d = B[k] - A[k]
+            length = float(np.linalg.norm(d))
+            obj = fcl.CollisionObject(fcl.Cylinder(r[k], length),
+                                      fcl.Transform(_rotation_to(d / length), 0.5 * (A[k] + B[k])))
+            if not self._collides(obj):
+                out[k] = self._distance(obj)
+        return out
+
+    def tool_clearance(self, X_CTool, tool, *, check_start: bool = True) -> np.ndarray:
+        """(n,) exact clearance (m) of the whole instrument (every solid of
+        :class:`systems.instrument.Instrument`, as it is: capsules and spheres by their axis's
+        distance minus the radius, cylinders by :meth:`cylinder_clearance`) at poses (n, 4, 4)
+        of T in Center; the smallest over the solids."""
+        from implantplan.systems.placement.tool_clearance import rigid_poses
 
         X = rigid_poses(X_CTool)
-        A, B, r = tool_capsules(X, tool)
-        n, C = A.shape[:2]
-        c = self.capsule_clearance(A.reshape(-1, 3), B.reshape(-1, 3), np.tile(r, n))
-        return c.reshape(n, C).min(axis=1)
-
+        R, p = X[:, :3, :3], X[:, :3, 3]
+        out = np.full(X.shape[0], np.inf)
+        for s in tool.shapes:
+            A = np.einsum("kij,j->ki", R, s.a) + p
+            B = np.einsum("kij,j->ki", R, s.b) + p
+            if s.kind == "cylinder":
+                c = self.cylinder_clearance(A, B, s.radius, check_start=check_start)
+            else:
+                c = self.capsule_clearance(A, B, s.radius, check_start=check_start)
+            out = np.minimum(out, c)
+        return out
 
 def registration_monte_carlo(
     exact: ExactCavity,
