@@ -138,7 +138,7 @@ class FpsmSection:
     z_range: np.ndarray | None = v.spec(v.interval, None, key="z_range_mm", scale=MM)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class SiteSection:
     name: str | None = v.spec(v.label, None)
     position: np.ndarray = v.spec(v.vec3, key="position_mm", scale=MM)
@@ -197,7 +197,7 @@ def _sites(value, where: str) -> tuple:
     return v.sections(SiteSection)(value, where)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class CaseFile:
     """The case file as written (mm), section by section; :func:`case_from_dict` turns it into
     a :class:`Case` (SI, paths resolved, cross-field rules checked)."""
@@ -208,7 +208,7 @@ class CaseFile:
     mesh: MeshSection = v.spec(v.section(MeshSection))
     center: CenterSection = v.spec(v.section(CenterSection))
     fpsm: FpsmSection = v.spec(v.section(FpsmSection), {})
-    sites: tuple = v.spec(_sites, [])
+    sites: tuple = v.spec(_sites)
     site_check: SiteCheckSection = v.spec(v.section(SiteCheckSection), {})
     placement: PlacementSection = v.spec(v.section(PlacementSection), {})
     patient: PatientSection = v.spec(v.section(PatientSection), {})
