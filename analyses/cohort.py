@@ -98,13 +98,15 @@ def make_cohort(
     case_path = Path(case_path)
     case = load_case(case_path)  # validates the source case (every error names its field)
     raw = read_yaml(case_path, field="case")
-    mesh = load_oral_mesh(case.mesh_path, units=case.units, field="mesh.path")
+    mesh = load_oral_mesh(case.mesh.path, units=case.mesh.units, field="mesh.path")
     V0 = np.asarray(mesh.vertices) * 1e3  # mm, mesh frame
-    o = case.center_origin * 1e3
-    R_C = center_frame(case.center_origin, case.center_z, x_hint=case.center_x_hint)[:3, :3]
+    center = case.center
+    X_WC = center_frame(center.origin, center.z_axis, x_hint=center.x_hint)
+    o = center.origin * 1e3
+    R_C = X_WC[:3, :3]
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    stem = str(raw.get("name", case_path.stem))
+    stem = case.name
     files, record = [], []
     for i in range(n):
         rng = np.random.default_rng([seed, i])
@@ -124,29 +126,28 @@ def make_cohort(
         data["seed"] = int(case.seed)
         m = data["mesh"]
         m.update(path=f"{name}.obj", units="mm")
-        if case.mouth_opening_deg > 0:
-            op = case.opening
+        if case.mesh.mouth_opening_deg > 0:
+            op = case.mesh.opening
             m["hinge_point_mm"] = _r(point(op["hinge_point"] * 1e3))
             m["hinge_axis"] = _r(R @ op["hinge_axis"])
             m["occlusal_point_mm"] = _r(point(op["occlusal_point"] * 1e3))
             m["occlusal_normal"] = _r(R @ op["occlusal_normal"])
             m["opening_blend_mm"] = _r(s * op["blend"] * 1e3)
-        if case.cap_radius is not None:
-            m["cap_radius_mm"] = _r(s * case.cap_radius * 1e3)
+        if case.mesh.cap_radius is not None:
+            m["cap_radius_mm"] = _r(s * case.mesh.cap_radius * 1e3)
         R_in_C = R_C.T @ R @ R_C  # the anatomy's rotation seen in Center
         V = o + s * (V0 - o) @ R.T + t
         mesh_out = mesh.copy()
         mesh_out.vertices = V
         # the scan as the case plans it (opened, metres): jittered sites go back onto its tissue
         planned = trimesh.Trimesh(V * 1e-3, mesh.faces, process=False)
-        if case.mouth_opening_deg > 0:
-            planned = open_mouth(planned, case.mouth_opening_deg, **{
+        if case.mesh.mouth_opening_deg > 0:
+            planned = open_mouth(planned, case.mesh.mouth_opening_deg, **{
                 "hinge_point": np.asarray(m["hinge_point_mm"]) * 1e-3,
                 "hinge_axis": np.asarray(m["hinge_axis"]),
                 "occlusal_point": np.asarray(m["occlusal_point_mm"]) * 1e-3,
                 "occlusal_normal": np.asarray(m["occlusal_normal"]),
                 "blend": m["opening_blend_mm"] * 1e-3})
-        X_WC = center_frame(case.center_origin, case.center_z, x_hint=case.center_x_hint)
         for k, (site, raw_site) in enumerate(zip(case.sites, data["sites"], strict=True)):
             axis = R_in_C @ site.axis
             p_C = R_C.T @ (s * R @ R_C @ (site.position * 1e3) + t) + jitter[k]
