@@ -29,6 +29,7 @@ a cohort never holds a wild outlier. Same source, seed and settings: byte-identi
 from __future__ import annotations
 
 import copy
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -42,22 +43,33 @@ from implantplan.systems.files import SCHEMA_VERSION, read_yaml, write_atomic, w
 from implantplan.systems.fpsm.oral_mesh import center_frame, load_oral_mesh, open_mouth
 from implantplan.systems.fpsm.sites import project_to_tissue
 
-_KEYS = ("schema_version", "name", "cases", "generated")
+
+def _case_files(value, where: str) -> tuple[str, ...]:
+    if not isinstance(value, list) or not value or not all(isinstance(c, str) and c
+                                                           for c in value):
+        raise InputError(where, "expected a list of at least one case file path")
+    return tuple(value)
+
+
+@dataclass(frozen=True, kw_only=True)
+class CohortFile:
+    """The cohort file (systems.validate typed section): ``generated`` is a record, kept as
+    written."""
+
+    schema_version: int = v.spec(v.version(SCHEMA_VERSION))
+    name: str | None = v.spec(v.label, None)
+    cases: tuple[str, ...] = v.spec(_case_files)
+    generated: dict | None = v.spec(v.mapping, None)
 
 
 def load_cohort(path) -> tuple[str, list[Path]]:
     """(name, case files) of a cohort file; paths are resolved against the cohort's folder."""
     path = Path(path)
-    data = read_yaml(path, field="--cohort")
-    v.unknown_keys(data, _KEYS, "")
-    if data.get("schema_version") != SCHEMA_VERSION:
-        raise InputError("schema_version", f"expected 1, got {data.get('schema_version')!r}")
-    cases = data.get("cases")
-    if not isinstance(cases, list) or not cases or not all(isinstance(c, str) for c in cases):
-        raise InputError("cases", "expected a list of at least one case file path")
+    f = v.parse(CohortFile, read_yaml(path, field="--cohort"), "")
     base = path.resolve().parent
-    return str(data.get("name", path.stem)), [
-        (Path(c).expanduser() if Path(c).expanduser().is_absolute() else base / c) for c in cases
+    return (path.stem if f.name is None else f.name), [
+        (Path(c).expanduser() if Path(c).expanduser().is_absolute() else base / c)
+        for c in f.cases
     ]
 
 
