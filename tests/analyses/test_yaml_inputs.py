@@ -162,6 +162,8 @@ RASSCMAP_EDITS = {
                        "task.poses[2].xyz: duplicate key"),
     "robot typo": ("dental_robot.yaml", "  rotation_step_deg: 15", "  rotation_step: 15",
                    "robot.rotation_step: unknown key"),
+    "robot build typo": ("dental_robot.yaml", "build: {voxel_mm: 50,", "build: {voxel: 50,",
+                         "robot.build.voxel: unknown key"),
     "robot duplicate": ("dental_robot.yaml", "yaw_deg: [90, 270]}",
                         "yaw_deg: [90, 270], yaw_deg: [0, 90]}",
                         "robot.base_ranges[1].yaw_deg: duplicate key"),
