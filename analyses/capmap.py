@@ -220,24 +220,20 @@ def resolve_map(robot: rin.Robot, override: str | None, *, quiet: bool = False) 
     expect = {"limits": robot.limits} if robot.limits else None
     if path.is_file():
         return cm.load(path, expect=expect)
-    if override or not robot.build:
+    if override or robot.build is None:
         raise InputError(
             "robot.map", f"{path} does not exist; build it with `implantplan capmap build`"
         )
     b = robot.build
-    for key in b:
-        if key not in ("voxel_mm", "directions", "limits", "tool", "rolls", "workers",
-                       "self_collision", "cell"):  # fmt: skip
-            raise InputError(f"robot.build.{key}", "unknown key")
     cmap, _ = build_map(
-        float(b.get("voxel_mm", 50)),
-        int(b.get("directions", 100)),
-        str(b.get("limits", robot.limits or "175")),
-        b.get("tool"),
-        b.get("rolls"),
-        b.get("workers"),
-        self_collision=bool(b.get("self_collision", False)),
-        cell=str(b.get("cell", "certified")),
+        b.voxel_mm,
+        b.directions,
+        b.limits or robot.limits or "175",
+        b.tool,
+        b.rolls,
+        b.workers,
+        self_collision=b.self_collision,
+        cell=b.cell,
         quiet=quiet,
         out=path,
     )

@@ -159,9 +159,9 @@ def case_figures(case_path, out_dir) -> dict:
         built["opened"],
         out_dir / "opening.png",
         planes_y=(0.0, *sites_y),
-        hinge_point=case.opening.get("hinge_point"),
-        occlusal_point=case.opening.get("occlusal_point"),
-        occlusal_normal=case.opening.get("occlusal_normal"),
+        hinge_point=case.mesh.opening.get("hinge_point"),
+        occlusal_point=case.mesh.opening.get("occlusal_point"),
+        occlusal_normal=case.mesh.opening.get("occlusal_normal"),
     )
     placements = plot_placements(
         built["opened"],

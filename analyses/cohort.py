@@ -29,6 +29,7 @@ a cohort never holds a wild outlier. Same source, seed and settings: byte-identi
 from __future__ import annotations
 
 import copy
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -42,22 +43,33 @@ from implantplan.systems.files import SCHEMA_VERSION, read_yaml, write_atomic, w
 from implantplan.systems.fpsm.oral_mesh import center_frame, load_oral_mesh, open_mouth
 from implantplan.systems.fpsm.sites import project_to_tissue
 
-_KEYS = ("schema_version", "name", "cases", "generated")
+
+def _case_files(value, where: str) -> tuple[str, ...]:
+    if not isinstance(value, list) or not value or not all(isinstance(c, str) and c
+                                                           for c in value):
+        raise InputError(where, "expected a list of at least one case file path")
+    return tuple(value)
+
+
+@dataclass(frozen=True, kw_only=True)
+class CohortFile:
+    """The cohort file (systems.validate typed section): ``generated`` is a record, kept as
+    written."""
+
+    schema_version: int = v.spec(v.version(SCHEMA_VERSION))
+    name: str | None = v.spec(v.label, None)
+    cases: tuple[str, ...] = v.spec(_case_files)
+    generated: dict | None = v.spec(v.mapping, None)
 
 
 def load_cohort(path) -> tuple[str, list[Path]]:
     """(name, case files) of a cohort file; paths are resolved against the cohort's folder."""
     path = Path(path)
-    data = read_yaml(path, field="--cohort")
-    v.unknown_keys(data, _KEYS, "")
-    if data.get("schema_version") != SCHEMA_VERSION:
-        raise InputError("schema_version", f"expected 1, got {data.get('schema_version')!r}")
-    cases = data.get("cases")
-    if not isinstance(cases, list) or not cases or not all(isinstance(c, str) for c in cases):
-        raise InputError("cases", "expected a list of at least one case file path")
+    f = v.parse(CohortFile, read_yaml(path, field="--cohort"), "")
     base = path.resolve().parent
-    return str(data.get("name", path.stem)), [
-        (Path(c).expanduser() if Path(c).expanduser().is_absolute() else base / c) for c in cases
+    return (path.stem if f.name is None else f.name), [
+        (Path(c).expanduser() if Path(c).expanduser().is_absolute() else base / c)
+        for c in f.cases
     ]
 
 
@@ -98,13 +110,15 @@ def make_cohort(
     case_path = Path(case_path)
     case = load_case(case_path)  # validates the source case (every error names its field)
     raw = read_yaml(case_path, field="case")
-    mesh = load_oral_mesh(case.mesh_path, units=case.units, field="mesh.path")
+    mesh = load_oral_mesh(case.mesh.path, units=case.mesh.units, field="mesh.path")
     V0 = np.asarray(mesh.vertices) * 1e3  # mm, mesh frame
-    o = case.center_origin * 1e3
-    R_C = center_frame(case.center_origin, case.center_z, x_hint=case.center_x_hint)[:3, :3]
+    center = case.center
+    X_WC = center_frame(center.origin, center.z_axis, x_hint=center.x_hint)
+    o = center.origin * 1e3
+    R_C = X_WC[:3, :3]
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    stem = str(raw.get("name", case_path.stem))
+    stem = case.name
     files, record = [], []
     for i in range(n):
         rng = np.random.default_rng([seed, i])
@@ -124,29 +138,28 @@ def make_cohort(
         data["seed"] = int(case.seed)
         m = data["mesh"]
         m.update(path=f"{name}.obj", units="mm")
-        if case.mouth_opening_deg > 0:
-            op = case.opening
+        if case.mesh.mouth_opening_deg > 0:
+            op = case.mesh.opening
             m["hinge_point_mm"] = _r(point(op["hinge_point"] * 1e3))
             m["hinge_axis"] = _r(R @ op["hinge_axis"])
             m["occlusal_point_mm"] = _r(point(op["occlusal_point"] * 1e3))
             m["occlusal_normal"] = _r(R @ op["occlusal_normal"])
             m["opening_blend_mm"] = _r(s * op["blend"] * 1e3)
-        if case.cap_radius is not None:
-            m["cap_radius_mm"] = _r(s * case.cap_radius * 1e3)
+        if case.mesh.cap_radius is not None:
+            m["cap_radius_mm"] = _r(s * case.mesh.cap_radius * 1e3)
         R_in_C = R_C.T @ R @ R_C  # the anatomy's rotation seen in Center
         V = o + s * (V0 - o) @ R.T + t
         mesh_out = mesh.copy()
         mesh_out.vertices = V
         # the scan as the case plans it (opened, metres): jittered sites go back onto its tissue
         planned = trimesh.Trimesh(V * 1e-3, mesh.faces, process=False)
-        if case.mouth_opening_deg > 0:
-            planned = open_mouth(planned, case.mouth_opening_deg, **{
+        if case.mesh.mouth_opening_deg > 0:
+            planned = open_mouth(planned, case.mesh.mouth_opening_deg, **{
                 "hinge_point": np.asarray(m["hinge_point_mm"]) * 1e-3,
                 "hinge_axis": np.asarray(m["hinge_axis"]),
                 "occlusal_point": np.asarray(m["occlusal_point_mm"]) * 1e-3,
                 "occlusal_normal": np.asarray(m["occlusal_normal"]),
                 "blend": m["opening_blend_mm"] * 1e-3})
-        X_WC = center_frame(case.center_origin, case.center_z, x_hint=case.center_x_hint)
         for k, (site, raw_site) in enumerate(zip(case.sites, data["sites"], strict=True)):
             axis = R_in_C @ site.axis
             p_C = R_C.T @ (s * R @ R_C @ (site.position * 1e3) + t) + jitter[k]

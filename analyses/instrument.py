@@ -29,6 +29,7 @@ from implantplan.systems.files import write_json
 from implantplan.systems.fpsm.model import Fpsm
 from implantplan.systems.frames import wrap_angle
 from implantplan.systems.placement.planner import Placement, default_bounds, place_instrument
+from implantplan.systems.safety import SafetySpec
 
 MM = 1e-3
 
@@ -116,6 +117,16 @@ def _place(args: argparse.Namespace) -> int:
         raise InputError("--particles", "expected at least 1 particle")
     if args.restarts < 0:
         raise InputError("--restarts", "expected 0 or more")
+    limits = {}
+    for flag, value in (("--clearance-margin-mm", args.clearance_margin_mm),
+                        ("--lateral-tolerance-mm", args.lateral_tolerance_mm),
+                        ("--angle-tolerance-deg", args.angle_tolerance_deg)):
+        limits[flag] = float(_finite(value, flag))
+        if limits[flag] < 0:
+            raise InputError(flag, f"expected a value >= 0, got {value!r}")
+    safety = SafetySpec(clearance_margin=limits["--clearance-margin-mm"] * MM,
+                        lateral_tolerance=limits["--lateral-tolerance-mm"] * MM,
+                        angle_tolerance=np.radians(limits["--angle-tolerance-deg"]))
     fpsm = Fpsm.load(args.fpsm, field="--fpsm")
     bounds = default_bounds(fpsm, d12)
     if args.d_t_range_mm is not None:
@@ -140,9 +151,7 @@ def _place(args: argparse.Namespace) -> int:
         particles=args.particles,
         hole_tolerance=tol,
         restarts=args.restarts,
-        clearance_margin=_finite([args.clearance_margin_mm], "--clearance-margin-mm")[0] * MM,
-        lateral_tolerance=_finite([args.lateral_tolerance_mm], "--lateral-tolerance-mm")[0] * MM,
-        angle_tolerance=np.radians(_finite([args.angle_tolerance_deg], "--angle-tolerance-deg")[0]),
+        safety=safety,
     )
     progress.say(
         f"PSO {placement.iterations} iterations, {placement.evaluations} evaluations, "

@@ -33,6 +33,7 @@ from pydrake.math import RotationMatrix
 from pydrake.systems.analysis import Simulator
 
 from implantplan.analyses import pipeline
+from implantplan.analyses.case import CapabilitySection
 from implantplan.diagrams.arm_clearance import SceneGraphClearance, confirm_feed
 from implantplan.diagrams.teleop import X_ET, FeedRun, TeleopCase, build_teleop, simulate
 from implantplan.systems import actuator, seeds
@@ -241,8 +242,8 @@ class CapabilityView:
     (``voxel``, ``directions``)."""
 
     sp: StudioPlan
-    voxel: float = 0.05  # m, the case default (analyses.case: capability.voxel_mm 50)
-    directions: int = 100
+    voxel: float = CapabilitySection().voxel  # m, the case's default
+    directions: int = CapabilitySection().directions
     _built: dict = field(default_factory=dict)  # cell -> {voxel id: (reach row, all-roll row)}
     _tried: dict = field(default_factory=dict)  # cell -> voxel ids built (stored or unreachable)
 

@@ -46,37 +46,38 @@ class FitResult:
 def fit_stage(case: Case, *, progress=None) -> FitResult:
     """Load the scan, open the mouth if the case asks, fit the FPSM (stage 1)."""
     t0 = time.perf_counter()
-    scanned = load_oral_mesh(case.mesh_path, units=case.units, field="mesh.path")
+    mesh, center, fp = case.mesh, case.center, case.fpsm
+    scanned = load_oral_mesh(mesh.path, units=mesh.units, field="mesh.path")
     opened = scanned
-    if case.mouth_opening_deg > 0:
-        opened = open_mouth(scanned, case.mouth_opening_deg, **case.opening)
+    if mesh.mouth_opening_deg > 0:
+        opened = open_mouth(scanned, mesh.mouth_opening_deg, **mesh.opening)
         if progress is not None:
             info = opened.metadata.get("implantplan", {}).get("open_mouth", {})
-            progress.say(f"mouth opened by {case.mouth_opening_deg:g} deg "
+            progress.say(f"mouth opened by {mesh.mouth_opening_deg:g} deg "
                          f"({info.get('moved_vertices', '?')} vertices moved)")
     lo, hi = opened.bounds
-    if np.any(case.center_origin < lo) or np.any(case.center_origin > hi):
+    if np.any(center.origin < lo) or np.any(center.origin > hi):
         raise InputError(
             "center.origin_mm",
-            f"{np.round(case.center_origin * 1e3, 1).tolist()} mm lies outside the mesh's "
+            f"{np.round(center.origin * 1e3, 1).tolist()} mm lies outside the mesh's "
             f"bounding box {np.round(lo * 1e3, 1).tolist()} .. {np.round(hi * 1e3, 1).tolist()} "
-            f"mm (mesh read in {case.units}); check mesh.units and the Center origin",
+            f"mm (mesh read in {mesh.units}); check mesh.units and the Center origin",
         )
-    X_WC = center_frame(case.center_origin, case.center_z, x_hint=case.center_x_hint)
+    X_WC = center_frame(center.origin, center.z_axis, x_hint=center.x_hint)
     fpsm = fit_fpsm(
         opened,
         X_WC,
-        slices=case.slices,
-        control_points=case.control_points,
-        samples=case.samples,
-        z_range=case.z_range,
-        method=case.fit_method,
-        margin=case.margin,
-        cap_radius=case.cap_radius,
-        close_open_cuts=case.close_open_cuts,
+        slices=fp.slices,
+        control_points=fp.control_points,
+        samples=fp.samples,
+        z_range=fp.z_range,
+        method=fp.method,
+        margin=fp.margin,
+        cap_radius=mesh.cap_radius,
+        close_open_cuts=mesh.close_open_cuts,
         progress=progress,
     )
-    fpsm.settings["mesh_units"] = case.units
+    fpsm.settings["mesh_units"] = mesh.units
     return FitResult(scanned, opened, fpsm, time.perf_counter() - t0)
 
 
@@ -87,7 +88,7 @@ def site_stage(case: Case, fit: FitResult) -> SiteCheck:
     positions = np.array([s.position for s in case.sites])
     axes = np.array([s.axis for s in case.sites])
     check = check_sites(fit.opened, fit.fpsm.X_WC, positions, axes,
-                        tolerance=case.site_tolerance)
+                        tolerance=case.site_check.tolerance)
     for k, problem in enumerate(site_problems(check, fit.opened, fit.fpsm.X_WC, positions)):
         if problem is not None:
             raise InputError(f"sites[{k}] ({case.sites[k].name})", problem)
@@ -100,15 +101,16 @@ def placement_stage(case: Case, fpsm: Fpsm, *, progress=None, require_valid: boo
     is a planning failure that names the site and the reason.
 
     Every placement is verified over the fixture's admissible region against the clinical
-    margin (case ``safety``): certified on the FPSM and, with the scan ``mesh`` (mesh frame, as
-    fitted), exactly with FCL; then the registration Monte Carlo of the exact clearance along
-    the feed (``placement.verification["registration"]``)."""
+    margin (``case.safety``, passed whole): certified on the FPSM and, with the scan ``mesh``
+    (mesh frame, as fitted), exactly with FCL; then the registration Monte Carlo of the exact
+    clearance along the feed (``placement.verification["registration"]``)."""
     from implantplan.systems.instrument import Instrument
     from implantplan.systems.placement.exact_clearance import ExactCavity, registration_monte_carlo
 
     exact = None
     if mesh is not None:
-        exact = ExactCavity.from_scan(mesh, fpsm, close_open_cuts=case.close_open_cuts)
+        exact = ExactCavity.from_scan(mesh, fpsm, close_open_cuts=case.mesh.close_open_cuts)
+    safety = case.safety
     out = []
     for k, site in enumerate(case.sites):
         try:
@@ -118,13 +120,11 @@ def placement_stage(case: Case, fpsm: Fpsm, *, progress=None, require_valid: boo
                 site.axis,
                 rod_radius=site.rod_radius,
                 implant_length=site.implant_length,
-                objective=case.objective,
+                objective=case.placement.objective,
                 seed=seeds.seed(case.seed, seeds.PLACEMENT, k),
                 tool=Instrument.paper(rod_radius=site.rod_radius,
                                   implant_length=site.implant_length),
-                lateral_tolerance=case.lateral_tolerance,
-                angle_tolerance=case.angle_tolerance,
-                clearance_margin=case.clearance_margin,
+                safety=safety,
                 exact=exact,
             )
         except InputError as exc:  # name the case's field, not the placement's argument
@@ -133,13 +133,11 @@ def placement_stage(case: Case, fpsm: Fpsm, *, progress=None, require_valid: boo
             progress.step(k, len(case.sites), f"site {site.name}: d_T {p.d_T * 1e3:.1f} mm, "
                           f"theta_T {np.rad2deg(p.theta_T):.1f} deg, F_safe {p.F_safe:.4f}, "
                           f"{'valid' if p.valid else 'INVALID'}")
-        reg = case.registration
-        if exact is not None and p.valid and reg["samples"] > 0:
+        if exact is not None and p.valid and safety.registration_samples > 0:
             p.verification["registration"] = registration_monte_carlo(
                 exact, p.X_CT, Instrument.paper(rod_radius=site.rod_radius,
                                             implant_length=site.implant_length),
-                depth=p.verification["feed_depth"], sigma_translation=reg["sigma_translation"],
-                sigma_rotation=reg["sigma_rotation"], samples=reg["samples"],
+                depth=p.verification["feed_depth"], safety=safety,
                 seed=seeds.seed(case.seed, seeds.PLACEMENT, k, 1))
         if require_valid and not p.valid:
             raise PlanningFailure(f"site {site.name}: no collision-free instrument placement "
@@ -226,10 +224,10 @@ def robot_stage(case: Case, placements: list[Placement], *, progress=None) -> Ro
     Departure from seed 001 for several sites: the objectives are the worst index over the sites
     and a base is feasible only if every site has a surviving branch."""
     t0 = time.perf_counter()
-    sc = moprp.load_scenario(case.scenario, X_FT=actuator.X_FT())
-    sc = dataclasses.replace(sc, pop=case.pop, gen=case.gen,
+    sc = moprp.load_scenario(case.robot.scenario, X_FT=actuator.X_FT())
+    sc = dataclasses.replace(sc, pop=case.robot.pop, gen=case.robot.gen,
                              seed=seeds.seed(case.seed, seeds.ROBOT))
-    X_OC = center_in_oral(case.posture, placements)
+    X_OC = center_in_oral(case.patient.posture, placements)
     targets = np.array([X_OC @ p.X_CT for p in placements])
     model = moprp.collision_model(sc)
 
@@ -330,8 +328,8 @@ def capability_stage(case: Case, robot: RobotResult, *, progress=None) -> Capabi
     X_BA = X_BE @ invert(actuator.X_FT()) @ X_FA
     maps = {}
     for cell in ("certified", "centre"):
-        params = cm.make_params(case.voxel, case.directions, limits=sc.limits, X_FT=X_FA,
-                                tool="actuator", cell=cell)
+        params = cm.make_params(case.capability.voxel, case.capability.directions,
+                                limits=sc.limits, X_FT=X_FA, tool="actuator", cell=cell)
         grid = cm.make_grid(params)
         near = grid.neighbourhood(X_BA[:, :3, 3])
         block = cm.build_block(params, np.unique(near[near >= 0]))
@@ -363,7 +361,7 @@ def teleop_cases(case: Case, fit: FitResult, placements: list[Placement],
     X_WC = sc.X_WO @ robot.X_OC
     return [
         TeleopCase(
-            scenario=case.posture,
+            scenario=case.patient.posture,
             X_WBase=robot.X_WBase,
             q_start=robot.q_pre[k],
             X_WCenter=X_WC,
@@ -384,7 +382,7 @@ def simulation_stage(case: Case, fit: FitResult, placements: list[Placement],
     """A short teleop feeding simulation per site (seed 001's feeding test on the Drake diagram):
     scripted operator feeds from the pre-feed configuration to the feeding target, VF active,
     FPSM estimator watching."""
-    runs = case.sim_runs if runs is None else runs
+    runs = case.simulation.runs if runs is None else runs
     if runs == 0:
         if progress is not None:
             progress.say("no feeding runs asked for (simulation.runs = 0 / --runs 0)")
@@ -393,7 +391,7 @@ def simulation_stage(case: Case, fit: FitResult, placements: list[Placement],
     for k, (site, tc) in enumerate(zip(case.sites, teleop_cases(case, fit, placements, robot),
                                        strict=True)):
         res = run_feeding(tc, runs=runs, seed=seeds.seed(case.seed, seeds.FEEDING, k),
-                          mode=case.sim_mode)
+                          mode=case.simulation.mode)
         res["site"] = site.name
         out.append(res)
         if progress is not None:

@@ -142,7 +142,7 @@ def _plan_into(case: Case, out: Path, *, runs, html_scene: bool, quiet: bool,
     fit = pipeline.fit_stage(case, progress=prog)
     fit.fpsm.save(out / "fpsm.json")
     timing["fpsm"] = prog.elapsed
-    prog.say(f"fitted {case.slices} slices x {case.control_points} control points "
+    prog.say(f"fitted {case.fpsm.slices} slices x {case.fpsm.control_points} control points "
              f"in {prog.elapsed:.2f} s")
 
     sites_checked = pipeline.site_stage(case, fit)
@@ -171,7 +171,7 @@ def _plan_into(case: Case, out: Path, *, runs, html_scene: bool, quiet: bool,
     prog = Progress("report", quiet=quiet)
     plan = plan_dict(case, fit, placements, robot, cap, sims, sites_checked)
     plan["timing"] = timing
-    plan["provenance"] = provenance(case_file=case.source, meshes=[case.mesh_path],
+    plan["provenance"] = provenance(case_file=case.source, meshes=[case.mesh.path],
                                     seed=case.seed)
     figs = {}
     if figures:
@@ -233,7 +233,7 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims, sites_checked) -> d
         n = site.name
         checks += checks_.placement_checks(
             n, p, distance_to_tissue=float(sites_checked.distance[k]),
-            tolerance=sites_checked.tolerance, clearance_margin=case.clearance_margin)
+            tolerance=sites_checked.tolerance, clearance_margin=case.safety.clearance_margin)
         feed = robot.feed_clearance[k] if k < len(robot.feed_clearance) else None
         checks += checks_.layout_checks(n, feed, ik_branches=cap.ik_branches[k],
                                         neighbourhood_index=cap.neighbourhood_index[k])
@@ -248,14 +248,14 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims, sites_checked) -> d
             "control_points": fit.fpsm.control_points,
             "z_range": list(fit.fpsm.z_range),
             "X_mesh_Center": fit.fpsm.X_WC,
-            "method": case.fit_method,
+            "method": case.fpsm.method,
             "coverage_mean": float(np.mean(d["coverage"])),
             "dense_penetration_rate": d.get("dense_penetration_rate_total"),
             "dense_max_depth": d["dense_max_depth_m"],
-            "mouth_opening_deg": case.mouth_opening_deg,
+            "mouth_opening_deg": case.mesh.mouth_opening_deg,
         },
         "frames": {"X_WO": sc.X_WO, "X_OC": robot.X_OC, "X_WCenter": X_WC,
-                   "X_FT": actuator.X_FT(), "posture": case.posture, "scenario": sc.name},
+                   "X_FT": actuator.X_FT(), "posture": case.patient.posture, "scenario": sc.name},
         "sites": sites,
         "base": {
             "xyz_in_oral": robot.base_xyz,

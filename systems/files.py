@@ -11,6 +11,7 @@ import json
 import os
 import tempfile
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -86,12 +87,77 @@ def read_json(path: str | os.PathLike, *, kind: str | None = None, field: str = 
 
 
 def read_yaml(path: str | os.PathLike, *, field: str = "file") -> dict:
-    """Load a YAML mapping with a clear error for a missing file or malformed YAML."""
+    """Load a YAML mapping: the one YAML reader of the project (cases, scenarios, RASSCMAP inputs,
+    cohorts).
+
+    A missing file or malformed YAML is an InputError naming ``field``; so are a key given twice
+    in one mapping (named by its dotted path, ``fpsm.slices`` or ``obstacles[2].name``, with both
+    lines: YAML's own rule would let the last one win silently) and any anchor or alias
+    (``&name``, ``*name``, so also ``<<`` merges): a few aliases expand to gigabytes, and no
+    project file needs them.
+    """
     path = Path(path)
-    data = _parsed(path, field, yaml.safe_load, yaml.YAMLError, "YAML")
+    data = _parsed(path, field, partial(_strict_yaml, path=path, field=field), yaml.YAMLError,
+                   "YAML")
     if not isinstance(data, dict):
         raise InputError(field, f"{path} must hold a YAML mapping at the top level")
     return data
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """PyYAML's safe loader that refuses anchors and aliases while composing (before anything
+    is expanded)."""
+
+    def compose_node(self, parent, index):
+        event = self.peek_event()
+        if isinstance(event, yaml.AliasEvent) or getattr(event, "anchor", None) is not None:
+            kind = "alias *" if isinstance(event, yaml.AliasEvent) else "anchor &"
+            raise _Refused(f"{kind}{event.anchor}", event.start_mark.line + 1)
+        return super().compose_node(parent, index)
+
+
+class _Refused(Exception):
+    def __init__(self, what: str, line: int):
+        super().__init__(what)
+        self.what, self.line = what, line
+
+
+def _strict_yaml(text: str, *, path: Path, field: str) -> Any:
+    """The document in ``text``, refusing anchors, aliases and duplicate keys (InputError)."""
+    loader = _StrictLoader(text)
+    try:
+        try:
+            node = loader.get_single_node()
+        except _Refused as exc:
+            raise InputError(field, f"{path} line {exc.line}: YAML anchors and aliases are not "
+                             f"supported (found {exc.what}); write the value out in full") from None
+        if node is None:
+            return None
+        _check_keys(loader, node, "", path)
+        return loader.construct_document(node)
+    finally:
+        loader.dispose()
+
+
+def _check_keys(loader: yaml.SafeLoader, node: yaml.Node, where: str, path: Path) -> None:
+    """Every mapping below ``node`` holds each key once; a repeat is an InputError naming the
+    key's dotted path (as systems.validate names fields) and both lines."""
+    if isinstance(node, yaml.SequenceNode):
+        for i, item in enumerate(node.value):
+            _check_keys(loader, item, f"{where}[{i}]", path)
+    elif isinstance(node, yaml.MappingNode):
+        seen = {}
+        for key_node, value_node in node.value:
+            key = (loader.construct_object(key_node, deep=True)
+                   if isinstance(key_node, yaml.ScalarNode) else None)
+            name = f"{where}.{key}" if where else str(key)
+            if key is not None:
+                if key in seen:
+                    raise InputError(name, f"duplicate key in {path} (line "
+                                     f"{key_node.start_mark.line + 1}, first given on line "
+                                     f"{seen[key]}); each key may appear once")
+                seen[key] = key_node.start_mark.line + 1
+            _check_keys(loader, value_node, name, path)
 
 
 def _parsed(path: Path, field: str, loads, error, what: str) -> Any:

@@ -7,12 +7,16 @@ Every check takes the value and the dotted name of the field it came from, and r
 :func:`spec` (the check, the default, the YAML key and a unit scale); :func:`parse` builds it from
 a mapping, rejects unknown keys, names missing required ones and runs each value through its
 check with the field's dotted name. Sections nest with :func:`section`, lists of sections with
-:func:`sections`. The case file (analyses.case) and the RASSCMAP inputs
-(systems.capability.rasscmap_inputs) are read this way; the MOPRP scenario uses the same checks.
+:func:`sections`, one of several kinds of section with :func:`variant`. Every YAML file the
+project reads is read this way: the case (analyses.case), the MOPRP scenario
+(systems.robot.scenario), the RASSCMAP inputs (systems.capability.rasscmap_inputs) and the cohort
+(analyses.cohort), each after :func:`systems.files.read_yaml` has refused duplicate keys and
+aliases.
 """
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable
 from dataclasses import MISSING, field, fields
 from functools import partial
@@ -183,17 +187,30 @@ REQUIRED = object()  # spec default: the key must be present (and not null)
 
 
 def spec(check: Callable[[Any, str], Any], default: Any = REQUIRED, *, key: str | None = None,
-         scale: float | None = None):
+         scale: float | None = None, nullable: bool = False):
     """A dataclass field read from YAML by :func:`parse`.
 
     Args:
         check: ``check(value, field) -> parsed`` (one of this module's checks, or a partial).
         default: the raw value used when the key is missing or null (it goes through ``check``);
-            :data:`REQUIRED` makes the key mandatory; None leaves the field None.
+            :data:`REQUIRED` makes the key mandatory; None leaves the field None. The same
+            default, checked and scaled, is the dataclass field's default, so a section built in
+            code (``SafetySpec()``) and one read from an empty mapping are equal.
         key: the YAML key when it differs from the field name (``position_mm`` -> ``position``).
         scale: multiply the checked value (file units -> SI, e.g. 1e-3 for mm).
+        nullable: an explicit ``null`` in the file gives None (the setting switched off)
+            instead of the default.
     """
-    return field(metadata={"check": check, "default": default, "key": key, "scale": scale})
+    metadata = {"check": check, "default": default, "key": key, "scale": scale,
+                "nullable": nullable}
+    if default is REQUIRED:
+        return field(metadata=metadata)
+    value = None if default is None else _scaled(check(default, key or "default"), scale)
+    return field(default_factory=partial(copy.deepcopy, value), metadata=metadata)
+
+
+def _scaled(value: Any, scale: float | None) -> Any:
+    return value if scale is None else value * scale
 
 
 def parse(cls, data: Any, where: str):
@@ -213,6 +230,9 @@ def parse(cls, data: Any, where: str):
     for key, f in specs:
         m = f.metadata
         raw = d.get(key)
+        if raw is None and m["nullable"] and key in d:
+            values[f.name] = None
+            continue
         if raw is None:
             if m["default"] is REQUIRED:
                 raise InputError(prefix + key, "missing (required)")
@@ -220,8 +240,7 @@ def parse(cls, data: Any, where: str):
         if raw is None:
             values[f.name] = None
             continue
-        value = m["check"](raw, prefix + key)
-        values[f.name] = value if m["scale"] is None else value * m["scale"]
+        values[f.name] = _scaled(m["check"](raw, prefix + key), m["scale"])
     return cls(**values)
 
 
@@ -237,6 +256,19 @@ def sections(cls, *, min_items: int = 0) -> Callable[[Any, str], tuple]:
             raise InputError(where, f"expected a list of at least {min_items} mappings, got "
                              f"{value!r}" if min_items else f"expected a list, got {value!r}")
         return tuple(parse(cls, item, f"{where}[{i}]") for i, item in enumerate(value))
+    return check
+
+
+def variant(tag: str, **classes) -> Callable[[Any, str], Any]:
+    """A check for a mapping parsed as one of ``classes``, chosen by the value of its ``tag`` key
+    (``type: capsule`` -> ``classes["capsule"]``); each class declares the tag as a field too,
+    so the keys of one kind are unknown keys of another."""
+    def check(value, where):
+        d = mapping(value, where)
+        kind = d.get(tag)
+        if not isinstance(kind, str) or kind not in classes:
+            raise InputError(f"{where}.{tag}", f"expected {' or '.join(classes)}, got {kind!r}")
+        return parse(classes[kind], d, where)
     return check
 
 

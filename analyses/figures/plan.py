@@ -25,8 +25,8 @@ def make_figures(case, fit, placements, robot, cap, sims, fig_dir: Path, *, html
     figs = {}
     fpsm_dir = fig_dir / "fpsm"
     figs["fpsm"] = rel(plot_fit(fit.fpsm, fit.opened, fpsm_dir))
-    if case.mouth_opening_deg > 0:
-        o = case.opening
+    if case.mesh.mouth_opening_deg > 0:
+        o = case.mesh.opening
         figs["fpsm"] = rel([plot_mouth_opening(
             fit.scanned, fit.opened, fpsm_dir / "mouth_opening.png",
             planes_y=(0.0,), hinge_point=o["hinge_point"], occlusal_point=o["occlusal_point"],

@@ -109,13 +109,13 @@ def study(*, poses: int = 20_000, seed: int = 0, progress: Progress | None = Non
     case = load_case(default_case_path())
     fit = pipeline.fit_stage(case)
     placements = pipeline.placement_stage(case, fit.fpsm, mesh=fit.opened)
-    exact = ExactCavity.from_scan(fit.opened, fit.fpsm, close_open_cuts=case.close_open_cuts)
+    exact = ExactCavity.from_scan(fit.opened, fit.fpsm, close_open_cuts=case.mesh.close_open_cuts)
     sites = {}
     for k, (site, p) in enumerate(zip(case.sites, placements, strict=True)):
         progress.say(f"site {site.name}: {poses} poses")
         sites[site.name] = check_site(fit.fpsm, exact, p.X_CT, poses=poses,
-                                      margin=case.clearance_margin, rng=seeds.rng(seed, k))
-    return {"case": case.name, "seed": seed, "margin_m": case.clearance_margin,
+                                      margin=case.safety.clearance_margin, rng=seeds.rng(seed, k))
+    return {"case": case.name, "seed": seed, "margin_m": case.safety.clearance_margin,
             "feed_step_m": FEED_STEP, "sites": sites}
 
 

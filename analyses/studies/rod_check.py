@@ -67,11 +67,12 @@ class Variant:
 
 
 def _fit(case, mesh: trimesh.Trimesh, X_WC: np.ndarray, scale: float) -> Fpsm:
-    z_range = None if case.z_range is None else tuple(scale * z for z in case.z_range)
+    fp = case.fpsm
+    z_range = None if fp.z_range is None else tuple(scale * z for z in fp.z_range)
     return fit_fpsm(
-        mesh, X_WC, slices=case.slices, control_points=case.control_points, samples=case.samples,
-        z_range=z_range, method=case.fit_method, margin=case.margin * scale,
-        cap_radius=case.cap_radius, close_open_cuts=case.close_open_cuts,
+        mesh, X_WC, slices=fp.slices, control_points=fp.control_points, samples=fp.samples,
+        z_range=z_range, method=fp.method, margin=fp.margin * scale,
+        cap_radius=case.mesh.cap_radius, close_open_cuts=case.mesh.close_open_cuts,
     )
 
 

@@ -113,6 +113,25 @@ class BaseRangeSpec:
     yaw_deg: np.ndarray = v.spec(_range, 0.0)
 
 
+def _limits(value, where: str) -> str:
+    return v.choice(str(value), where, ("175", "360"))
+
+
+@dataclass(frozen=True)
+class MapBuildSpec:
+    """``build``: how ``capmap plan`` builds the robot's map when its file is missing (the
+    options of ``capmap build``; ``limits`` None: the robot's)."""
+
+    voxel_mm: float = v.spec(v.positive, 50.0)
+    directions: int = v.spec(partial(v.integer, low=1), 100)
+    limits: str | None = v.spec(_limits, None)
+    tool: str | None = v.spec(v.one_of("flange", "actuator"), None)
+    rolls: int | None = v.spec(partial(v.integer, low=1), None)
+    workers: int | None = v.spec(partial(v.integer, low=1), None)
+    self_collision: bool = v.spec(v.boolean, False)
+    cell: str = v.spec(v.one_of("certified", "centre"), "certified")
+
+
 @dataclass(frozen=True)
 class RobotSpec:
     name: str = v.spec(v.label)
@@ -121,8 +140,8 @@ class RobotSpec:
     translation_step: float = v.spec(v.positive, 0.05)
     rotation_step_deg: float = v.spec(v.positive, 5.0)
     store: str | None = v.spec(v.text, None)
-    build: dict | None = v.spec(v.mapping, None)
-    limits: str | None = v.spec(lambda x, w: v.choice(str(x), w, ("175", "360")), None)
+    build: MapBuildSpec | None = v.spec(v.section(MapBuildSpec), None)
+    limits: str | None = v.spec(_limits, None)
 
 
 def _file(path, key: str, cls):
@@ -231,7 +250,7 @@ class Robot:
     map_path: Path
     ranges: list
     store: Path | None = None
-    build: dict | None = None
+    build: MapBuildSpec | None = None
     limits: str | None = None
 
 

@@ -30,6 +30,7 @@ import trimesh
 
 from implantplan.systems.errors import InputError
 from implantplan.systems.frames import invert, rotations
+from implantplan.systems.safety import SafetySpec
 
 
 def _rotation_to(u: np.ndarray) -> np.ndarray:
@@ -193,21 +194,20 @@ def registration_monte_carlo(
     tool,
     *,
     depth: float,
-    sigma_translation: float = 0.0005,
-    sigma_rotation: float = np.radians(0.5),
-    samples: int = 1000,
+    safety: SafetySpec | None = None,
     seed: int = 0,
     depth_step: float = 0.004,
 ) -> dict:
-    """The planned feed under registration error of the Center frame (item 6).
+    """The planned feed under registration error of the Center frame.
 
-    Each sample draws an error E of Center's pose (translation ~ N(0, sigma_translation^2) per
-    axis, rotation vector ~ N(0, sigma_rotation^2) per axis, about Center's origin): the robot
-    executes the plan in the registered frame, so relative to the true anatomy the tool is at
-    E^-1 X(s) for every depth s of the feed (the planned pose backed out along the rod axis,
-    0..``depth`` every ``depth_step``). The exact (FCL) clearance of the whole tool at those
-    poses, minimized over the feed, is the sample's value. Vectorized over samples and depths;
-    same seed, same result.
+    Each of ``safety.registration_samples`` samples (None: ``SafetySpec()``) draws an error E
+    of Center's pose (translation ~ N(0, sigma_translation^2) per axis, rotation vector
+    ~ N(0, sigma_rotation^2) per axis, about Center's origin; the sigmas are
+    ``safety.registration_sigma_*``): the robot executes the plan in the registered frame, so
+    relative to the true anatomy the tool is at E^-1 X(s) for every depth s of the feed (the
+    planned pose backed out along the rod axis, 0..``depth`` every ``depth_step``). The exact
+    (FCL) clearance of the whole tool at those poses, minimized over the feed, is the sample's
+    value. Vectorized over samples and depths; same seed, same result.
 
     Returns:
         dict: ``probability_clear`` (share of samples whose clearance stays > 0 along the whole
@@ -215,13 +215,15 @@ def registration_monte_carlo(
         the settings (SI units).
     """
 
-    samples = int(samples)
+    safety = SafetySpec() if safety is None else safety
+    if not isinstance(safety, SafetySpec):
+        raise InputError("safety", f"expected a SafetySpec, got {type(safety).__name__}")
+    samples = int(safety.registration_samples)
     if samples < 1:
-        raise InputError("samples", f"expected at least 1 sample, got {samples}")
-    for name, value in (("sigma_translation", sigma_translation),
-                        ("sigma_rotation", sigma_rotation)):
-        if not np.isfinite(value) or value < 0:
-            raise InputError(name, f"expected a standard deviation >= 0, got {value!r}")
+        raise InputError("safety.registration_samples",
+                         f"expected at least 1 sample, got {samples}")
+    sigma_translation = safety.registration_sigma_translation
+    sigma_rotation = safety.registration_sigma_rotation
     rng = np.random.default_rng(seed)
     t = rng.normal(0.0, sigma_translation, (samples, 3))
     R = rotations(rng.normal(0.0, sigma_rotation, (samples, 3)))

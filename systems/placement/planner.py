@@ -60,6 +60,7 @@ from implantplan.systems.placement.tool_clearance import (
     feed_depth,
     feed_poses,
 )
+from implantplan.systems.safety import SafetySpec
 
 OBJECTIVES = ("eq14", "eq21", "eq22")
 
@@ -411,25 +412,19 @@ def _height_above(lines: FeedingLines, fpsm: Fpsm) -> np.ndarray:
     return z - fpsm.z_range[1]
 
 
-LATERAL_TOLERANCE = 0.0005  # m: the tool axis may leave line1 by this inside the mouth
-ANGLE_TOLERANCE = np.radians(1.0)  # rad: and its orientation turn by this
-CLEARANCE_MARGIN = 0.001  # m: the clinical margin every clearance check keeps
-
-
 def verify_placement(
     fpsm: Fpsm,
     X_CT: np.ndarray,
     tool: Instrument,
     *,
-    lateral: float = LATERAL_TOLERANCE,
-    angle: float = ANGLE_TOLERANCE,
-    margin: float = CLEARANCE_MARGIN,
+    safety: SafetySpec | None = None,
     exact=None,
     depth_step: float = 0.002,
 ) -> dict:
-    """Verify the whole admissible region of a placement: the tool at every lateral
-    offset up to ``lateral`` and turn up to ``angle`` from the planned pose X_CT, at every depth
-    of the feed (backed out along the rod axis until it is out of the mouth).
+    """Verify the whole admissible region of a placement: the tool at every lateral offset up
+    to ``safety.lateral_tolerance`` and turn up to ``safety.angle_tolerance`` from the planned
+    pose X_CT, at every depth of the feed (backed out along the rod axis until it is out of the
+    mouth), against the clinical margin ``safety.clearance_margin`` (None: ``SafetySpec()``).
 
     1. Certified, against the FPSM: :func:`systems.placement.tool_clearance.feed_clearance` (a lower
        bound over the whole region, no sampling gaps).
@@ -443,6 +438,9 @@ def verify_placement(
         dict (SI units) with ``clearance_certified``, ``clearance_exact_min`` (None without a
         mesh), the tolerances, the margin, ``reasons`` (empty when both are >= margin).
     """
+    safety = SafetySpec() if safety is None else safety
+    lateral, angle = safety.lateral_tolerance, safety.angle_tolerance
+    margin = safety.clearance_margin
     X = np.asarray(X_CT, dtype=float).reshape(4, 4)
     depth = feed_depth(fpsm, X, tool)
     certified = float(feed_clearance(fpsm, X, tool, depth=depth, lateral=lateral,
@@ -546,9 +544,7 @@ def place_instrument(
     verify: bool = True,
     vf_options: dict | None = None,
     tool: Instrument | None = None,
-    lateral_tolerance: float = LATERAL_TOLERANCE,
-    angle_tolerance: float = ANGLE_TOLERANCE,
-    clearance_margin: float = CLEARANCE_MARGIN,
+    safety: SafetySpec | None = None,
     exact=None,
 ) -> Placement:
     """Place the feeding target for one implant site by PSO (paper Sec. 4.3).
@@ -572,9 +568,9 @@ def place_instrument(
         vf_options: keyword arguments for :meth:`VirtualFixture.from_placement`.
         tool: the tool body checked by the verification (default: the paper's model with
             ``rod_radius`` and ``implant_length``, :class:`Instrument`).
-        lateral_tolerance, angle_tolerance: the fixture's admissible region (m, rad).
-        clearance_margin: clinical margin (m): a placement whose verified clearance is below
-            it is invalid (:func:`verify_placement`).
+        safety: the fixture's admissible region (lateral and angle tolerances) and the
+            clinical margin: a placement whose verified clearance over that region is below the
+            margin is invalid (:func:`verify_placement`). None: ``SafetySpec()``.
         exact: an :class:`systems.placement.exact_clearance.ExactCavity` of the scan for the exact
             check (None: only the certified FPSM bound).
 
@@ -598,11 +594,9 @@ def place_instrument(
     restarts = int(restarts)
     if tool is None:
         tool = Instrument.paper(rod_radius=rod_radius, implant_length=implant_length)
-    for name, value in (("lateral_tolerance", lateral_tolerance),
-                        ("angle_tolerance", angle_tolerance),
-                        ("clearance_margin", clearance_margin)):
-        if not np.isfinite(value) or value < 0:
-            raise InputError(name, f"expected a finite value >= 0, got {value!r}")
+    safety = SafetySpec() if safety is None else safety
+    if not isinstance(safety, SafetySpec):
+        raise InputError("safety", f"expected a SafetySpec, got {type(safety).__name__}")
     X_CH = hole_frame(hole_Center_m, axis_Center)
     t = X_CH[:3, 3]
     z_lo, z_hi = fpsm.z_range
@@ -678,10 +672,7 @@ def place_instrument(
             "distance_theta_T": float(abs(wrap_angle(g["x"][1] - res.x[1]))),
             "F_pso_minus_grid": float(res.F - g["F"]),
         }
-    verification = verify_placement(
-        fpsm, X_CT, tool, lateral=lateral_tolerance, angle=angle_tolerance,
-        margin=clearance_margin, exact=exact,
-    )
+    verification = verify_placement(fpsm, X_CT, tool, safety=safety, exact=exact)
     reasons = reasons + verification["reasons"]
     placement = Placement(
         d_T=float(res.x[0]),

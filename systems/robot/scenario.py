@@ -1,5 +1,6 @@
 """The MOPRP scenario schema (models/scenarios/*.yaml; DESIGN.md section 5): typed dataclasses
-read from YAML, every error naming its field (through systems.validate).
+read from YAML through systems.validate's typed sections, as the case is: unknown keys, duplicate
+keys and bad values are errors naming the field (``obstacles[2].radius_m``).
 
 A scenario is the room and the problem of one robot placement: the Oral (feeding target) pose in
 World, the bounds of the base position in Oral, the cart under the base and condition 1's joint-2
@@ -10,13 +11,14 @@ the clearance, and the GA settings. :func:`load_scenario` reads a bundled one by
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
 from implantplan import models
 from implantplan.systems import actuator as act
-from implantplan.systems import validate
+from implantplan.systems import validate as v
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import read_yaml
 from implantplan.systems.frames import rpy_to_rotation, transform
@@ -41,15 +43,16 @@ class Actuator:
     along the flange +z to the TCP (End) at ``rod_length`` with the flange's axes, the head at the
     TCP; an optional motor body (``body_length`` > 0) from the flange face. ``rod_length`` sets
     the TCP (:meth:`X_FT`); the collision shapes are the plant's actuator URDF
-    (systems.robot.arm_collision), the other fields are read and validated for the file format."""
+    (systems.robot.arm_collision), the other fields are read and validated for the file format.
+    The scenario's ``actuator:`` section (keys ``<field>_m``)."""
 
-    rod_length: float = act.ROD_LENGTH
-    rod_radius: float = act.ROD_RADIUS
-    head_radius: float = act.HEAD_RADIUS
-    implant_length: float = act.IMPLANT_LENGTH
-    implant_radius: float = act.IMPLANT_RADIUS
-    body_length: float = 0.0
-    body_radius: float = 0.0
+    rod_length: float = v.spec(v.positive, act.ROD_LENGTH, key="rod_length_m")
+    rod_radius: float = v.spec(v.positive, act.ROD_RADIUS, key="rod_radius_m")
+    head_radius: float = v.spec(v.positive, act.HEAD_RADIUS, key="head_radius_m")
+    implant_length: float = v.spec(v.nonneg, act.IMPLANT_LENGTH, key="implant_length_m")
+    implant_radius: float = v.spec(v.nonneg, act.IMPLANT_RADIUS, key="implant_radius_m")
+    body_length: float = v.spec(v.nonneg, 0.0, key="body_length_m")
+    body_radius: float = v.spec(v.nonneg, 0.0, key="body_radius_m")
 
     def X_FT(self) -> np.ndarray:
         """TCP in the flange frame, translation (0, 0, rod_length) (systems.actuator.X_FT)."""
@@ -103,7 +106,6 @@ class Scenario:
 
 
 BUNDLED = ("lying", "sitting")
-_req = validate.require
 
 
 def scenario_path(name: str) -> Path:
@@ -121,134 +123,160 @@ def load_scenario(spec: str | Path, *, X_FT=None) -> Scenario:
     """
     path = scenario_path(str(spec)) if str(spec) in BUNDLED else Path(spec)
     data = read_yaml(path, field="scenario")
-    return scenario_from_dict(data, X_FT=X_FT, source=str(path))
+    try:
+        return scenario_from_dict(data, X_FT=X_FT, source=str(path))
+    except InputError as exc:  # say which file: a case names its scenario by path
+        raise InputError(exc.field, f"{exc.message} (in the scenario file {path})") from None
 
 
-def _pose(d, field_name: str) -> np.ndarray:
-    d = validate.mapping(d, field_name)
-    xyz = validate.vector(_req(d, "xyz_m", field_name + "."), field_name + ".xyz_m", 3)
-    rpy = validate.vector(d.get("rpy_deg", [0, 0, 0]), field_name + ".rpy_deg", 3)
-    return transform(rpy_to_rotation(np.deg2rad(rpy)), xyz)
+# -- the file's schema (systems.validate typed sections; m and deg as the keys say) --------------
+
+
+def _sizes(value, where: str) -> np.ndarray:
+    size = v.vec3(value, where)
+    if np.any(size <= 0):
+        raise InputError(where, "expected positive sizes")
+    return size
+
+
+def _bounds(value, where: str) -> np.ndarray:
+    pair = v.vector(value, where, 2)
+    if not pair[0] < pair[1]:
+        raise InputError(where, f"expected [lower, upper] with lower < upper, got {pair.tolist()} "
+                         "(inverted or empty bounds)")
+    return pair
+
+
+@dataclass(frozen=True)
+class PoseSpec:
+    """``{xyz_m: [x, y, z], rpy_deg: [r, p, y]}`` (rpy optional, default 0)."""
+
+    xyz: np.ndarray = v.spec(v.vec3, key="xyz_m")
+    rpy_deg: np.ndarray = v.spec(v.vec3, [0, 0, 0])
+
+    @property
+    def X(self) -> np.ndarray:
+        return transform(rpy_to_rotation(np.deg2rad(self.rpy_deg)), self.xyz)
+
+
+@dataclass(frozen=True)
+class BaseBoundsSpec:
+    """``base_bounds_m``: [lower, upper] of the base position in Oral per axis (m)."""
+
+    x: np.ndarray = v.spec(_bounds)
+    y: np.ndarray = v.spec(_bounds)
+    z: np.ndarray = v.spec(_bounds)
+
+
+@dataclass(frozen=True)
+class CabinetBoxSpec:
+    center: np.ndarray = v.spec(v.vec3, key="center_m")
+    size: np.ndarray = v.spec(_sizes, key="size_m")
+
+
+@dataclass(frozen=True)
+class CabinetSpec:
+    """``cabinet``: condition 1's joint-2 range and the cart box below the base (in Base)."""
+
+    joint2_range_deg: np.ndarray = v.spec(v.interval)
+    box: CabinetBoxSpec = v.spec(v.section(CabinetBoxSpec))
+
+
+@dataclass(frozen=True, kw_only=True)
+class CapsuleSpec:
+    name: str | None = v.spec(v.label, None)
+    type: str = v.spec(v.one_of("capsule"))
+    p0: np.ndarray = v.spec(v.vec3, key="p0_m")
+    p1: np.ndarray = v.spec(v.vec3, key="p1_m")
+    radius: float = v.spec(v.positive, key="radius_m")
+
+
+@dataclass(frozen=True, kw_only=True)
+class BoxSpec:
+    name: str | None = v.spec(v.label, None)
+    type: str = v.spec(v.one_of("box"))
+    center: np.ndarray = v.spec(v.vec3, key="center_m")
+    size: np.ndarray = v.spec(_sizes, key="size_m")
+    rpy_deg: np.ndarray = v.spec(v.vec3, [0, 0, 0])
+
+
+def _obstacles(value, where: str) -> tuple:
+    if not isinstance(value, list):
+        raise InputError(where, f"expected a list of obstacles, got {value!r}")
+    kind = v.variant("type", capsule=CapsuleSpec, box=BoxSpec)
+    return tuple(kind(item, f"{where}[{i}]") for i, item in enumerate(value))
+
+
+@dataclass(frozen=True)
+class GaSpec:
+    """``ga``: the NSGA-II settings (``patience: null`` = no stagnation stop)."""
+
+    pop: int = v.spec(partial(v.integer, low=4), 500)
+    gen: int = v.spec(partial(v.integer, low=1), 500)
+    patience: int | None = v.spec(partial(v.integer, low=1), 20, nullable=True)
+    hv_tol: float = v.spec(v.nonneg, 1e-3)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ScenarioFile:
+    """The scenario file as written; :func:`scenario_from_dict` turns it into a
+    :class:`Scenario`."""
+
+    schema_version: int = v.spec(v.version(1))
+    name: str | None = v.spec(v.label, None)
+    posture: str = v.spec(v.one_of("lying", "sitting", "other"))
+    oral: PoseSpec = v.spec(v.section(PoseSpec))
+    base_bounds_m: BaseBoundsSpec = v.spec(v.section(BaseBoundsSpec))
+    cabinet: CabinetSpec = v.spec(v.section(CabinetSpec))
+    obstacles: tuple = v.spec(_obstacles, [])
+    actuator: Actuator = v.spec(v.section(Actuator), {})
+    joint_error_deg: float = v.spec(v.positive)
+    feed_length_m: float = v.spec(v.positive)
+    feed_samples: int = v.spec(partial(v.integer, low=2), 11)
+    clearance_m: float = v.spec(v.nonneg, 0.005)
+    max_joint_step_deg: float = v.spec(v.positive, 20.0)
+    joint_limits_deg: str = v.spec(lambda x, w: v.choice(str(x), w, ("175", "360")), "175")
+    ga: GaSpec = v.spec(v.section(GaSpec), {})
+    percentile_samples: int = v.spec(partial(v.integer, low=1), 2000)
+    seed: int = v.spec(partial(v.integer, low=0), 0)
+
+
+def _obstacle(k: int, ob) -> Obstacle:
+    name = f"obstacle{k}" if ob.name is None else ob.name
+    if isinstance(ob, CapsuleSpec):
+        return Obstacle(name=name, kind="capsule", p0=ob.p0, p1=ob.p1, radius=ob.radius)
+    return Obstacle(name=name, kind="box",
+                    X_WB=transform(rpy_to_rotation(np.deg2rad(ob.rpy_deg)), ob.center),
+                    half_size=ob.size / 2)
 
 
 def scenario_from_dict(data: dict, *, X_FT=None, source: str = "scenario") -> Scenario:
-    """Validate a scenario mapping (as read from YAML); every error names the field."""
-    if not isinstance(data, dict):
-        raise InputError("scenario", f"{source} must be a mapping")
-    version = data.get("schema_version")
-    if version != 1:
-        raise InputError("schema_version", f"expected 1, got {version!r}")
-    name = str(data.get("name", Path(source).stem))
-    posture = data.get("posture")
-    if posture not in ("lying", "sitting", "other"):
-        raise InputError("posture", f"expected lying, sitting or other, got {posture!r}")
-    X_WO = _pose(_req(data, "oral", ""), "oral")
-
-    bounds = _req(data, "base_bounds_m", "")
-    if not isinstance(bounds, dict):
-        raise InputError("base_bounds_m", "expected a mapping with x, y, z: [lower, upper]")
-    lower, upper = np.zeros(3), np.zeros(3)
-    for i, axis in enumerate("xyz"):
-        pair = validate.vector(_req(bounds, axis, "base_bounds_m."), f"base_bounds_m.{axis}", 2)
-        if not pair[0] < pair[1]:
-            raise InputError(
-                f"base_bounds_m.{axis}",
-                f"expected [lower, upper] with lower < upper, got {pair.tolist()} "
-                "(inverted or empty bounds)",
-            )
-        lower[i], upper[i] = pair
-
-    cab = _req(data, "cabinet", "")
-    if not isinstance(cab, dict):
-        raise InputError("cabinet", "expected a mapping")
-    j2 = np.deg2rad(validate.vector(_req(cab, "joint2_range_deg", "cabinet."),
-                                    "cabinet.joint2_range_deg", 2))
-    if not j2[0] < j2[1]:
-        raise InputError("cabinet.joint2_range_deg", "expected [lower, upper] with lower < upper")
-    box = _req(cab, "box", "cabinet.")
-    if not isinstance(box, dict):
-        raise InputError("cabinet.box", "expected a mapping with center_m and size_m")
-    X_BC = transform(np.eye(3), validate.vector(_req(box, "center_m", "cabinet.box."),
-                                     "cabinet.box.center_m", 3))
-    size = validate.vector(_req(box, "size_m", "cabinet.box."), "cabinet.box.size_m", 3)
-    if np.any(size <= 0):
-        raise InputError("cabinet.box.size_m", "expected positive sizes")
-
-    obstacles = []
-    for k, ob in enumerate(data.get("obstacles", []) or []):
-        where = f"obstacles[{k}]"
-        if not isinstance(ob, dict):
-            raise InputError(where, "expected a mapping")
-        kind = ob.get("type")
-        oname = str(ob.get("name", f"obstacle{k}"))
-        if kind == "capsule":
-            obstacles.append(Obstacle(
-                name=oname, kind="capsule",
-                p0=validate.vector(_req(ob, "p0_m", where + "."), where + ".p0_m", 3),
-                p1=validate.vector(_req(ob, "p1_m", where + "."), where + ".p1_m", 3),
-                radius=validate.number(_req(ob, "radius_m", where + "."), where + ".radius_m",
-                                       positive=True),
-            ))
-        elif kind == "box":
-            bsize = validate.vector(_req(ob, "size_m", where + "."), where + ".size_m", 3)
-            if np.any(bsize <= 0):
-                raise InputError(where + ".size_m", "expected positive sizes")
-            rpy = validate.vector(ob.get("rpy_deg", [0, 0, 0]), where + ".rpy_deg", 3)
-            obstacles.append(Obstacle(
-                name=oname, kind="box",
-                X_WB=transform(rpy_to_rotation(np.deg2rad(rpy)),
-                               validate.vector(_req(ob, "center_m", where + "."),
-                                               where + ".center_m", 3)),
-                half_size=bsize / 2,
-            ))
-        else:
-            raise InputError(where + ".type", f"expected capsule or box, got {kind!r}")
-
-    act = data.get("actuator", {}) or {}
-    if not isinstance(act, dict):
-        raise InputError("actuator", "expected a mapping")
-    defaults = Actuator()
-    actuator = Actuator(**{
-        key: validate.number(act.get(f"{key}_m", getattr(defaults, key)), f"actuator.{key}_m",
-                  positive=key.startswith(("rod", "head")), nonneg=True)
-        for key in ("rod_length", "rod_radius", "head_radius", "implant_length",
-                    "implant_radius", "body_length", "body_radius")
-    })
-    X_FT = actuator.X_FT() if X_FT is None else validate.pose(X_FT, "X_FT")
-
-    eps = np.deg2rad(validate.number(_req(data, "joint_error_deg", ""), "joint_error_deg",
-                                     positive=True))
-    feed_length = validate.number(_req(data, "feed_length_m", ""), "feed_length_m", positive=True)
-    feed_samples = int(validate.number(data.get("feed_samples", 11), "feed_samples", positive=True,
-                            integer=True))
-    if feed_samples < 2:
-        raise InputError("feed_samples", f"expected >= 2 samples, got {feed_samples}")
-    clearance = validate.number(data.get("clearance_m", 0.005), "clearance_m", nonneg=True)
-    step = np.deg2rad(validate.number(data.get("max_joint_step_deg", 20.0), "max_joint_step_deg",
-                           positive=True))
-    limits = str(data.get("joint_limits_deg", "175"))
-    if limits not in ("175", "360"):
-        raise InputError("joint_limits_deg", f"expected 175 or 360, got {limits!r}")
-
-    ga = data.get("ga", {}) or {}
-    if not isinstance(ga, dict):
-        raise InputError("ga", "expected a mapping")
-    pop = int(validate.number(ga.get("pop", 500), "ga.pop", positive=True, integer=True))
-    gen = int(validate.number(ga.get("gen", 500), "ga.gen", positive=True, integer=True))
-    if pop < 4:
-        raise InputError("ga.pop", f"expected at least 4, got {pop}")
-    patience = ga.get("patience", 20)
-    if patience is not None:
-        patience = int(validate.number(patience, "ga.patience", positive=True, integer=True))
-    hv_tol = validate.number(ga.get("hv_tol", 1e-3), "ga.hv_tol", nonneg=True)
-    seed = int(validate.number(data.get("seed", 0), "seed", nonneg=True, integer=True))
-    n_pct = int(validate.number(data.get("percentile_samples", 2000), "percentile_samples",
-                                positive=True, integer=True))
-
+    """Validate a scenario mapping (as read from YAML, :class:`ScenarioFile`); every error names
+    the field."""
+    f = v.parse(ScenarioFile, data, "")
+    b = f.base_bounds_m
     return Scenario(
-        name=name, posture=posture, X_WO=X_WO, lower=lower, upper=upper, joint2_range=j2,
-        X_BC=X_BC, cabinet_half=size / 2, obstacles=tuple(obstacles), actuator=actuator,
-        X_FT=X_FT, eps=eps, feed_length=feed_length, feed_samples=feed_samples,
-        clearance=clearance, max_joint_step=step, limits=limits, pop=pop, gen=gen, seed=seed,
-        patience=patience, hv_tol=hv_tol, percentile_samples=n_pct,
+        name=Path(source).stem if f.name is None else f.name,
+        posture=f.posture,
+        X_WO=f.oral.X,
+        lower=np.array([b.x[0], b.y[0], b.z[0]]),
+        upper=np.array([b.x[1], b.y[1], b.z[1]]),
+        joint2_range=np.deg2rad(f.cabinet.joint2_range_deg),
+        X_BC=transform(np.eye(3), f.cabinet.box.center),
+        cabinet_half=f.cabinet.box.size / 2,
+        obstacles=tuple(_obstacle(k, ob) for k, ob in enumerate(f.obstacles)),
+        actuator=f.actuator,
+        X_FT=f.actuator.X_FT() if X_FT is None else v.pose(X_FT, "X_FT"),
+        eps=np.deg2rad(f.joint_error_deg),
+        feed_length=f.feed_length_m,
+        feed_samples=f.feed_samples,
+        clearance=f.clearance_m,
+        max_joint_step=np.deg2rad(f.max_joint_step_deg),
+        limits=f.joint_limits_deg,
+        pop=f.ga.pop,
+        gen=f.ga.gen,
+        seed=f.seed,
+        patience=f.ga.patience,
+        hv_tol=f.ga.hv_tol,
+        percentile_samples=f.percentile_samples,
     )

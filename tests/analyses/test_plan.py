@@ -261,10 +261,14 @@ def test_an_unreadable_case_file_is_exit_2_naming_the_case(tmp_path, capsys, mon
 def test_case_loader_reads_the_default_case():
     case = load_case(default_case_path())
     assert case.name == "default" and len(case.sites) == 2
-    assert case.mouth_opening_deg == 25 and case.opening["blend"] == pytest.approx(0.02)
+    assert case.mesh.mouth_opening_deg == 25 and case.mesh.opening["blend"] == pytest.approx(0.02)
+    assert case.mesh.path == models.model_path("oral/oralCavityMesh.obj")
     np.testing.assert_allclose(case.sites[0].position, SITE_36 * 1e-3)
     assert case.sites[0].rod_radius == pytest.approx(0.006)
-    assert case.posture == "lying" and case.scenario == "lying"
+    assert case.patient.posture == "lying" and case.robot.scenario == "lying"
+    # the two margins are two fields: the FPSM fit's offset and the clinical margin
+    assert case.fpsm.margin == 0.0 and case.safety.clearance_margin == pytest.approx(0.001)
+    assert case.safety.angle_tolerance == pytest.approx(np.radians(1.0))
 
 
 def test_case_loader_requires_sites(tmp_path):

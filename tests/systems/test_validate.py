@@ -128,3 +128,48 @@ def test_parse_errors_name_the_field(data, message):
 def test_parse_prefixes_nested_fields_with_where():
     with pytest.raises(InputError, match=r"case\.inner\.length_mm"):
         v.parse(Outer, {"schema_version": 1, "name": "x", "inner": {"length_mm": 0}}, "case")
+
+
+def test_a_section_built_in_code_has_the_files_defaults():
+    # the spec's default is the field's default, checked and scaled once
+    assert Inner() == v.parse(Inner, {}, "inner")
+    assert Inner().length == pytest.approx(0.012) and Inner().axis is None
+    assert Outer(schema_version=1, name="x").items[0].length == pytest.approx(0.001)
+    with pytest.raises(TypeError):
+        Outer(name="x")  # a required key has no default
+
+
+@dataclass(frozen=True)
+class Stop:
+    patience: int | None = v.spec(v.integer, 20, nullable=True)
+    rate: float = v.spec(v.positive, 2.0)
+
+
+def test_nullable_takes_an_explicit_null_as_off():
+    assert v.parse(Stop, {}, "ga").patience == 20
+    assert v.parse(Stop, {"patience": None}, "ga").patience is None
+    assert v.parse(Stop, {"rate": None}, "ga").rate == 2.0  # not nullable: null is the default
+
+
+@dataclass(frozen=True, kw_only=True)
+class Ball:
+    type: str = v.spec(v.one_of("ball"))
+    radius: float = v.spec(v.positive, key="radius_m")
+
+
+@dataclass(frozen=True, kw_only=True)
+class Block:
+    type: str = v.spec(v.one_of("block"))
+    size: np.ndarray = v.spec(v.vec3, key="size_m")
+
+
+def test_variant_picks_the_section_by_its_tag_and_names_the_field():
+    shape = v.variant("type", ball=Ball, block=Block)
+    assert shape({"type": "ball", "radius_m": 1}, "shapes[0]") == Ball(type="ball", radius=1.0)
+    assert isinstance(shape({"type": "block", "size_m": [1, 2, 3]}, "s"), Block)
+    with pytest.raises(InputError, match=r"shapes\[1\]\.type: expected ball or block, got 'cone'"):
+        shape({"type": "cone"}, "shapes[1]")
+    with pytest.raises(InputError, match=r"shapes\[1\]\.size_m: unknown key"):
+        shape({"type": "ball", "radius_m": 1, "size_m": [1, 2, 3]}, "shapes[1]")
+    with pytest.raises(InputError, match=r"s\.radius_m: missing"):
+        shape({"type": "ball"}, "s")

@@ -17,6 +17,7 @@ from implantplan.systems.placement.planner import (
     tool_frames,
     verify_by_grid,
 )
+from implantplan.systems.safety import SafetySpec
 
 MM = 1e-3
 HOLE = np.array([0.0, -50.0, 50.0]) * MM
@@ -260,5 +261,5 @@ def test_cylinder_verification_with_the_sound_clearance(cyl):
     assert p.to_dict()["fixture_tolerance"]["lateral"] == 0.5 * MM
     # a margin above the true clearance makes the placement invalid, with the reason
     q = place_instrument(cyl, HOLE, AXIS, rod_radius=6 * MM, implant_length=D12, seed=0,
-                         verify=False, clearance_margin=40 * MM)
+                         verify=False, safety=SafetySpec(clearance_margin=40 * MM))
     assert not q.valid and "clinical margin 40.000 mm" in q.reason
