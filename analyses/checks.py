@@ -2,7 +2,7 @@
 ``plan`` (every check of a plan), ``studio`` (the layout's checks again when a layout is kept)
 and ``batch`` (which reads them from each plan).
 
-A check is a dict: ``id`` (stable, what the README's check table names), ``name``, ``site``
+A check is a dict: ``id`` (stable, what docs/formats.md's check table names), ``name``, ``site``
 (None for the case), ``value``, ``limit``, ``bound`` ("max": passes when value <= limit; "min":
 passes when value > limit, strictly, since a clearance of exactly 0 is contact), ``unit``,
 ``margin`` (>= 0 on the passing side) and ``pass``.

@@ -10,7 +10,7 @@ One engine serves capability-map builds (voxel blocks) and cohort planning (one 
   OS (scheduler, workers), the dashboard off. It is closed when the run ends, also on an error or
   Ctrl-C (the context manager's ``finally``).
 * ``tcp://HOST:PORT`` (or ``tls://``): a running cluster (``dask scheduler`` + ``dask worker``,
-  README). ``--workers N`` then means "wait until N workers have joined".
+  docs/commands.md). ``--workers N`` then means "wait until N workers have joined".
 
 Tasks carry plain values (arrays, dataclasses of numbers, file paths), never Drake objects (they
 cannot be pickled): whatever a task needs it builds in the worker process. :class:`WarmUp` is a

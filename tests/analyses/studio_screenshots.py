@@ -1,4 +1,4 @@
-"""The README's studio screenshots (docs/studio_setup.png, docs/studio_teleop.png), taken by
+"""The studio screenshots (docs/studio_setup.png, docs/studio_teleop.png: README, commands.md), by
 headless Chromium over DevTools on the status page, Meshcat's controls open (the Scene folder
 folded). Not a test (no test_ prefix): run it from the repository root,
 
