@@ -167,6 +167,45 @@ class SimulationSection:
     mode: str = v.spec(v.one_of("kinematic", "dynamic"), "kinematic")
 
 
+@dataclass(frozen=True)
+class InstrumentSection:
+    """``instrument:`` the instrument every safety layer checks (systems.instrument): ``paper``
+    (seed 000's thin tool, with each site's ``rod_radius_mm`` and ``implant_length_mm``),
+    ``actuator`` (the shipped actuator URDF's solids: its head is a cylinder r 8 mm x 14 mm), or
+    ``{urdf: PATH}`` (an actuator URDF of the case's own, relative to the case file). Written as
+    a word or as a mapping ``{kind: ..., urdf: ...}``."""
+
+    kind: str = v.spec(v.one_of("paper", "actuator", "urdf"), "paper")
+    urdf: str | None = v.spec(v.text, None)
+
+    def instrument(self, site: Site):
+        """The :class:`systems.instrument.Instrument` at a site (the paper's tool takes the
+        site's rod radius and d12; an actuator's are its own)."""
+        from implantplan.systems.instrument import Instrument
+
+        if self.kind == "paper":
+            return Instrument.paper(rod_radius=site.rod_radius, implant_length=site.implant_length)
+        if self.kind == "actuator":
+            return Instrument.actuator()
+        return Instrument.from_urdf(self.urdf)
+
+
+def _instrument(value, where: str) -> InstrumentSection:
+    if isinstance(value, str):
+        value = {"kind": value}
+    section = v.parse(InstrumentSection, value, where)
+    if (section.kind == "urdf") != (section.urdf is not None):
+        raise InputError(f"{where}.urdf", "expected a URDF path exactly when kind is 'urdf' "
+                         "(or write instrument: {urdf: PATH})")
+    return section
+
+
+def _instrument_mapping(value, where: str) -> InstrumentSection:
+    if isinstance(value, dict) and "urdf" in value and "kind" not in value:
+        value = {"kind": "urdf", **value}
+    return _instrument(value, where)
+
+
 def _sites(value, where: str) -> tuple:
     if not isinstance(value, list) or not value:
         raise InputError(where, "expected a list of at least one implant site")
@@ -193,7 +232,12 @@ class Case:
     capability: CapabilitySection = v.spec(v.section(CapabilitySection), {})
     simulation: SimulationSection = v.spec(v.section(SimulationSection), {})
     safety: SafetySpec = v.spec(v.section(SafetySpec), {})
+    instrument: InstrumentSection = v.spec(_instrument_mapping, "paper")
     source: Path | None = None
+
+    def instrument_at(self, site: Site):
+        """The instrument the plan checks at ``site`` (:meth:`InstrumentSection.instrument`)."""
+        return self.instrument.instrument(site)
 
 
 def case_from_dict(data: dict, *, source: Path) -> Case:
@@ -228,8 +272,14 @@ def case_from_dict(data: dict, *, source: Path) -> Case:
             "robot.scenario",
             f"the bundled scenario {scenario!r} contradicts patient.posture {posture!r}",
         )
+    instrument = case.instrument
+    if instrument.kind == "urdf":
+        urdf = resolve_path(instrument.urdf, base_dir, "instrument.urdf")
+        instrument = replace(instrument, urdf=str(urdf))
+        instrument.instrument(sites[0])  # a URDF the instrument cannot be read from stops here
     return replace(
         case,
+        instrument=instrument,
         name=source.stem if case.name is None else case.name,
         source=source,
         mesh=replace(mesh, path=resolve_path(mesh.path, base_dir, "mesh.path")),

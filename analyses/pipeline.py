@@ -104,7 +104,6 @@ def placement_stage(case: Case, fpsm: Fpsm, *, progress=None, require_valid: boo
     margin (``case.safety``, passed whole): certified on the FPSM and, with the scan ``mesh``
     (mesh frame, as fitted), exactly with FCL; then the registration Monte Carlo of the exact
     clearance along the feed (``placement.verification["registration"]``)."""
-    from implantplan.systems.instrument import Instrument
     from implantplan.systems.placement.exact_clearance import ExactCavity, registration_monte_carlo
 
     exact = None
@@ -113,17 +112,17 @@ def placement_stage(case: Case, fpsm: Fpsm, *, progress=None, require_valid: boo
     safety = case.safety
     out = []
     for k, site in enumerate(case.sites):
+        tool = case.instrument_at(site)
         try:
             p = place_instrument(
                 fpsm,
                 site.position,
                 site.axis,
-                rod_radius=site.rod_radius,
-                implant_length=site.implant_length,
+                rod_radius=tool.rod_radius,
+                implant_length=tool.implant_length,
                 objective=case.placement.objective,
                 seed=seeds.seed(case.seed, seeds.PLACEMENT, k),
-                tool=Instrument.paper(rod_radius=site.rod_radius,
-                                  implant_length=site.implant_length),
+                tool=tool,
                 safety=safety,
                 exact=exact,
             )
@@ -135,8 +134,7 @@ def placement_stage(case: Case, fpsm: Fpsm, *, progress=None, require_valid: boo
                           f"{'valid' if p.valid else 'INVALID'}")
         if exact is not None and p.valid and safety.registration_samples > 0:
             p.verification["registration"] = registration_monte_carlo(
-                exact, p.X_CT, Instrument.paper(rod_radius=site.rod_radius,
-                                            implant_length=site.implant_length),
+                exact, p.X_CT, tool,
                 depth=p.verification["feed_depth"], safety=safety,
                 seed=seeds.seed(case.seed, seeds.PLACEMENT, k, 1))
         if require_valid and not p.valid:
@@ -372,6 +370,7 @@ def teleop_cases(case: Case, fit: FitResult, placements: list[Placement],
             implant_length=p.implant_length,
             limits=sc.limits,
             label=f"site {site.name}",
+            instrument=case.instrument_at(site),
         )
         for k, (site, p) in enumerate(zip(case.sites, placements, strict=True))
     ]

@@ -241,7 +241,10 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims, sites_checked) -> d
     return {
         "case": {"name": case.name, "source": str(case.source), "seed": case.seed,
                  "random_streams": "numpy SeedSequence(seed) spawned per stage ("
-                                   + ", ".join(seeds.STAGES) + ") and site (systems.seeds)"},
+                                   + ", ".join(seeds.STAGES) + ") and site (systems.seeds)",
+                 "instrument": {"kind": case.instrument.kind, "urdf": case.instrument.urdf,
+                                "note": "the instrument every tissue-side check verified; its "
+                                        "solids per site in placement.verification.tool"}},
         "fpsm": {
             "file": "fpsm.json",
             "slices": fit.fpsm.slices,

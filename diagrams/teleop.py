@@ -114,9 +114,12 @@ class TeleopCase:
         fpsm: the surrogate model (Center frame).
         vf: the virtual fixture (Center frame).
         X_WTarget: the feeding target: Tool (= Oral) pose in World.
-        rod_radius, implant_length: the actuator (m).
+        rod_radius, implant_length: the actuator (m), the paper's lines' radius and d12.
         limits: "175" or "360".
         label: free text for reports.
+        instrument: the instrument in the mouth (systems.instrument), the body the supervisor
+            and the estimator bound; None: the paper's tool of ``rod_radius`` and
+            ``implant_length``.
     """
 
     scenario: str
@@ -130,11 +133,13 @@ class TeleopCase:
     implant_length: float = actuator.IMPLANT_LENGTH
     limits: str = "175"
     label: str = ""
+    instrument: Instrument | None = None
 
     @property
     def tool(self) -> Instrument:
-        """The tool body the supervisor bounds (rod, head, implant;
-        systems.placement.tool_clearance)."""
+        """The instrument the supervisor and the estimator bound (every solid; the plan's)."""
+        if self.instrument is not None:
+            return self.instrument
         return Instrument.paper(rod_radius=self.rod_radius, implant_length=self.implant_length)
 
     @property
@@ -441,7 +446,8 @@ def build_teleop(
         )
     )
     supervisor.set_name("safety_supervisor")
-    lines = ToolLines.contra_angle(case.rod_radius, case.implant_length).expressed_in(X_ET)
+    lines = ToolLines.contra_angle(case.rod_radius, case.implant_length,
+                                   tool=case.tool).expressed_in(X_ET)
     estimator = builder.AddSystem(
         FpsmEstimator(
             case.fpsm,
