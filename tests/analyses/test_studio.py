@@ -312,7 +312,7 @@ def test_turning_in_the_mouth_checked_against_the_exact_scan_clearance(studio):
     from implantplan.diagrams.teleop import X_ET
 
     sp = studio.sp
-    mesh = st.opened_scan(sp)
+    mesh = ls.opened_scan(sp)
     margin = Barrier().margin
     for site in range(len(sp.names)):
         case = sp.teleop_case(site)
