@@ -109,6 +109,16 @@ class StudioPlan:
         )
 
 
+def opened_scan(sp: StudioPlan):
+    """The plan's case's opened scan (the case file it names), or None when it is gone."""
+    from implantplan.analyses.case import load_case
+
+    source = Path(sp.plan["case"]["source"])
+    if not source.is_file():
+        return None
+    return pipeline.fit_stage(load_case(source)).opened
+
+
 def load_plan(folder, *, field: str = "--plan", reference: bool = True) -> StudioPlan:
     """Open a plan folder (its plan.json and fpsm.json) for the studio; without ``reference``
     no percentile reference is sampled (replays need none; percentiles are then NaN)."""

@@ -287,13 +287,20 @@ def _check_count(value: int, name: str, lo: int = 1) -> None:
         raise InputError(name, f"expected an integer >= {lo}, got {value}")
 
 
-def _setup(args):
+def _setup(args, *, instrument: bool = True):
+    """(instrument, scenario, scenario with the plant's TCP); without ``instrument`` (the circle
+    runs the arm alone) a ``--plan`` is still read and checked, and no default one is placed
+    (None)."""
     if args.scenario not in moprp.BUNDLED and not Path(args.scenario).is_file():
         raise InputError(
             "--scenario", f"expected lying, sitting or a YAML file, got {args.scenario!r}"
         )
-    inst = instrument_from_plan(args.plan) if args.plan else default_instrument(args.seed)
     sc, sc_plant = load_scenario(args.scenario)
+    inst = None
+    if args.plan:
+        inst = instrument_from_plan(args.plan)
+    elif instrument:
+        inst = default_instrument(args.seed)
     return inst, sc, sc_plant
 
 
@@ -301,9 +308,9 @@ def _scene_name(sc) -> str:
     return sc.posture if sc.posture in ("lying", "sitting") else "arm"
 
 
-def _layout(args, progress):
+def _layout(args, progress, *, instrument: bool = True):
     """The case of ``args`` and its layout: (inst, sc, sc_plant, xyz, branch, source)."""
-    inst, sc, sc_plant = _setup(args)
+    inst, sc, sc_plant = _setup(args, instrument=instrument)
     xyz, branch, source = select_layout(sc, seed=args.seed, robot_placement=args.robot_placement)
     progress.say(f"layout {np.round(1000 * xyz).tolist()} mm branch {branch} ({source})")
     return inst, sc, sc_plant, xyz, branch, source
@@ -338,16 +345,8 @@ def cmd_replay(args) -> int:
 def cmd_feeding(args) -> int:
     if args.csv is not None:
         return cmd_replay(args)
+    # every flag is checked before the instrument is placed and the layout searched
     _check_count(args.runs, "--runs")
-    progress = Progress("simulate feeding", quiet=args.quiet)
-    inst, sc, sc_plant, xyz, branch, source = _layout(args, progress)
-    case = make_case(_scene_name(sc), sc_plant, xyz, branch, inst, label="selected")
-    meshcat = None
-    if args.meshcat_html is not None:
-        from pydrake.geometry import Meshcat
-
-        meshcat = Meshcat()
-    t0 = time.perf_counter()
     operator = _operator(args)
     head = None
     if args.head_motion is not None:
@@ -355,7 +354,18 @@ def cmd_feeding(args) -> int:
 
         if args.mode != "kinematic":
             raise InputError("--head-motion", "expected --mode kinematic with a head motion")
-        head = HeadMotion.make(args.head_motion, seed=args.seed, pivot=case.X_WCenter[:3, 3])
+        head = HeadMotion.make(args.head_motion, seed=args.seed)  # its pivot: the case's below
+    progress = Progress("simulate feeding", quiet=args.quiet)
+    inst, sc, sc_plant, xyz, branch, source = _layout(args, progress)
+    case = make_case(_scene_name(sc), sc_plant, xyz, branch, inst, label="selected")
+    if head is not None:
+        head = dataclasses.replace(head, pivot=np.array(case.X_WCenter[:3, 3], dtype=float))
+    meshcat = None
+    if args.meshcat_html is not None:
+        from pydrake.geometry import Meshcat
+
+        meshcat = Meshcat()
+    t0 = time.perf_counter()
     result = run_feeding(
         case,
         runs=args.runs,
@@ -408,7 +418,7 @@ def cmd_feeding(args) -> int:
 def cmd_circle(args) -> int:
     _check_count(args.realizations, "--realizations")
     progress = Progress("simulate circle", quiet=args.quiet)
-    _, sc, sc_plant, xyz, branch, source = _layout(args, progress)
+    _, sc, sc_plant, xyz, branch, source = _layout(args, progress, instrument=False)
     result = run_circle(sc_plant, xyz, branch, realizations=args.realizations, seed=args.seed)
     if result is None:
         raise PlanningFailure(f"branch {branch} cannot follow the circle continuously")
@@ -434,6 +444,7 @@ def cmd_layouts(args) -> int:
     _check_count(args.random, "--random")
     _check_count(args.runs, "--runs")
     _check_count(args.realizations, "--realizations")
+    operator = _operator(args)
     progress = Progress("analyze layouts", quiet=args.quiet)
     inst, sc, _ = _setup(args)
     result = analyze_layouts(
@@ -444,7 +455,7 @@ def cmd_layouts(args) -> int:
         seed=args.seed,
         robot_placement=args.robot_placement,
         realizations=args.realizations,
-        operator=_operator(args),
+        operator=operator,
         progress=progress,
     )
     args.out.mkdir(parents=True, exist_ok=True)

@@ -614,7 +614,7 @@ def open_studio(plan_dir, *, host: str = "127.0.0.1", port: int | None = None,
     from pydrake.geometry import Meshcat, MeshcatParams
 
     sp = ls.load_plan(plan_dir)
-    mesh = opened_scan(sp) if scan else None
+    mesh = ls.opened_scan(sp) if scan else None
     params = MeshcatParams()
     params.host = host
     if port is not None:
@@ -624,18 +624,6 @@ def open_studio(plan_dir, *, host: str = "127.0.0.1", port: int | None = None,
     status = StatusServer(studio, meshcat.web_url(), host=host,
                           port=0 if port is None else port + 1)
     return studio, meshcat, status
-
-
-def opened_scan(sp: ls.StudioPlan):
-    """The plan's case's opened scan (the case file it names), or None when it is gone."""
-    from implantplan.analyses.case import load_case
-    from implantplan.analyses.pipeline import fit_stage
-
-    source = Path(sp.plan["case"]["source"])
-    if not source.is_file():
-        return None
-    case = load_case(source)
-    return fit_stage(case).opened
 
 
 def _cmd_studio(args) -> int:

@@ -1,8 +1,15 @@
-"""Fixtures shared by several test files."""
+"""Fixtures shared by several test files.
+
+The bundled default case is planned once per test run (:func:`demo_run`): under pytest-xdist
+each worker process has its own session, so the first worker that asks plans it into the folder
+the workers share (``tmp_path_factory.getbasetemp().parent``) under a file lock, and the others
+read that folder. Tests read the plan folder; a test that writes into a plan folder copies it
+first (:func:`plan_copy` in the studio tests)."""
 
 import contextlib
 import io
 import os
+from pathlib import Path
 
 import pytest
 from hypothesis import settings
@@ -16,19 +23,54 @@ if os.environ.get("CI"):
     settings.load_profile("ci")
 
 
-@pytest.fixture(scope="session")
-def demo_run(tmp_path_factory):
-    """``implantplan demo`` once, as the README's first command runs it (the case's feeds, the 3D
-    scenes): ``(plan folder, everything it printed)``."""
-    out = tmp_path_factory.mktemp("demo") / "plan"
+def run_cli(argv: list[str]) -> tuple[int, str]:
+    """``implantplan ARGV`` in this process: (exit code, everything it printed)."""
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(printed):
-        code = main(["demo", "--out", str(out)])
-    assert code == 0, printed.getvalue()
-    return out, printed.getvalue()
+        code = main(argv)
+    return code, printed.getvalue()
+
+
+def once_per_run(tmp_path_factory, name: str, make) -> Path:
+    """The folder ``name`` made by ``make(folder)`` once per test run: in this session's temp
+    folder without xdist; with xdist in the folder all workers share, the first worker making it
+    under a lock while the others wait, then read it. ``make`` writes the folder whole or raises
+    (a failure leaves no folder, so the next worker tries again and fails the same way)."""
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+        folder = tmp_path_factory.mktemp(name)
+        make(folder)
+        return folder
+    from filelock import FileLock
+
+    root = tmp_path_factory.getbasetemp().parent
+    folder, done = root / name, root / f"{name}.done"
+    with FileLock(str(root / f"{name}.lock")):
+        if not done.is_file():
+            import shutil
+
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            make(folder)
+            done.write_text("made\n")
+    return folder
+
+
+def _plan_demo(folder: Path) -> None:
+    code, printed = run_cli(["demo", "--out", str(folder / "plan")])
+    assert code == 0, printed
+    (folder / "printed.txt").write_text(printed, encoding="utf-8")
+
+
+@pytest.fixture(scope="session")
+def demo_run(tmp_path_factory):
+    """``implantplan demo`` once per test run, as the README's first command runs it (the case's
+    feeds, the 3D scenes): ``(plan folder, everything it printed)``."""
+    folder = once_per_run(tmp_path_factory, "demo", _plan_demo)
+    return folder / "plan", (folder / "printed.txt").read_text(encoding="utf-8")
 
 
 @pytest.fixture(scope="session")
 def demo_plan(demo_run):
-    """The bundled default case planned once (the plan folder of :func:`demo_run`)."""
+    """The bundled default case planned once (the plan folder of :func:`demo_run`); read it, or
+    copy it before writing into it."""
     return demo_run[0]

@@ -44,7 +44,9 @@ def plot_cohort_checks(records: list[dict], path) -> None:
             unit, f = DISPLAY.get(c["unit"], (c["unit"], 1.0))
             text[i][j] = f"{c['margin'] * f:.3g}"
     fig_w = min(40.0, max(8.0, 3.0 + 0.55 * grid.shape[1]))
-    fig, ax = plt.subplots(figsize=(fig_w, 3.6 + 0.35 * len(records)), layout="constrained")
+    # the rotated check names take about 2.5 in below the grid whatever the number of cases
+    fig_h = max(6.0, 3.6 + 0.35 * len(records))
+    fig, ax = plt.subplots(figsize=(fig_w, fig_h), layout="constrained")
     cmap = mcolors.ListedColormap(["#d9534f", "#dddddd", "#5cb85c"])
     ax.imshow(grid, cmap=cmap, vmin=0, vmax=1, aspect="auto")
     for i, r in enumerate(records):

@@ -1,6 +1,7 @@
 """The awake patient study (DESIGN.md section 7): seeded feeds under head motion.
 
     implantplan analyze head-motion --out DIR [--runs 50] [--profiles breathing,swallow,...]
+                                    [--plan PLAN_DIR]
 
 Per profile, ``runs`` seeded runs (run i: operator motion i of ``feeding_runs(seed)``, head
 motion and tracker noise on the streams (i, 0) and (i, 1) below ``seed``, systems.seeds) on
@@ -162,13 +163,29 @@ class ScanCavity:
         return self._exact(self._X_MC @ np.asarray(X_CT, dtype=float))
 
 
-def scan_cases(*, progress=None) -> list:
-    """[(teleop case, exact cavity)] per site of the bundled default case (the scan, sites 36
-    and 46), planned as ``implantplan plan`` does."""
-    from implantplan.analyses.studies.scan_reference import default_case_sites
+def scan_cases(*, plan=None, progress=None) -> list:
+    """[(teleop case, exact cavity)] per site: of the plan folder ``plan`` (its sites, fixtures
+    and layout, its case's opened scan), or without one of the bundled default case (the scan,
+    sites 36 and 46), planned as ``implantplan plan`` does."""
+    from implantplan.analyses.studies.scan_reference import default_case_sites, plan_sites
 
-    cases, mesh = default_case_sites(progress=progress)
+    if plan is not None:
+        cases, mesh = plan_sites(plan, field="--plan")
+    else:
+        cases, mesh = default_case_sites(progress=progress)
     return [(tc, ScanCavity(tc, mesh)) for tc in cases]
+
+
+def check_study(profiles, runs: int) -> None:
+    """The study's own arguments (errors name the flag), checked before any work."""
+    if runs < 1:
+        raise InputError("--runs", f"expected an integer >= 1, got {runs}")
+    if not profiles:
+        raise InputError("--profiles", f"expected names from {', '.join(STUDY_PROFILES)}")
+    for p in profiles:
+        if p not in STUDY_PROFILES:
+            raise InputError("--profiles", f"expected names from {', '.join(STUDY_PROFILES)}, "
+                             f"got {p!r}")
 
 
 def head_study(case: TeleopCase, inst, *, profiles=STUDY_PROFILES, runs: int = 50, seed: int = 0,
@@ -177,12 +194,7 @@ def head_study(case: TeleopCase, inst, *, profiles=STUDY_PROFILES, runs: int = 5
     """The study over ``runs`` seeded runs per profile (module notes); returns the JSON dict and,
     under ``"_traces"``, the time series of the ``keep_traces`` runs per profile with the lowest
     exact clearance while following (the worst cases, lowest first)."""
-    if runs < 1:
-        raise InputError("--runs", f"expected an integer >= 1, got {runs}")
-    for p in profiles:
-        if p not in STUDY_PROFILES:
-            raise InputError("--profiles", f"expected names from {', '.join(STUDY_PROFILES)}, "
-                             f"got {p!r}")
+    check_study(profiles, runs)
     if cavity is None:
         cavity = cylinder_cavity(inst.fpsm)
     start = case.X_WE(case.q_start)[:3, 3]
@@ -350,7 +362,11 @@ def cmd_head_motion(args) -> int:
 
     progress = Progress("analyze head-motion", quiet=args.quiet)
     profiles = tuple(p.strip() for p in args.profiles.split(",") if p.strip())
+    check_study(profiles, args.runs)
     tracker = tracker_from_args(args)
+    if args.plan is not None and args.case == "cylinder":
+        raise InputError("--plan", "a plan folder is studied on its own scan; expected no "
+                         "--case cylinder with it")
     trk = {"rate": tracker.rate, "latency": tracker.latency,
            "predict_samples": tracker.predict_samples,
            "noise_position": tracker.noise_position, "noise_angle": tracker.noise_angle}
@@ -367,10 +383,15 @@ def cmd_head_motion(args) -> int:
         write_json(out / "head_motion.json", study, kind="head_motion")
         _print_summary(result)
     else:
-        # the bundled default case: the scan, each site, FCL against the moving opened scan
-        progress.say("planning the bundled default case (scan, sites 36 and 46)")
+        # a plan folder or the bundled default case: the scan, each site, FCL against the
+        # moving opened scan
+        if args.plan is None:
+            progress.say("planning the bundled default case (scan, sites 36 and 46)")
+        cases = scan_cases(plan=args.plan)
+        if args.plan is not None:
+            progress.say(f"the plan in {args.plan}: {len(cases)} sites, its case's opened scan")
         sites, figs = {}, {}
-        for tc, cavity in scan_cases():
+        for tc, cavity in cases:
             result = head_study(tc, None, profiles=profiles, runs=args.runs, seed=args.seed,
                                 progress=progress, cavity=cavity, tracker=tracker)
             traces = result.pop("_traces")
@@ -379,7 +400,8 @@ def cmd_head_motion(args) -> int:
                               for p in plot_head(traces, out / tc.label)]
             sites[tc.label] = result
             _print_summary(result, prefix=f"{tc.label} ")
-        study = {"case": "scan", "tracker": trk, "sites": sites,
+        study = {"case": "scan", "plan": None if args.plan is None else str(args.plan),
+                 "tracker": trk, "sites": sites,
                  "passed": _never_below_zero(sites)}
         write_json(out / "head_motion.json", study, kind="head_motion")
     write_text_atomic(out / "report.html", render_head_motion(to_jsonable(study), figs))
@@ -410,6 +432,10 @@ def register_analysis(sub) -> None:
                    help="scan: the bundled default case (opened scan, each site, FCL against the "
                    "moving scan; figures in a folder per site); cylinder: seed 000's cylinder "
                    "feeding case of `simulate feeding` (default scan)")
+    p.add_argument("--plan", type=Path, default=None,
+                   help="a plan folder (implantplan plan or demo) to study instead of planning "
+                   "the bundled default case: its sites, fixtures and layout, FCL against its "
+                   "case's opened scan (the case file the plan names must be there)")
     p.add_argument("--tracker-rate-hz", type=float, default=None,
                    help="the camera's rate, 30-60 Hz (default 60)")
     p.add_argument("--tracker-latency-ms", type=float, default=None,

@@ -21,6 +21,7 @@ import trimesh
 from implantplan.analyses import pipeline
 from implantplan.analyses.case import default_case_path, load_case
 from implantplan.diagrams.teleop import TeleopCase
+from implantplan.systems.errors import InputError
 from implantplan.systems.instrument import Instrument
 from implantplan.systems.placement.exact_clearance import ExactCavity
 
@@ -64,6 +65,21 @@ def default_case_sites(*, progress=None):
     placements = pipeline.placement_stage(case, fit.fpsm)
     robot = pipeline.robot_stage(case, placements)
     return pipeline.teleop_cases(case, fit, placements, robot), fit.opened
+
+
+def plan_sites(folder, *, field: str = "--plan"):
+    """(teleop cases per site, the opened scan mesh) of a plan folder (``implantplan plan`` or
+    ``demo``): the sites, fixtures and layout as planned, the scan of the case file the plan
+    names; errors name ``field``."""
+    from implantplan.analyses.live_setup import load_plan, opened_scan
+
+    sp = load_plan(folder, field=field, reference=False)
+    mesh = opened_scan(sp)
+    if mesh is None:
+        raise InputError(field, f"{sp.folder}: the case file the plan names "
+                         f"({sp.plan['case']['source']}) is not there; the exact reference "
+                         "needs its scan")
+    return [sp.teleop_case(k) for k in range(len(sp.names))], mesh
 
 
 def exact_for(tc: TeleopCase, mesh) -> ExactClearance:

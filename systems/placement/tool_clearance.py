@@ -231,6 +231,22 @@ def _combine_layers(H, layer_lo, layer_hi, zs, z0, inside, outside_depth, cap, o
                 out[i, j, l] = best
 
 
+def _distinct_layer_distances(EX, EY, ER, cover, coarse, e_coarse, xs, ys, cap) -> np.ndarray:
+    """:func:`_layer_distances` of every envelope (K, P), each distinct envelope computed once
+    (a layer's distances depend on its envelope alone: the layers of a cylinder, or of slabs
+    between equal slices, repeat one), the distinct ones in layer order."""
+    _, first, inverse = np.unique(ER, axis=0, return_index=True, return_inverse=True)
+    if first.size == ER.shape[0]:
+        H = np.empty((ER.shape[0], xs.size, ys.size))
+        _layer_distances(EX, EY, ER, cover, coarse, e_coarse, xs, ys, cap, H)
+        return H
+    keep = np.sort(first)  # the first layer of each distinct envelope, in layer order
+    H = np.empty((keep.size, xs.size, ys.size))
+    _layer_distances(np.ascontiguousarray(EX[keep]), np.ascontiguousarray(EY[keep]),
+                     np.ascontiguousarray(ER[keep]), cover, coarse, e_coarse, xs, ys, cap, H)
+    return H[np.searchsorted(keep, first)[inverse.reshape(-1)]]
+
+
 def build_field(
     fpsm: Fpsm,
     *,
@@ -294,8 +310,7 @@ def build_field(
     layer_lo = np.array([e[0] for e in edges] + [z_hi])
     layer_hi = np.array([e[1] for e in edges] + [z_hi])
     EX, EY = ER * np.cos(th), ER * np.sin(th)
-    H = np.empty((ER.shape[0], xs.size, ys.size))
-    _layer_distances(EX, EY, ER, cover, coarse, e_coarse, xs, ys, cap, H)
+    H = _distinct_layer_distances(EX, EY, ER, cover, coarse, e_coarse, xs, ys, cap)
     # membership and outside depths of the nodes
     Xn, Yn, Zn = np.meshgrid(xs, ys, zs, indexing="ij")
     theta = np.arctan2(Yn + 0.0, Xn + 0.0)

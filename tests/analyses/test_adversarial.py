@@ -1,11 +1,12 @@
-"""The adversarial operator against the safety layer on the default case: a few runs
-in the default suite, the 54-run study as a slow test. Exact clearance by FCL against the opened
-scan at every logged pose."""
+"""The adversarial operator against the safety layer on the default case (its plan folder,
+planned once per test run): a few runs in the default suite, the 54-run study as a slow test.
+Exact clearance by FCL against the opened scan at every logged pose."""
 
 import numpy as np
 import pytest
 
 from implantplan.analyses.studies import adversarial as A
+from implantplan.analyses.studies.scan_reference import plan_sites
 from implantplan.diagrams.teleop import build_teleop
 from implantplan.systems.instrument import Instrument
 from implantplan.systems.teleop.adversarial_operator import Directions, adversarial_motion
@@ -16,8 +17,9 @@ MARGIN = Barrier().margin
 
 
 @pytest.fixture(scope="module")
-def site():
-    cases, mesh = A.default_case_sites()
+def site(demo_plan):
+    """Site 36 of the default case's plan folder, its teleop diagram and the exact reference."""
+    cases, mesh = plan_sites(demo_plan)
     tc = cases[0]
     return tc, build_teleop(tc), A.exact_for(tc, mesh)
 
@@ -106,3 +108,24 @@ def test_the_54_run_study():
 def test_the_54_run_study_with_the_supervisor_alone():
     s = A.study(seeds=4, normal=3, fixture=False, progress=None)["summary"]["all"]
     assert s["below_zero"] == 0 and s["below_margin_slack"] == 0
+
+
+@pytest.mark.sweep
+def test_the_plan_folder_holds_the_cases_the_pipeline_plans(demo_plan):
+    """The tests above read the default case's plan folder; the studies plan the case
+    themselves (default_case_sites): both give the same teleop cases and the same scan."""
+    planned, mesh = A.default_case_sites()
+    read, mesh_read = plan_sites(demo_plan)
+    np.testing.assert_array_equal(mesh_read.vertices, mesh.vertices)
+    np.testing.assert_array_equal(mesh_read.faces, mesh.faces)
+    assert len(planned) == len(read) == 2
+    for a, b in zip(planned, read, strict=True):
+        assert (a.scenario, a.label, a.limits) == (b.scenario, b.label, b.limits)
+        assert (a.rod_radius, a.implant_length) == (b.rod_radius, b.implant_length)
+        for name in ("X_WBase", "q_start", "X_WCenter", "X_WTarget"):
+            np.testing.assert_allclose(getattr(b, name), getattr(a, name), rtol=0, atol=1e-12,
+                                       err_msg=name)
+        assert b.vf.to_dict() == a.vf.to_dict()
+        np.testing.assert_array_equal(b.fpsm.rho, a.fpsm.rho)
+        np.testing.assert_array_equal(b.fpsm.slice_z, a.fpsm.slice_z)
+        np.testing.assert_array_equal(b.fpsm.X_WC, a.fpsm.X_WC)

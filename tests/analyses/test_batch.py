@@ -1,6 +1,7 @@
-"""``implantplan batch``: a synthetic cohort of 8 cases (one broken) on a 2-worker LocalCluster:
-7 plans, 1 recorded failure, the documented exit code, and the same plans as each case planned
-alone; the bad-input path, the exit-code rule and the generator's determinism."""
+"""``implantplan batch``: a synthetic cohort of 8 cases (one broken) on a 2-worker LocalCluster
+(marked ``cluster``): 7 plans, 1 recorded failure, the documented exit code, and the same plans as
+each case planned alone; a cohort of 2 in this process by default; the bad-input path, the
+exit-code rule and the generator's determinism."""
 
 import csv
 import json
@@ -9,29 +10,40 @@ from pathlib import Path
 import pytest
 import yaml
 
-from implantplan import models
 from implantplan.analyses.batch import batch_exit_code
-from implantplan.analyses.case import default_case_path
 from implantplan.analyses.cli import main
 from implantplan.analyses.cohort import load_cohort
 from implantplan.analyses.provenance import without_volatile
+from tests.analyses.cases import default_case_data, write_case
 
 FAST = ["--runs", "0", "--no-figures", "--quiet"]
 BROKEN = 5  # this case's first site gets an axis into the bone: no collision-free placement
 
 
 def _small_case(folder: Path) -> Path:
-    """The default case with a small FPSM, robot search and map (~1 s per plan, no feeds)."""
-    data = yaml.safe_load(default_case_path().read_text())
-    data["mesh"]["path"] = str(models.model_path("oral/oralCavityMesh.obj"))
-    data["fpsm"].update(slices=10, control_points=10, samples=100)
-    data["robot"].update(pop=12, gen=2)
-    data["capability"].update(directions=20)
+    """The default case with a small FPSM, robot search and map (tests.analyses.cases), no
+    feeds."""
+    data = default_case_data(small=True)
     data["simulation"]["runs"] = 0
-    data["safety"]["registration_samples"] = 100
-    path = folder / "small.yaml"
-    path.write_text(yaml.safe_dump(data))
-    return path
+    return write_case(folder / "small.yaml", data)
+
+
+def _make_cohort(root: Path, cases: int) -> list[Path]:
+    """``cases`` perturbed copies of the small case (seed 3), the one at ``BROKEN`` (or the last
+    of a shorter cohort) given a handle too thick for this mouth: (cohort file, case files)."""
+    # perturbations within what the default case's 1.5 mm certified clearance at site 36 (margin
+    # 1 mm) takes:
+    # the generator's defaults (3 % scale, 2 deg, 1 mm) leave about half of a cohort without a
+    # placement, which is what the case is like, not what this test is about
+    assert main(["batch", "--make-cohort", str(_small_case(root)), "--cases", str(cases),
+                 "--seed", "3", "--scale-sd", "0.005", "--rotation-deg", "0.3", "--shift-mm",
+                 "0.2", "--site-jitter-mm", "0.2", "--out", str(root / "cases")]) == 0
+    path = root / "cases" / "cohort.yaml"
+    files = load_cohort(path)[1]
+    broken = yaml.safe_load(files[min(BROKEN, cases - 1)].read_text())
+    broken["sites"][0]["rod_radius_mm"] = 20.0  # a handle too thick for this mouth
+    files[min(BROKEN, cases - 1)].write_text(yaml.safe_dump(broken))
+    return path, files
 
 
 def _plan_json(folder: Path) -> dict:
@@ -43,24 +55,32 @@ def _plan_json(folder: Path) -> dict:
 @pytest.fixture(scope="module")
 def cohort(tmp_path_factory):
     root = tmp_path_factory.mktemp("cohort")
-    # perturbations within what the default case's 1.5 mm certified clearance at site 36 (margin
-    # 1 mm) takes:
-    # the generator's defaults (3 % scale, 2 deg, 1 mm) leave about half of a cohort without a
-    # placement, which is what the case is like, not what this test is about
-    assert main(["batch", "--make-cohort", str(_small_case(root)), "--cases", "8", "--seed", "3",
-                 "--scale-sd", "0.005", "--rotation-deg", "0.3", "--shift-mm", "0.2",
-                 "--site-jitter-mm", "0.2", "--out", str(root / "cases")]) == 0  # fmt: skip
-    path = root / "cases" / "cohort.yaml"
-    files = load_cohort(path)[1]
-    broken = yaml.safe_load(files[BROKEN].read_text())
-    broken["sites"][0]["rod_radius_mm"] = 20.0  # a handle too thick for this mouth
-    files[BROKEN].write_text(yaml.safe_dump(broken))
+    path, files = _make_cohort(root, 8)
     out = root / "out"
     code = main(["batch", "--cohort", str(path), "--out", str(out), "--workers", "2",
                  "--scheduler", "local", *FAST])  # fmt: skip
     return files, out, code
 
 
+def test_a_cohort_of_two_in_this_process(tmp_path):
+    """No cluster (--workers 1 plans in this process): one plan, one recorded planning failure,
+    exit 3, and the batch's plan is the case planned alone."""
+    path, files = _make_cohort(tmp_path, 2)
+    out = tmp_path / "out"
+    code = main(["batch", "--cohort", str(path), "--out", str(out), "--workers", "1", *FAST])
+    assert code == 3
+    rows = list(csv.DictReader((out / "summary.csv").open()))
+    assert [r["case"] for r in rows] == ["default-00", "default-01"]
+    assert [r["status"] for r in rows] == ["passed", "planning failed"]
+    assert rows[1]["plan_exit_code"] == "3" and "site 36" in rows[1]["reason"]
+    assert (out / rows[0]["folder"] / "plan.json").is_file()
+    assert not (out / rows[1]["folder"] / "plan.json").exists()
+    assert json.loads((out / "summary.json").read_text())["exit_code"] == 3
+    assert main(["plan", str(files[0]), "--out", str(tmp_path / "alone"), *FAST]) == 0
+    assert _plan_json(out / files[0].stem) == _plan_json(tmp_path / "alone")
+
+
+@pytest.mark.cluster
 def test_cohort_of_eight_with_one_broken_case(cohort):
     files, out, code = cohort
     assert code == 3  # a planning failure, no bad input
@@ -86,6 +106,7 @@ def test_cohort_of_eight_with_one_broken_case(cohort):
     assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []
 
 
+@pytest.mark.cluster
 def test_a_batch_plan_equals_the_case_planned_alone(cohort, tmp_path):
     files, out, _ = cohort  # one case here (all of them: the slow test below)
     assert main(["plan", str(files[0]), "--out", str(tmp_path / "alone"), *FAST]) == 0

@@ -40,14 +40,16 @@ def test_head_motion_study_small(tmp_path, capsys):
     assert "startle: 1 runs" in capsys.readouterr().out
 
 
-def test_head_motion_study_on_the_scan(tmp_path, capsys):
-    """The bundled default case: every site, FCL against the moving opened scan."""
+def test_head_motion_study_on_the_scan(demo_plan, tmp_path, capsys):
+    """The bundled default case's plan folder: every site, FCL against the moving opened
+    scan."""
     out = tmp_path / "scan"
-    code = main(["analyze", "head-motion", "--runs", "1", "--profiles", "breathing", "--out",
-                 str(out), "--quiet"])
+    code = main(["analyze", "head-motion", "--runs", "1", "--profiles", "breathing",
+                 "--plan", str(demo_plan), "--out", str(out), "--quiet"])
     assert code == 0, capsys.readouterr()
     data = json.loads((out / "head_motion.json").read_text())
     assert data["case"] == "scan" and len(data["sites"]) == 2
+    assert data["plan"] == str(demo_plan)
     for label, site in data["sites"].items():
         s = site["profiles"]["breathing"]["summary"]
         assert s["runs"] == 1 and s["runs_below_zero_following"] == 0
@@ -70,4 +72,42 @@ def test_tracker_flags_are_checked_and_named(tmp_path, capsys):
                      "--out", str(tmp_path / "x"), "--quiet"])
         assert code == 2
         assert name in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
+def test_study_flags_are_checked_before_any_planning(tmp_path, capsys, monkeypatch):
+    """A bad flag of the scan study is exit 2 naming it, before the default case is planned."""
+    from implantplan.analyses.studies import scan_reference
+
+    def no_planning(**kwargs):
+        raise AssertionError("planned the default case before checking the flags")
+
+    monkeypatch.setattr(scan_reference, "default_case_sites", no_planning)
+    for flags, name in ((["--profiles", "sneeze"], "--profiles"),
+                        (["--profiles", ","], "--profiles"),
+                        (["--runs", "0"], "--runs"),
+                        (["--tracker-latency-ms", "500"], "--tracker-latency-ms"),
+                        (["--case", "cylinder", "--plan", str(tmp_path)], "--plan"),
+                        (["--plan", str(tmp_path / "nowhere")], "--plan")):
+        code = main(["analyze", "head-motion", *flags, "--out", str(tmp_path / "x"), "--quiet"])
+        assert code == 2, flags
+        err = capsys.readouterr().err
+        assert name in err and "Traceback" not in err, err
+    assert not (tmp_path / "x").exists()
+
+
+def test_a_plan_without_its_case_file_is_exit_2_naming_plan(demo_plan, tmp_path, capsys):
+    """The exact reference is the plan's case's scan: a plan whose case file is gone cannot be
+    studied, and says so."""
+    import shutil
+
+    plan = shutil.copytree(demo_plan, tmp_path / "plan")
+    data = json.loads((plan / "plan.json").read_text())
+    data["case"]["source"] = str(tmp_path / "gone.yaml")
+    (plan / "plan.json").write_text(json.dumps(data))
+    code = main(["analyze", "head-motion", "--runs", "1", "--profiles", "breathing",
+                 "--plan", str(plan), "--out", str(tmp_path / "x"), "--quiet"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "--plan" in err and "gone.yaml" in err and "is not there" in err
     assert not (tmp_path / "x").exists()

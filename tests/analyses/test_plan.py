@@ -14,6 +14,7 @@ from implantplan.analyses.case import default_case_path, load_case
 from implantplan.analyses.cli import main
 from implantplan.analyses.provenance import without_volatile
 from implantplan.systems.errors import InputError
+from tests.analyses.cases import default_case_data
 
 FAST = ["--runs", "1", "--no-html-scene", "--quiet"]
 
@@ -67,10 +68,10 @@ def test_feeding_targets_are_consistent_across_frames(demo_plan):
         np.testing.assert_allclose(X_WC @ np.array(s["feeding_target"]["X_CT"]), X_WT, atol=1e-12)
 
 
-def _case(tmp_path, **edits) -> Path:
-    data = yaml.safe_load(default_case_path().read_text())
-    data["mesh"]["path"] = str(models.model_path("oral/oralCavityMesh.obj"))
-    data["safety"]["registration_samples"] = 100  # the demo runs the case's 1,000
+def _case(tmp_path, *, small: bool = False, **edits) -> Path:
+    """The default case (tests.analyses.cases; ``small``: its small sizes) with ``edits`` (dotted
+    keys), written to ``tmp_path/case.yaml``."""
+    data = default_case_data(small=small)
     for dotted, value in edits.items():
         d = data
         keys = dotted.split(".")
@@ -90,11 +91,18 @@ def _case(tmp_path, **edits) -> Path:
 _DELETE = object()
 
 
-def test_same_seed_same_plan(tmp_path):
-    case = _case(tmp_path)
+@pytest.mark.parametrize("size", ["small", pytest.param("full", marks=pytest.mark.sweep)])
+def test_same_seed_same_plan(tmp_path, size):
+    """Every stage with its feeds, twice from one seed: the same plan (the small case by
+    default; the default case's own sizes in the sweep)."""
+    if size == "small":
+        case = _case(tmp_path, small=True, **{"safety.registration_samples": 20})
+        flags = ["--runs", "1", "--no-figures", "--quiet"]
+    else:
+        case, flags = _case(tmp_path), FAST
     plans = []
     for name in ("a", "b"):
-        assert main(["plan", str(case), "--out", str(tmp_path / name), *FAST]) == 0
+        assert main(["plan", str(case), "--out", str(tmp_path / name), *flags]) == 0
         plan = json.loads((tmp_path / name / "plan.json").read_text())
         assert plan["provenance"]["seed"] == plan["case"]["seed"]
         plans.append(plan)
@@ -277,9 +285,9 @@ def test_case_loader_requires_sites(tmp_path):
 
 
 def test_rerun_into_the_same_folder_replaces_the_plan_without_simulation(tmp_path):
-    case = _case(tmp_path)
+    case = _case(tmp_path, small=True, **{"safety.registration_samples": 0})
     out = tmp_path / "out"
-    args = ["plan", str(case), "--out", str(out), "--runs", "0", "--no-html-scene", "--quiet"]
+    args = ["plan", str(case), "--out", str(out), "--runs", "0", "--no-figures", "--quiet"]
     assert main(args) == 0
     (out / "stale.txt").write_text("from the previous run")
     assert main(args) == 0

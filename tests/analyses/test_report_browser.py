@@ -11,8 +11,9 @@ import pytest
 from tests.analyses.browser import Browser, find_chromium
 
 CHROMIUM = find_chromium()
-pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="no chromium on this machine "
-                                "(apt-get install chromium)")
+pytestmark = [pytest.mark.browser,
+              pytest.mark.skipif(CHROMIUM is None, reason="no chromium on this machine "
+                                 "(apt-get install chromium)")]
 
 
 class _Quiet(SimpleHTTPRequestHandler):

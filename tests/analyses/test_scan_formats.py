@@ -14,20 +14,19 @@ import trimesh
 import yaml
 
 from implantplan import models
-from implantplan.analyses.case import default_case_path
 from implantplan.analyses.cli import main
 from implantplan.analyses.provenance import without_volatile
+from tests.analyses.cases import default_case_data
 
-FAST = ["--runs", "0", "--no-html-scene", "--quiet"]
+FAST = ["--runs", "0", "--no-figures", "--quiet"]
 
 
-def _plan(tmp_path, name, file_type=None, scale=1.0):
-    case = yaml.safe_load(default_case_path().read_text())
-    case["safety"]["registration_samples"] = 100  # the demo runs the case's 1,000
+def _plan(tmp_path, name, file_type=None, scale=1.0, small=False):
+    """The default case (tests.analyses.cases; ``small``: its small sizes) planned from the scan
+    saved as ``file_type`` (None: the bundled OBJ): plan.json without its volatile parts."""
+    case = default_case_data(small=small)
     source = models.model_path("oral/oralCavityMesh.obj")
-    if file_type is None:
-        case["mesh"]["path"] = str(source)
-    else:
+    if file_type is not None:
         mesh = trimesh.load(source, process=False, force="mesh")
         mesh.apply_scale(scale)
         path = tmp_path / f"{name}.{'stl' if file_type.startswith('stl') else file_type}"
@@ -43,8 +42,11 @@ def _plan(tmp_path, name, file_type=None, scale=1.0):
     return plan
 
 
-def test_the_scan_as_ascii_stl_plans_exactly_like_the_obj(tmp_path):
-    assert _plan(tmp_path, "ascii", "stl_ascii") == _plan(tmp_path, "obj")
+@pytest.mark.parametrize("size", ["small", pytest.param("full", marks=pytest.mark.sweep)])
+def test_the_scan_as_ascii_stl_plans_exactly_like_the_obj(tmp_path, size):
+    small = size == "small"
+    assert _plan(tmp_path, "ascii", "stl_ascii", small=small) == _plan(tmp_path, "obj",
+                                                                      small=small)
 
 
 @pytest.mark.slow

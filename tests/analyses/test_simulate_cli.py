@@ -47,7 +47,15 @@ def test_feeding_from_an_instrument_plan(tmp_path):
     assert data["runs"][0]["reached_target"] and not data["runs"][0]["collision_alarm"]
 
 
-def test_circle_writes_the_path_error(tmp_path):
+def test_circle_writes_the_path_error(tmp_path, monkeypatch):
+    """The circle runs the arm alone: no instrument is placed for it (a --plan is still read)."""
+
+    def no_placement(*args, **kwargs):
+        raise AssertionError("the circle placed an instrument")
+
+    monkeypatch.setattr(S, "default_instrument", no_placement)
+    assert main(["simulate", "circle", "--plan", str(tmp_path / "none.json"), "--out",
+                 str(tmp_path / "x"), "--quiet"]) == 2
     out = tmp_path / "circle"
     assert main(["simulate", "circle", "--realizations", "3", "--out", str(out), "--quiet"]) == 0
     data = read(out / "circle.json")
@@ -77,11 +85,24 @@ def test_layouts_ranks_and_plots(tmp_path):
         (["simulate", "circle", "--scenario", "standing"], "--scenario"),
         (["analyze", "layouts", "--random", "0"], "--random"),
         (["simulate", "feeding", "--tremor-mm", "-1"], "tremor"),
+        (["analyze", "layouts", "--drift-mm", "-1"], "drift"),
+        (["simulate", "feeding", "--head-motion", "sneeze"], "--head-motion"),
+        (["simulate", "feeding", "--head-motion", "drift", "--mode", "dynamic"], "--head-motion"),
     ],
 )
-def test_bad_input_exits_2(tmp_path, capsys, argv, field):
+def test_bad_input_exits_2(tmp_path, capsys, monkeypatch, argv, field):
+    """Every flag is checked before the instrument is placed or a layout searched."""
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("placed the instrument or searched a layout before the flags")
+
+    monkeypatch.setattr(S, "default_instrument", no_work)
+    monkeypatch.setattr(S, "knee_layout", no_work)
     assert main([*argv, "--out", str(tmp_path / "x"), "--quiet"]) == 2
-    assert field in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert field in err and "Traceback" not in err
+    assert not (tmp_path / "x").exists()
+
 
 
 def test_rank_of_first_by_hand():

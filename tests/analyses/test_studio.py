@@ -39,9 +39,17 @@ def plan_copy(demo_plan, tmp_path):
 
 @pytest.fixture()
 def studio(plan_copy):
+    """A studio on a copy of the demo plan (each test drives its own)."""
     s, meshcat, status = st.open_studio(plan_copy, realtime_rate=0.0, scan=False)
     yield s
     status.close()
+
+
+@pytest.fixture(scope="module")
+def studio_plan(demo_plan, tmp_path_factory):
+    """The demo plan opened once for the studio (live_setup.load_plan, its percentile reference
+    included), for the tests that read it and build their own teleop runs."""
+    return ls.load_plan(shutil.copytree(demo_plan, tmp_path_factory.mktemp("studio") / "plan"))
 
 
 def test_layout_at_the_planned_base_is_the_plans(studio):
@@ -173,10 +181,10 @@ def test_live_master_records_what_it_commanded():
     assert np.allclose(motion.velocity_M()[:40, 0], [0.01] * 20 + [0.0] * 20)
 
 
-def test_fast_arm_clearance_never_above_scene_graph_on_random_bases(studio):
+def test_fast_arm_clearance_never_above_scene_graph_on_random_bases(studio_plan):
     """False-safe check: the fast verdict's clearance is a lower bound of SceneGraph's at the
     same configurations, on random bases in the bounds (not designed ones)."""
-    sp = studio.sp
+    sp = studio_plan
     rng = np.random.default_rng(14)
     X = sp.sc.lower + rng.random((40, 3)) * (sp.sc.upper - sp.sc.lower)
     checked = false_safe = 0
@@ -268,10 +276,10 @@ def test_rotation_keys_roll_about_the_axis_tilt_held_by_the_fixture_and_replay(s
     assert np.asarray(rep["end_X_WE"]) == pytest.approx(end, abs=1e-6)
 
 
-def test_without_the_fixture_a_turn_passes_and_the_supervisor_still_filters(studio):
+def test_without_the_fixture_a_turn_passes_and_the_supervisor_still_filters(studio_plan):
     """The rotation channel is real end to end: without the fixture a roll key turns the tool at
     the commanded rate; a tilt inside the mouth is stopped by the supervisor at its margin."""
-    sp = studio.sp
+    sp = studio_plan
     case = sp.teleop_case(0)
     kb = KeyboardMaster(speed=0.015, rate=np.deg2rad(20.0))
     live = ls.LiveTeleop(case, kb, realtime_rate=0.0, vf_enabled=False)
@@ -301,7 +309,7 @@ def test_without_the_fixture_a_turn_passes_and_the_supervisor_still_filters(stud
     assert not s["alarm"]
 
 
-def test_turning_in_the_mouth_checked_against_the_exact_scan_clearance(studio):
+def test_turning_in_the_mouth_checked_against_the_exact_scan_clearance(studio_plan):
     """False-safe check of the rotation commands: at both sites, with and without the fixture,
     feed in and then roll and tilt about every axis (20 deg/s, 1 s each); FCL between the whole
     tool and the opened scan (analyses.studies.scan_reference, as the adversarial study) at every
@@ -311,8 +319,8 @@ def test_turning_in_the_mouth_checked_against_the_exact_scan_clearance(studio):
     from implantplan.analyses.studies.scan_reference import exact_for
     from implantplan.diagrams.teleop import X_ET
 
-    sp = studio.sp
-    mesh = st.opened_scan(sp)
+    sp = studio_plan
+    mesh = ls.opened_scan(sp)
     margin = Barrier().margin
     for site in range(len(sp.names)):
         case = sp.teleop_case(site)

@@ -21,8 +21,9 @@ from implantplan.systems.teleop.master_input import SLIDERS
 from tests.analyses.browser import Browser, find_chromium
 
 CHROMIUM = find_chromium()
-pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="no chromium on this machine "
-                                "(apt-get install chromium)")
+pytestmark = [pytest.mark.browser,
+              pytest.mark.skipif(CHROMIUM is None, reason="no chromium on this machine "
+                                 "(apt-get install chromium)")]
 
 SET_SLIDER = """(function(name, value) {
   const li = [...document.querySelectorAll('li.cr.number')].find(

@@ -29,25 +29,25 @@ def test_joint_error_model_is_seeded_and_sized():
     assert not np.array_equal(a, F.joint_error(q, t, np.deg2rad(0.1), 4, seed=8))
 
 
-def test_default_instrument_is_seed_000s_cylinder_check():
-    inst = F.default_instrument()
+def test_default_instrument_is_seed_000s_cylinder_check(cylinder_instrument):
+    inst = cylinder_instrument
     # Sec. 5.3: d_T = 62.5 mm, theta_T = 0 -> the feeding target 62.5 mm above the hole along
     # the hole axis (+y), rod along +x of the Tool frame
     np.testing.assert_allclose(inst.X_CT[:3, 3], [0.0, -0.05 + 0.0625, 0.05], atol=2e-4)
     assert (inst.rod_radius, inst.implant_length) == (0.006, 0.031)
 
 
-def test_layout_and_case_of_the_knee_base():
+def test_layout_and_case_of_the_knee_base(cylinder_instrument):
     sc, sc_plant = F.load_scenario("lying")
     np.testing.assert_array_equal(sc_plant.X_FT, F.actuator.X_FT())
     xyz, branch, source = F.knee_layout(sc, seed=0, candidates=60)
     assert "knee of" in source and 0 <= branch < 8
     q_pre, q_target = F.layout_configurations(sc_plant, xyz, branch)
-    case = F.make_case("lying", sc_plant, xyz, branch, F.default_instrument(), label="k")
+    case = F.make_case("lying", sc_plant, xyz, branch, cylinder_instrument, label="k")
     np.testing.assert_array_equal(case.q_start, q_pre)
     # the pre-feed TCP is the scenario's feed length back along the rod from the target
     d = case.X_WE(q_pre)[:3, 3] - case.X_WE(q_target)[:3, 3]
     assert np.linalg.norm(d) == pytest.approx(sc_plant.feed_length, abs=1e-9)
     with pytest.raises(PlanningFailure, match="does not reach"):
         F.make_case("lying", sc_plant, xyz + np.array([5.0, 0.0, 0.0]), branch,
-                    F.default_instrument())
+                    cylinder_instrument)

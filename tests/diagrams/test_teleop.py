@@ -9,10 +9,8 @@ from implantplan.systems.teleop.master_device import MasterMotion, feeding_runs
 
 
 @pytest.fixture(scope="module")
-def case():
-    sc, sc_plant = S.load_scenario("lying")
-    xyz, branch, _ = S.knee_layout(sc, seed=0, candidates=100)
-    return S.make_case("lying", sc_plant, xyz, branch, S.default_instrument())
+def case(knee_case):
+    return knee_case
 
 
 def test_tool_pose_matches_the_kinematics_core(case):

@@ -19,11 +19,8 @@ from implantplan.systems.teleop.tracker import TrackerParams
 
 
 @pytest.fixture(scope="module")
-def setup():
-    sc, sc_plant = S.load_scenario("lying")
-    xyz, branch, _ = S.knee_layout(sc, seed=0, candidates=100)
-    inst = S.default_instrument()
-    case = S.make_case("lying", sc_plant, xyz, branch, inst)
+def setup(knee_case, cylinder_instrument):
+    case, inst = knee_case, cylinder_instrument
     motions = feeding_runs(case.X_WE(case.q_start)[:3, 3], case.X_WTarget[:3, 3], runs=2, seed=4)
     stills = [simulate(build_teleop(case), m.duration + S.FINISH_SECONDS, motion=m)
               for m in motions]

@@ -1,6 +1,6 @@
-"""Capability maps on the Dask engine: a 2-worker LocalCluster (127.0.0.1 only) builds the same map
-as one process, survives a worker killed mid-build, and an interrupted build resumes doing only
-the missing blocks."""
+"""Capability maps on the Dask engine: a 2-worker LocalCluster (127.0.0.1 only; those tests are
+marked ``cluster``) builds the same map as one process, survives a worker killed mid-build, and an
+interrupted build resumes doing only the missing blocks."""
 
 import os
 import signal
@@ -39,6 +39,7 @@ def local2():
     assert eng.client.status == "closed"
 
 
+@pytest.mark.cluster
 def test_two_worker_local_cluster_builds_the_single_process_map(reference, local2, tmp_path):
     assert local2.kind == "local" and local2.workers == 2
     info = local2.client.scheduler_info()
@@ -53,6 +54,7 @@ def test_two_worker_local_cluster_builds_the_single_process_map(reference, local
     assert store.written == len(store.blocks) and store.reused == 0
 
 
+@pytest.mark.cluster
 def test_a_running_cluster_by_its_address(reference, local2):
     address = local2.client.scheduler.address  # tcp://127.0.0.1:<port>, as `dask scheduler`'s
     with scaleout.engine(address, 2, warm_up=["implantplan.systems.capability.maps"]) as eng:
@@ -65,12 +67,14 @@ def test_a_running_cluster_by_its_address(reference, local2):
             pass
 
 
+@pytest.mark.cluster
 def test_a_task_failing_after_its_retries_is_reported_not_fatal(local2):
     got = dict(scaleout.run_unordered(local2, divmod, [(7, 2), (1, 0)],
                                       on_error=lambda i, e: type(e).__name__))  # fmt: skip
     assert got == {0: (3, 1), 1: "ZeroDivisionError"}
 
 
+@pytest.mark.cluster
 def test_a_worker_killed_mid_build_costs_only_its_blocks(reference, local2):
     pids = local2.worker_pids()
     killed = []

@@ -11,6 +11,7 @@ from implantplan.systems.instrument import Instrument
 from implantplan.systems.placement.tool_clearance import (
     RESOLVE,
     ToolClearance,
+    build_field,
     clearance_field,
     curve_bounds,
     feed_clearance,
@@ -175,3 +176,19 @@ def test_input_errors(cylinder):
         Instrument.paper(rod_radius=-1)
     with pytest.raises(InputError, match="X_CTool"):
         tool_clearance(cylinder, np.eye(3))
+
+
+def test_repeated_envelopes_are_computed_once_with_the_same_field():
+    """Layers with equal envelopes (equal slices) share one distance computation; the field
+    equals, to rounding, the field of the same model with those slices made distinct by 1e-14
+    (every layer computed)."""
+    rng = np.random.default_rng(4)
+    z = np.linspace(0.0, 0.05, 8)
+    rho = rng.uniform(0.02, 0.04, (8, 12))
+    rho[1:4] = rho[0]  # a straight tube over the bottom three slabs, then a varying cavity
+    apart = rho.copy()
+    apart[1:4] *= 1.0 + 1e-14 * np.arange(1, 4)[:, None]
+    a, b = build_field(Fpsm(z, rho)), build_field(Fpsm(z, apart))
+    assert a.values.shape == b.values.shape and a.cover == pytest.approx(b.cover, rel=1e-12)
+    np.testing.assert_allclose(a.values, b.values, rtol=0, atol=1e-12)
+    assert np.ptp(a.values) > 0.01  # a field with structure, not a constant
