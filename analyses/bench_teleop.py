@@ -185,7 +185,7 @@ def safety_layer_cost(teleop: T.Teleop, run: T.FeedRun, motion, *, samples: int 
         X = AbstractValue.Make(RigidTransform(X_WE[i]))
         c = fixture.CreateDefaultContext()
         fixture.GetInputPort("V_WE_command").FixValue(c, V[i])
-        fixture.GetInputPort("X_WE_measured").FixValue(c, X)
+        fixture.GetInputPort("X_WE").FixValue(c, X)
         ctx_f.append(c)
         c = supervisor.CreateDefaultContext()
         supervisor.set_desired_pose(c, X_WE[i])
