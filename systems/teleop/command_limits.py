@@ -251,8 +251,11 @@ def limit_step(V, latched: bool, run: int, limits: CommandLimits, dt: float, n_c
     ``run``: clean samples counted since the last non-clean one). ``dt`` is taken as checked
     (:meth:`CommandLimits.check_period`). Returns (the output twist (6,) as a list, status,
     cause, latched after, run after)."""
-    w0, w1, w2, v0, v1, v2 = (float(x) for x in V)
-    if not all(map(math.isfinite, (w0, w1, w2, v0, v1, v2))):
+    w0, w1, w2, v0, v1, v2 = V.tolist() if isinstance(V, np.ndarray) else map(float, V)
+    # the sum is finite when every component is (the exact test only when it is not: finite
+    # components of ~1e308 may overflow it)
+    if not math.isfinite(w0 + w1 + w2 + v0 + v1 + v2) and not all(
+            map(math.isfinite, (w0, w1, w2, v0, v1, v2))):
         return [0.0] * 6, FAULT, NON_FINITE, True, 0
     nv, nw = math.hypot(v0, v1, v2), math.hypot(w0, w1, w2)
     if nv * dt > limits.fault_jump:
@@ -277,8 +280,9 @@ def clip_twist(V, limits: CommandLimits) -> np.ndarray:
     """A twist (6,) scaled down to the speed limits (direction kept), zero if not finite: the
     supervisor's bound on every step it integrates (module docstring, between control steps)."""
     V = np.asarray(V, dtype=float)
-    w0, w1, w2, v0, v1, v2 = (float(x) for x in V)
-    if not all(map(math.isfinite, (w0, w1, w2, v0, v1, v2))):
+    w0, w1, w2, v0, v1, v2 = V.tolist()
+    if not math.isfinite(w0 + w1 + w2 + v0 + v1 + v2) and not all(
+            map(math.isfinite, (w0, w1, w2, v0, v1, v2))):
         return np.zeros(6)
     nv, nw = math.hypot(v0, v1, v2), math.hypot(w0, w1, w2)
     s = 1.0
@@ -337,7 +341,7 @@ class CommandLimiter(LeafSystem):
         return self._dt
 
     def _step(self, context):
-        x = context.get_discrete_state(0).get_value()
+        x = context.get_discrete_state(0).get_value().tolist()
         return x, limit_step(self._V.Eval(context), x[0] > 0.5, int(x[1]), self.limits,
                              self._dt, self._n_clear)
 
@@ -347,10 +351,10 @@ class CommandLimiter(LeafSystem):
     def _update(self, context, discrete_state):
         x, (_, status, cause, latched, run) = self._step(context)
         fault = status == FAULT
-        discrete_state.get_mutable_vector(0).SetFromVector(np.array([
-            1.0 if latched else 0.0, min(run, self._n_clear), x[2] + fault,
-            x[3] + (fault and x[0] < 0.5), status, cause, context.get_time()]))
+        discrete_state.get_mutable_vector(0).SetFromVector([
+            1.0 if latched else 0.0, float(min(run, self._n_clear)), x[2] + fault,
+            x[3] + (fault and x[0] < 0.5), float(status), float(cause), context.get_time()])
 
     def _calc_status(self, context, output: BasicVector):
         x = context.get_discrete_state(0).get_value()
-        output.SetFromVector([x[4], x[5], x[0], x[2], x[3], x[6]])
+        output.SetFromVector(x[[4, 5, 0, 2, 3, 6]])
