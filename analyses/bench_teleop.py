@@ -6,8 +6,9 @@ Prints, side by side in one run (targets: safety layer <= 50 us per 200 Hz step,
 kinematic >= 20x real time, dynamic >= 5x):
 
 - **the safety layer per 200 Hz step** (``timeit.repeat``, best of 7, over the poses and commands
-  logged along a feed): the fixture's body law (one compiled call per step: the diagram caches
-  it), the supervisor's update (one barrier query per step when the command meets the barrier
+  logged along a feed): the command limiter (its output and its update: two evaluations of the
+  one-sample rule per step), the fixture's body law (one compiled call per step: the diagram
+  caches it), the supervisor's update (one barrier query per step when the command meets the barrier
   condition) and the FPSM estimator (at 50 Hz: a quarter of its cost per step), each on its own
   with the inputs the diagram gave it; the same along an adversarial push towards the cheek
   with the fixture off (the supervisor alone stops it: its slow path near the wall; each sample
@@ -45,6 +46,7 @@ from implantplan.analyses.studies import adversarial
 from implantplan.diagrams import feeding as S
 from implantplan.diagrams import teleop as T
 from implantplan.systems.teleop.adversarial_operator import Directions, adversarial_motion
+from implantplan.systems.teleop.command_limits import CommandLimiter
 from implantplan.systems.teleop.fixture_system import VirtualFixtureForceLaw
 from implantplan.systems.teleop.fpsm_estimator import FpsmEstimator
 from implantplan.systems.teleop.master_device import MasterDevice, feeding_runs
@@ -52,6 +54,7 @@ from implantplan.systems.teleop.supervisor import SafetySupervisor
 
 CALLBACKS = {
     "MasterDevice": (MasterDevice, ("_calc_velocity", "_calc_offset", "_calc_handle")),
+    "CommandLimiter": (CommandLimiter, ("_calc_limited", "_update", "_calc_status")),
     "VirtualFixtureForceLaw": (
         VirtualFixtureForceLaw,
         ("_calc_corrected", "_calc_violation", "_calc_angle", "_calc_force"),
@@ -180,12 +183,16 @@ def safety_layer_cost(teleop: T.Teleop, run: T.FeedRun, motion, *, samples: int 
     V = np.zeros((samples, 6))
     V[:, 3:] = motion_velocity(motion, run.t[k])
     fixture, supervisor, estimator = teleop.vf, teleop.supervisor, teleop.estimator
-    ctx_f, ctx_s, ctx_e = [], [], []
+    limiter = teleop.limiter
+    ctx_f, ctx_s, ctx_e, ctx_l = [], [], [], []
     for i in range(samples):
         X = AbstractValue.Make(RigidTransform(X_WE[i]))
+        c = limiter.CreateDefaultContext()
+        limiter.GetInputPort("V_WE_command").FixValue(c, V[i])
+        ctx_l.append(c)
         c = fixture.CreateDefaultContext()
         fixture.GetInputPort("V_WE_command").FixValue(c, V[i])
-        fixture.GetInputPort("X_WE_measured").FixValue(c, X)
+        fixture.GetInputPort("X_WE").FixValue(c, X)
         ctx_f.append(c)
         c = supervisor.CreateDefaultContext()
         supervisor.set_desired_pose(c, X_WE[i])
@@ -195,18 +202,21 @@ def safety_layer_cost(teleop: T.Teleop, run: T.FeedRun, motion, *, samples: int 
         estimator.GetInputPort("X_WT").FixValue(c, X)
         ctx_e.append(c)
     ds = supervisor.AllocateDiscreteVariables()
+    dl = limiter.AllocateDiscreteVariables()
+    out_l = limiter.GetOutputPort("V_WE_limited").Allocate().get_value()
 
     def best(fn, contexts):
         fn(contexts[0])  # compiled once
         t = timeit.repeat(lambda: [fn(c) for c in contexts], number=1, repeat=repeat)
         return 1e6 * min(t) / len(contexts)
 
+    lim = best(lambda c: (limiter._calc_limited(c, out_l), limiter._update(c, dl)), ctx_l)
     fix = best(fixture.law, ctx_f)
     sup = best(lambda c: supervisor._update(c, ds), ctx_s)
     est = best(estimator.estimate, ctx_e)
     per_step = teleop.period / estimator_period  # build_teleop's default: 50 Hz of 200 Hz
-    return {"fixture": fix, "supervisor": sup, "estimator": est * per_step,
-            "total": fix + sup + est * per_step}
+    return {"limiter": lim, "fixture": fix, "supervisor": sup, "estimator": est * per_step,
+            "total": lim + fix + sup + est * per_step}
 
 
 def motion_velocity(motion, t) -> np.ndarray:
@@ -289,10 +299,11 @@ def main(argv=None) -> int:
 
     print(f"safety layer per 200 Hz step (us, best of 7 over 100 logged steps; {args.case} "
           "case; target <= 50 us)")
-    print(f"{'feed':<22} {'fixture':>8} {'supervisor':>11} {'estimator/4':>12} {'total':>8}")
+    print(f"{'feed':<22} {'limiter':>8} {'fixture':>8} {'supervisor':>11} {'estimator/4':>12} "
+          f"{'total':>8}")
     for name, c in (("calm scripted feed", calm), ("cheek push, no fixture", pushed)):
-        print(f"{name:<22} {c['fixture']:>8.1f} {c['supervisor']:>11.1f} {c['estimator']:>12.1f} "
-              f"{c['total']:>8.1f}")
+        print(f"{name:<22} {c['limiter']:>8.1f} {c['fixture']:>8.1f} {c['supervisor']:>11.1f} "
+              f"{c['estimator']:>12.1f} {c['total']:>8.1f}")
     print(f"  in the loop on the push (its gradient reused over steps at the wall): supervisor "
           f"{in_loop:.1f} us per step")
     print(f"  (supervisor active at {100 * push_run.barrier[:, 2].mean():.0f}% of the push's "

@@ -42,6 +42,7 @@ from implantplan.systems.errors import InputError
 from implantplan.systems.files import read_json
 from implantplan.systems.fpsm.model import Fpsm
 from implantplan.systems.frames import frame_from_z, invert, rotation_angle
+from implantplan.systems.instrument import Instrument
 from implantplan.systems.placement.fixture import VirtualFixture
 from implantplan.systems.robot import kinematics as kin
 from implantplan.systems.robot import moprp
@@ -106,7 +107,15 @@ class StudioPlan:
             implant_length=float(s["implant_length"]),
             limits=self.sc.limits,
             label=f"site {s['name']}",
+            instrument=_planned_instrument(s),
         )
+
+
+def _planned_instrument(site: dict):
+    """The instrument the plan verified at a site (None for a plan that did not record it:
+    the paper's tool of the site's rod radius and d12)."""
+    tool = (site.get("placement", {}).get("verification") or {}).get("tool")
+    return None if tool is None or "shapes" not in tool else Instrument.from_dict(tool)
 
 
 def opened_scan(sp: StudioPlan):

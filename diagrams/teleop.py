@@ -1,15 +1,24 @@
 """The teleoperated-feeding diagram (DESIGN.md section 7).
 
 ```
-MasterDevice --V_WE_command--> VirtualFixtureForceLaw --V_WE_corrected--> SafetySupervisor
-SafetySupervisor --X_WE_desired--> DiffIK integrator
+MasterDevice --V_WE_command--> CommandLimiter --V_WE_limited--> VirtualFixtureForceLaw
+VirtualFixtureForceLaw --V_WE_corrected--> SafetySupervisor --X_WE_desired--> DiffIK integrator
+SafetySupervisor --X_WE_desired--> VirtualFixtureForceLaw (the commanded pose it constrains)
 DiffIK --q_desired--> (kinematic) positions of the plant   | (dynamic) interpolator ->
                       inverse dynamics controller -> MultibodyPlant at 1 ms
-q (plant) --> ToolPose --X_WE--> VirtualFixtureForceLaw, FpsmEstimator, MasterDevice (finishing)
+q (plant) --> ToolPose --X_WE--> FpsmEstimator, MasterDevice (finishing)
 (the supervisor evaluates its barrier at the desired pose it integrates)
-loggers: q, supervisor barrier, FPSM safety, alarm (the tool pose and the fixture's violation
-         follow from q offline);  scene graph --> Meshcat (optional)
+loggers: q, supervisor barrier, command status, FPSM safety, alarm (the tool pose and the
+         fixture's violation follow from q offline);  scene graph --> Meshcat (optional)
 ```
+
+The operator's command is limited before the fixture (systems.teleop.command_limits: a
+non-finite or absurd twist, or a jump of the handle, is a fault: held at zero, latched, logged;
+a merely fast one is clipped to the speed limits), and the fixture and the barrier both act on
+the desired pose the supervisor integrates, whose every step the supervisor keeps within the
+same speed limits: the commanded pose stays in the fixture's admissible region and the tool
+between two control steps within half a step of its ends (the reasoning is in
+systems.teleop.command_limits).
 
 One diagram per case: the master motion is a parameter of the context
 (systems.teleop.master_device.MasterDevice.set_motion), so ``simulate(teleop, T, motion=m)``
@@ -90,6 +99,7 @@ from implantplan.systems.instrument import Instrument
 from implantplan.systems.placement.fixture import VirtualFixture
 from implantplan.systems.robot import kinematics as kin
 from implantplan.systems.robot.moprp import R_OE
+from implantplan.systems.teleop.command_limits import FAULT, CommandLimiter, CommandLimits
 from implantplan.systems.teleop.fixture_system import VirtualFixtureForceLaw
 from implantplan.systems.teleop.fpsm_estimator import FpsmEstimator, ToolLines
 from implantplan.systems.teleop.head_guard import GuardSettings, HeadGuard
@@ -205,6 +215,7 @@ class Teleop:
     master: MasterDevice
     vf: VirtualFixtureForceLaw
     supervisor: SafetySupervisor
+    limiter: CommandLimiter
     estimator: FpsmEstimator
     diffik: DifferentialInverseKinematicsIntegrator
     tool_pose: ToolPose
@@ -371,6 +382,7 @@ def build_teleop(
     tracker: TrackerParams | None = None,
     follow: bool = True,
     guard: GuardSettings | None = None,
+    limits: CommandLimits | None = None,
 ) -> Teleop:
     """Wire the feeding diagram of one case; it replays any master motion.
 
@@ -403,6 +415,8 @@ def build_teleop(
         tracker: the camera's settings (TrackerParams() if None) when ``head_motion`` is set.
         follow: with ``head_motion``, False lets the arm ignore the head (no tracker, no guard).
         guard: the HeadGuard's settings (GuardSettings() if None).
+        limits: the command limits (the CommandLimiter before the fixture and every step the
+            supervisor integrates; CommandLimits() if None).
     """
     if mode not in MODES:
         raise InputError("mode", f"expected kinematic or dynamic, got {mode!r}")
@@ -419,6 +433,9 @@ def build_teleop(
     target = case.X_WTarget[:3, 3] if finish else None
     master = builder.AddSystem(master or MasterDevice(motion, mapping, target_W=target))
     master.set_name("master")
+    limits = limits or CommandLimits()
+    limiter = builder.AddSystem(CommandLimiter(limits, period=period))
+    limiter.set_name("command_limiter")
     vf = builder.AddSystem(
         VirtualFixtureForceLaw(
             case.vf,
@@ -443,6 +460,7 @@ def build_teleop(
             period=period,
             enabled=supervisor_enabled,
             margin_input=tracking,
+            limits=limits,
         )
     )
     supervisor.set_name("safety_supervisor")
@@ -471,7 +489,10 @@ def build_teleop(
     tool_pose = builder.AddSystem(ToolPose(plant, tcp, state_input=(mode == "dynamic")))
     tool_pose.set_name("tool_pose")
 
-    builder.Connect(master.GetOutputPort("V_WE_command"), vf.GetInputPort("V_WE_command"))
+    builder.Connect(master.GetOutputPort("V_WE_command"), limiter.GetInputPort("V_WE_command"))
+    builder.Connect(limiter.GetOutputPort("V_WE_limited"), vf.GetInputPort("V_WE_command"))
+    # the fixture constrains the commanded pose (the supervisor's state: no algebraic loop)
+    builder.Connect(supervisor.GetOutputPort("X_WE_desired"), vf.GetInputPort("X_WE"))
     head = trk = head_guard = None
     measured = tool_pose.GetOutputPort("X_WE")
     if head_motion is not None:
@@ -511,7 +532,6 @@ def build_teleop(
                         supervisor.GetInputPort("V_WE_corrected"))
         builder.Connect(supervisor.GetOutputPort("X_WE_desired"),
                         diffik.GetInputPort("X_AE_desired"))
-    builder.Connect(measured, vf.GetInputPort("X_WE_measured"))
     builder.Connect(measured, estimator.GetInputPort("X_WT"))
     if finish:
         builder.Connect(measured, master.GetInputPort("X_WE_measured"))
@@ -553,6 +573,7 @@ def build_teleop(
     loggers = {
         "q": LogVectorOutput(q_port, builder, period),
         "barrier": LogVectorOutput(supervisor.GetOutputPort("barrier"), builder, period),
+        "command": LogVectorOutput(limiter.GetOutputPort("command_status"), builder, period),
         "safety": LogVectorOutput(estimator.GetOutputPort("safety"), builder, estimator_period),
         "alarm": LogVectorOutput(estimator.GetOutputPort("alarm"), builder, estimator_period),
     }
@@ -576,6 +597,7 @@ def build_teleop(
         master=master,
         vf=vf,
         supervisor=supervisor,
+        limiter=limiter,
         estimator=estimator,
         diffik=diffik,
         tool_pose=tool_pose,
@@ -613,6 +635,19 @@ class FeedRun:
     guard: np.ndarray | None = None  # (n, 4) the HeadGuard's [mode, backed out, t, cause]
     margin_extra: np.ndarray | None = None  # (n,) what the guard added to the margin (m)
     lost: np.ndarray | None = None  # (n,) bool: the tracker's lost flag
+    command: np.ndarray | None = None  # (n, 6) the CommandLimiter's status log
+
+    @property
+    def fault_times(self) -> np.ndarray:
+        """Times (s) of the command samples that were faults (the limiter held them)."""
+        if self.command is None:
+            return np.zeros(0)
+        return self.command[self.command[:, 0] == FAULT, 5]
+
+    @property
+    def fault_events(self) -> int:
+        """Faults that set the limiter's latch over the run."""
+        return 0 if self.command is None else int(self.command[-1, 4])
 
     @property
     def joint_travel(self) -> float:
@@ -680,6 +715,7 @@ def simulate(teleop: Teleop, duration: float, *, motion: MasterMotion | None = N
         X_CT=X_CT,
         angle_violation=angle_violation,
         barrier=logs["barrier"].data().T.copy(),
+        command=logs["command"].data().T.copy(),
         head_D=head_D,
         **extra,
     )

@@ -260,8 +260,22 @@ class Instrument:
         out until its origin is ``head + implant_length`` above the mouth opening."""
         return max((s.radius for s in self.shapes if s.name != "rod"), default=0.0)
 
+    @classmethod
+    def from_dict(cls, d: dict, *, field: str = "instrument") -> Instrument:
+        """The instrument :meth:`to_dict` wrote (a plan's ``placement.verification.tool``)."""
+        try:
+            shapes = tuple(Shape(s["name"], s["kind"], s["a"], s["b"], s["radius"])
+                           for s in d["shapes"])
+            return cls(d["name"], shapes, rod_radius=d["rod_radius"],
+                       implant_length=d["implant_length"], rod_length=d["rod_length"],
+                       source=d.get("source", ""), line_offset=d.get("line_offset", 0.0))
+        except (KeyError, TypeError) as exc:
+            raise InputError(field, f"expected an instrument's shapes and lengths ({exc})") \
+                from None
+
     def to_dict(self) -> dict:
-        return {"name": self.name, "source": self.source, "rod_radius": self.rod_radius,
+        return {"name": self.name, "source": self.source, "line_offset": self.line_offset,
+                "rod_radius": self.rod_radius,
                 "implant_length": self.implant_length, "rod_length": self.rod_length,
                 "shapes": [s.to_dict() for s in self.shapes], "units": "m",
                 "frame": "Tool: origin at the head centre, x along the rod out of the mouth, "

@@ -38,9 +38,13 @@ frame, uniform sampling) and optionally the three columns ``rx_rad,ry_rad,rz_rad
 a 4-column file is a motion without rotation.
 
 The :class:`MasterDevice` LeafSystem replays a :class:`MasterMotion` as a zero-order hold: its
-output at time t is the sample at floor(t / dt) (zero velocity after the end). The motion is an
-abstract *parameter* of the system's context (:meth:`MasterDevice.set_motion`), not of the system:
-one diagram serves every run of a case, each run setting its motion in a fresh context.
+output at time t is the sample at floor(t / dt) (zero velocity after the end). A
+:class:`GlitchedMotion` is a motion whose device reports other twists at a few samples (a driver
+or link fault: NaN, inf or absurd values, which a MasterMotion's positions cannot hold); it
+replays the same way, for testing the command limits (systems.teleop.command_limits). The
+motion is an abstract *parameter* of the system's context (:meth:`MasterDevice.set_motion`), not
+of the system: one diagram serves every run of a case, each run setting its motion in a fresh
+context.
 """
 
 from __future__ import annotations
@@ -293,6 +297,54 @@ def feeding_runs(
     ]
 
 
+@dataclass(frozen=True)
+class GlitchedMotion:
+    """A master motion whose device reports the twists ``V_W`` instead of the motion's own at the
+    samples ``samples`` (a fault of the device or its link; any values, non-finite included).
+
+    Attributes:
+        motion: the hand's motion.
+        samples: (m,) sample indices (0 <= k < n) the glitches replace.
+        V_W: (m, 6) the reported twists [w; v], in World (after the mapping: what the master
+            system outputs on those samples).
+    """
+
+    motion: MasterMotion
+    samples: np.ndarray
+    V_W: np.ndarray
+
+    def __post_init__(self):
+        if not isinstance(self.motion, MasterMotion):
+            raise InputError("motion", f"expected a MasterMotion, got {type(self.motion).__name__}")
+        k = np.asarray(self.samples).reshape(-1)
+        n = self.motion.p_M.shape[0]
+        if k.dtype.kind not in "iu" or np.any((k < 0) | (k >= n)):
+            raise InputError("samples", f"expected sample indices in [0, {n})")
+        V = np.asarray(self.V_W, dtype=float).reshape(-1, 6)
+        if V.shape[0] != k.size:
+            raise InputError("V_W", f"expected one twist (6,) per sample ({k.size}), "
+                             f"got shape {np.shape(self.V_W)}")
+        object.__setattr__(self, "samples", k.astype(int))
+        object.__setattr__(self, "V_W", V)
+
+    @property
+    def dt(self) -> float:
+        return self.motion.dt
+
+    @property
+    def p_M(self) -> np.ndarray:
+        """The hand's positions (the motion's; the glitches are in the reported twists)."""
+        return self.motion.p_M
+
+    @property
+    def duration(self) -> float:
+        return self.motion.duration
+
+    @property
+    def t(self) -> np.ndarray:
+        return self.motion.t
+
+
 CSV_COLUMNS = ("t_s", "x_m", "y_m", "z_m")
 CSV_ROTATION_COLUMNS = ("rx_rad", "ry_rad", "rz_rad")
 
@@ -350,12 +402,16 @@ class _Playback:
     w_W: np.ndarray  # (n, 3) commanded angular velocity per sample
 
     @classmethod
-    def of(cls, motion: MasterMotion, mapping: IncrementalMapping) -> _Playback:
+    def of(cls, motion: MasterMotion | GlitchedMotion, mapping: IncrementalMapping) -> _Playback:
+        glitch = motion if isinstance(motion, GlitchedMotion) else None
+        motion = motion.motion if glitch is not None else motion
         if not isinstance(motion, MasterMotion):
             raise InputError("motion", f"expected a MasterMotion, got {type(motion).__name__}")
-        return cls(motion, mapping.to_world(motion.velocity_M()),
-                   mapping.to_world(motion.p_M - motion.p_M[0]),
-                   mapping.angular_to_world(motion.angular_velocity_M()))
+        v_W = mapping.to_world(motion.velocity_M())
+        w_W = mapping.angular_to_world(motion.angular_velocity_M())
+        if glitch is not None:
+            w_W[glitch.samples], v_W[glitch.samples] = glitch.V_W[:, :3], glitch.V_W[:, 3:]
+        return cls(motion, v_W, mapping.to_world(motion.p_M - motion.p_M[0]), w_W)
 
 
 STILL = MasterMotion(dt=1.0, p_M=np.zeros((2, 3)))  # the hand at rest: the default motion
@@ -443,7 +499,7 @@ class MasterDevice(LeafSystem):
         """Duration of the default context's motion (s)."""
         return self._default.motion.duration
 
-    def set_motion(self, context, motion: MasterMotion) -> None:
+    def set_motion(self, context, motion: MasterMotion | GlitchedMotion) -> None:
         """Replay ``motion`` in ``context`` (this system's context or a diagram's root one)."""
         own = self.GetMyMutableContextFromRoot(context)
         own.get_mutable_abstract_parameter(self._play).set_value(
@@ -469,8 +525,7 @@ class MasterDevice(LeafSystem):
             out[3:] = v if norm <= self._speed else v * (self._speed / norm)
         else:
             k = self._index(context, play)
-            if play.motion.r_M is not None:  # (a motion without one: exactly today's zeros)
-                out[:3] = play.w_W[k]
+            out[:3] = play.w_W[k]  # zeros for a motion without r_M (and no glitch)
             out[3:] = play.v_W[k]
         output.SetFromVector(out)
 

@@ -21,6 +21,11 @@ poses perturbed along the twist's coordinates (translations by +-eps_p, rotation
 by +-eps_w: the central-difference gradient g of h with respect to the twist), the projection
 and the scale tries:
 
+0. the twist is clipped to the command limits' speeds (systems.teleop.command_limits.clip_twist:
+   one scale, direction kept; a non-finite twist is zero), whatever sent it (the operator's
+   command through the fixture, the fixture's return law, the head guard's retreat): every step
+   of the desired pose is then short enough that the tool between two steps keeps the barrier
+   of its ends less half a step (systems.teleop.command_limits, between control steps);
 1. if h(X + dt V) >= h + dt b - 10 nm (the discrete barrier condition holds for the command
    itself, no linearization) or h is +inf (the tool is outside the mouth), V passes untouched;
 2. otherwise V is projected on the half-space g . V' >= 0.9 b (aiming at 90% of the allowed
@@ -55,6 +60,7 @@ from implantplan.systems.fpsm.model import Fpsm
 from implantplan.systems.frames import invert
 from implantplan.systems.instrument import Instrument
 from implantplan.systems.placement.tool_clearance import ToolClearance, tool_clearance_at
+from implantplan.systems.teleop.command_limits import CommandLimits, clip_twist
 from implantplan.systems.teleop.fixture_system import step_pose
 
 AIM = 0.9  # the projection aims at this share of the allowed approach rate
@@ -281,18 +287,21 @@ class Supervised:
 
 
 def supervise(clear: ToolClearance, X_CT, V_C, barrier: Barrier, dt: float, *,
-              h=None, g=None) -> Supervised:
-    """Steps 1-3 of the module docstring for K tool poses ``X_CT`` (K, 4, 4) in Center and
+              h=None, g=None, limits: CommandLimits | None = None) -> Supervised:
+    """Steps 0-3 of the module docstring for K tool poses ``X_CT`` (K, 4, 4) in Center and
     commanded twists ``V_C`` (K, 6) in Center, over a period ``dt`` (s). ``h`` (K,): the
     barrier at the poses if known (the supervisor keeps it from its previous step); ``g``
     (K, 6): a gradient to use instead of the finite differences (the supervisor reuses one over
     a few consecutive steps at the wall; it only shapes the projection, which step 3 checks on h
-    itself)."""
+    itself); ``limits``: clip the twists to these speed limits first (step 0; None: no clip).
+    ``scale`` is then relative to the clipped twist."""
     X = np.asarray(X_CT, dtype=float).reshape(-1, 4, 4)
     V = np.asarray(V_C, dtype=float).reshape(-1, 6)
     K = X.shape[0]
     if V.shape[0] != K:
         raise InputError("V_C", f"expected one twist per pose ({K}), got {V.shape[0]}")
+    if limits is not None:
+        V = np.array([clip_twist(Vk, limits) for Vk in V]).reshape(-1, 6)
     X_cmd = np.empty_like(X)
     for k in range(K):  # the compiled step (Drake's AngleAxis rejects a twist of ~1e-160)
         step_pose_into(np.ascontiguousarray(X[k]), np.ascontiguousarray(V[k]), float(dt), X_cmd[k])
@@ -425,6 +434,8 @@ class SafetySupervisor(LeafSystem):
         enabled: False integrates the command unfiltered (experiments without the supervisor).
         margin_input: declare a vector input port ``margin_extra`` (1, m) added to the
             barrier's margin at every update (the awake patient: tracking lag and error).
+        limits: the speed limits every integrated step keeps (step 0; CommandLimits() if
+            None), with the supervisor on or off.
     """
 
     def __init__(
@@ -439,10 +450,12 @@ class SafetySupervisor(LeafSystem):
         period: float = 0.005,
         enabled: bool = True,
         margin_input: bool = False,
+        limits: CommandLimits | None = None,
     ):
         super().__init__()
         if not np.isfinite(period) or period <= 0:
             raise InputError("period", f"expected a period > 0 s, got {period}")
+        self.limits = limits or CommandLimits()
         self._clear = ToolClearance(fpsm, tool)
         self._barrier = barrier or Barrier()
         self._period = float(period)
@@ -486,7 +499,7 @@ class SafetySupervisor(LeafSystem):
 
     def _update(self, context, discrete_state):
         x = context.get_discrete_state(0).get_value()
-        V_W = np.asarray(self._V_in.Eval(context), dtype=float)
+        V_W = clip_twist(self._V_in.Eval(context), self.limits)  # step 0
         # the rotation of one period (Drake's AngleAxis; the operator's command has none)
         w_C = self._R_CW @ V_W[:3]
         angle = float(np.linalg.norm(w_C)) * self._period

@@ -1,6 +1,6 @@
-"""The adversarial operator against the safety layer on the default case (its plan folder,
-planned once per test run): a few runs in the default suite, the 54-run study as a slow test.
-Exact clearance by FCL against the opened scan at every logged pose."""
+"""The adversarial operator against the safety layer on the default case: a few runs
+in the default suite, the study and the full jump sweep as slow tests. Exact clearance by FCL
+against the opened scan at every logged pose and over the arm's motion between them."""
 
 import numpy as np
 import pytest
@@ -9,7 +9,13 @@ from implantplan.analyses.studies import adversarial as A
 from implantplan.analyses.studies.scan_reference import plan_sites
 from implantplan.diagrams.teleop import build_teleop
 from implantplan.systems.instrument import Instrument
-from implantplan.systems.teleop.adversarial_operator import Directions, adversarial_motion
+from implantplan.systems.teleop.adversarial_operator import (
+    Directions,
+    adversarial_motion,
+    handle_jump,
+    jump_directions,
+)
+from implantplan.systems.teleop.command_limits import CommandLimits
 from implantplan.systems.teleop.master_device import feeding_runs
 from implantplan.systems.teleop.supervisor import Barrier
 
@@ -24,10 +30,17 @@ def site(demo_plan):
     return tc, build_teleop(tc), A.exact_for(tc, mesh)
 
 
-def _check(r):
+STEP_LIMIT = A.STEP_SLACK * CommandLimits().linear_speed * 0.005  # m per control period
+
+
+def _check(r, *, fixture=True):
     assert r["min_exact_clearance"] > 0.0
     assert r["min_exact_clearance"] >= MARGIN - A.MARGIN_SLACK
-    assert r["max_vf_violation"] < A.MAX_VIOLATION
+    assert r["min_exact_bound"] >= MARGIN - A.MARGIN_SLACK  # between the logged poses too
+    assert r["min_exact_bound"] <= r["min_exact_between"] <= r["min_exact_clearance"]
+    if fixture:
+        assert r["max_vf_violation"] < A.MAX_VIOLATION
+    assert r["max_tcp_step"] <= STEP_LIMIT
 
 
 @pytest.mark.parametrize("kind, seed", [("cheek_left", 0), ("cheek_right", 1), ("jaw", 2),
@@ -38,6 +51,44 @@ def test_adversarial_motion_stays_clear_of_the_exact_anatomy(site, kind, seed):
     motion = adversarial_motion(kind, start, target, Directions.of_case(tc.X_WTarget,
                                                                         tc.X_WCenter), seed=seed)
     _check(A.run_one(teleop, tc, motion, exact))
+
+
+@pytest.mark.parametrize("kind, seed, fixture", [("tremor", 0, True), ("pulse", 1, True),
+                                                  ("jump", 0, True), ("spike", 1, False),
+                                                  ("speed_1e9", 0, True), ("nan", 1, False),
+                                                  ("inf", 2, True), ("turn_1e9", 3, False)])
+def test_jumps_and_absurd_commands_are_faults_not_motions(site, kind, seed, fixture):
+    """A handle jump (50-1000 mm in one sample) or an absurd twist mid-feed: a logged fault, the
+    tool held while it lasts, no jump of the arm when it clears, the feed still reaches the
+    target; the clearance at and between the logged poses keeps margin - 0.2 mm, fixture on
+    or off. Tremor and twitches keep the fixture's violation under 0.5 mm."""
+    tc, teleop, exact = site
+    start, target = tc.X_WE(tc.q_start)[:3, 3], tc.X_WTarget[:3, 3]
+    motion = adversarial_motion(kind, start, target, Directions.of_case(tc.X_WTarget,
+                                                                        tc.X_WCenter), seed=seed)
+    r = A.run_one(teleop if fixture else build_teleop(tc, vf_enabled=False), tc, motion, exact)
+    _check(r, fixture=fixture)
+    if kind in A.FAULT_KINDS:
+        assert r["faults"] >= 1
+        assert r["recovery_tcp_step"] <= STEP_LIMIT
+        assert r["hold_motion"] < 3 * 0.0005  # the steps in flight at the fault, no more
+        assert r["reached_target"]
+    else:
+        assert r["faults"] == 0
+
+
+def test_the_largest_jump_into_the_mouth_is_a_fault(site):
+    """1000 mm in one sample along Center's diagonal into the mouth, towards the jaw and the
+    right cheek (-x -y -z), with the fixture off: held, logged, no motion."""
+    tc, _, exact = site
+    start, target = tc.X_WE(tc.q_start)[:3, 3], tc.X_WTarget[:3, 3]
+    D, names = jump_directions(Directions.of_case(tc.X_WTarget, tc.X_WCenter))
+    d = D[names.index("-x-y-z")]
+    motion = handle_jump(start, target, np.random.default_rng(7), d, 1.0)
+    r = A.run_one(build_teleop(tc, vf_enabled=False), tc, motion, exact)
+    _check(r, fixture=False)
+    assert r["faults"] == 1 and r["fault_samples"] == 1
+    assert r["reached_target"]
 
 
 def test_normal_feed_reaches_the_target_safely(site):
@@ -100,6 +151,7 @@ def test_the_54_run_study():
     assert s["runs"] >= 50
     assert s["below_zero"] == 0 and s["below_margin_slack"] == 0
     assert s["violation_over"] == 0
+    assert s["unfaulted"] == 0 and s["recovery_jumps"] == 0
     normal = res["summary"]["normal"]
     assert normal["reached"] == normal["runs"]
 
@@ -108,6 +160,20 @@ def test_the_54_run_study():
 def test_the_54_run_study_with_the_supervisor_alone():
     s = A.study(seeds=4, normal=3, fixture=False, progress=None)["summary"]["all"]
     assert s["below_zero"] == 0 and s["below_margin_slack"] == 0
+    assert s["unfaulted"] == 0 and s["recovery_jumps"] == 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("fixture", [True, False])
+def test_the_full_jump_sweep(fixture):
+    """Every jump size (50-1000 mm) x 14 directions x held/out and back x both sites."""
+    res = A.jump_study(fixture=fixture, progress=None)
+    s = res["summary"]["all"]
+    assert s["runs"] == 2 * 2 * 5 * 14
+    assert s["below_zero"] == 0 and s["below_margin_slack"] == 0
+    assert s["unfaulted"] == 0 and s["recovery_jumps"] == 0
+    if fixture:
+        assert s["violation_over"] == 0
 
 
 @pytest.mark.sweep

@@ -14,6 +14,7 @@ from implantplan.analyses.cli import main
 from implantplan.diagrams.arm_clearance import SceneGraphClearance
 from implantplan.systems.files import read_json
 from implantplan.systems.robot import moprp
+from implantplan.systems.teleop.command_limits import CommandLimits
 from implantplan.systems.teleop.master_device import load_csv
 from implantplan.systems.teleop.master_input import KeyboardMaster, LiveMasterDevice
 from implantplan.systems.teleop.supervisor import Barrier
@@ -251,8 +252,8 @@ def test_rotation_keys_roll_about_the_axis_tilt_held_by_the_fixture_and_replay(s
         s = studio.teleop.state()
         assert s["tilt"] > 0.5 * beta  # it did tilt, up to the fixture's bound
     # held to beta, up to one control period of the commanded rate (the fixture corrects the
-    # measured pose, which lags the supervisor's desired pose by one period) and back within
-    # 0.2 s (its return rate k / b = 20 /s)
+    # commanded pose one period ahead, to the linearization of the turn) and back within 0.2 s
+    # (its return rate k / b = 20 /s)
     lag = studio.keyboard.rate * studio.teleop.device.dt
     assert max(angles) <= beta + lag + 1e-6
     assert max(angles) > beta - 1e-6
@@ -276,13 +277,18 @@ def test_rotation_keys_roll_about_the_axis_tilt_held_by_the_fixture_and_replay(s
     assert np.asarray(rep["end_X_WE"]) == pytest.approx(end, abs=1e-6)
 
 
+# the command limits' turning rate raised to the 20 deg/s these tests command (the default,
+# 0.1 rad/s, would clip them: systems.teleop.command_limits)
+TURNS = CommandLimits(angular_speed=float(np.deg2rad(20.0)))
+
+
 def test_without_the_fixture_a_turn_passes_and_the_supervisor_still_filters(studio_plan):
     """The rotation channel is real end to end: without the fixture a roll key turns the tool at
     the commanded rate; a tilt inside the mouth is stopped by the supervisor at its margin."""
     sp = studio_plan
     case = sp.teleop_case(0)
     kb = KeyboardMaster(speed=0.015, rate=np.deg2rad(20.0))
-    live = ls.LiveTeleop(case, kb, realtime_rate=0.0, vf_enabled=False)
+    live = ls.LiveTeleop(case, kb, realtime_rate=0.0, vf_enabled=False, limits=TURNS)
     for _ in range(10):  # 0.5 s at 20 deg/s outside the mouth
         kb.press("roll+", live.time)
         live.advance(0.05)
@@ -327,7 +333,7 @@ def test_turning_in_the_mouth_checked_against_the_exact_scan_clearance(studio_pl
         exact = exact_for(case, mesh)
         for vf in (True, False):
             kb = KeyboardMaster(speed=0.015, rate=np.deg2rad(20.0))
-            live = ls.LiveTeleop(case, kb, realtime_rate=0.0, vf_enabled=vf)
+            live = ls.LiveTeleop(case, kb, realtime_rate=0.0, vf_enabled=vf, limits=TURNS)
             while live.time < 5.0:
                 kb.press("feed_in", live.time)
                 live.advance(0.05)

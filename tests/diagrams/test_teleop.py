@@ -165,3 +165,67 @@ def test_dynamic_mode_has_contact_with_the_moprp_environment(case):
         query = sg.get_query_output_port().Eval(sgc)
         assert query.ComputePointPairPenetration() == []
         assert scene.environment_distance(query, inspector, env, 1.0) > 0.005
+
+
+def _feed_in(case, depth=0.03, speed=0.01, dt=0.005):
+    """Straight in along the rod by ``depth`` at ``speed`` (displacements from the start)."""
+    u_in = -case.X_WTarget[:3, 0]
+    n = int(round(depth / speed / dt))
+    return np.arange(n + 1)[:, None] * (speed * dt) * u_in
+
+
+@pytest.mark.parametrize("back", [False, True])
+def test_a_200_mm_jump_of_the_handle_is_a_fault_not_a_motion(case, back):
+    """The handle's reading jumps 200 mm towards the cheek in one 5 ms sample (and stays, or
+    comes back at the next): a command of 40 m/s. It is a logged fault at that sample, the tool
+    holds where it was (the arm does not move beyond the one step it was finishing), and no
+    step of the arm exceeds the speed limit's 0.25 mm per period."""
+    d = _feed_in(case)
+    k = d.shape[0]  # the jump's sample
+    hold = np.repeat(d[-1:], 200, axis=0)  # 1 s still
+    p = np.concatenate([d, hold])
+    jump = 0.2 * case.X_WCenter[:3, 0]
+    if back:
+        p[k] += jump
+    else:
+        p[k:] += jump
+    motion = MasterMotion(dt=0.005, p_M=p)
+    teleop = build_teleop(case, motion, finish=False)
+    run = simulate(teleop, motion.duration)
+    assert run.fault_events == 1
+    expected = [k - 1, k] if back else [k - 1]  # the velocity of sample i is p[i+1] - p[i]
+    np.testing.assert_allclose(run.fault_times, np.array(expected) * 0.005, atol=1e-9)
+    steps = np.linalg.norm(np.diff(run.p_WE, axis=0), axis=1)
+    limit = teleop.limiter.limits.linear_speed * teleop.period
+    assert steps.max() <= 1.1 * limit
+    after = run.t >= (k - 1) * 0.005
+    moved = np.linalg.norm(run.p_WE[after] - run.p_WE[after][0], axis=1).max()
+    assert moved < 3 * 0.01 * 0.005  # at most the calm steps in flight when the jump came
+    assert run.violation.max() < 0.0005
+
+
+@pytest.mark.parametrize("V", [[0, 0, 0, 1e9, 0, 0], [0, 0, 0, np.nan, 0, 0],
+                               [0, 0, 0, 0, -np.inf, 0], [1e9, 0, 0, 0, 0, 0]],
+                         ids=["1e9 m/s", "NaN", "-inf", "1e9 rad/s"])
+def test_an_absurd_command_is_a_logged_fault_with_no_motion(case, V):
+    """The device reports an absurd twist for 3 samples mid-feed: the limiter holds the command
+    at zero from the first (a logged fault at its time), the tool stays where it was, and the
+    feed resumes at the 40th clean sample (0.2 s) without a jump of the arm."""
+    from implantplan.systems.teleop.master_device import GlitchedMotion
+
+    d = _feed_in(case, depth=0.04)
+    k = d.shape[0] // 2
+    glitch = GlitchedMotion(MasterMotion(dt=0.005, p_M=d), np.arange(k, k + 3),
+                            np.tile(np.asarray(V, dtype=float), (3, 1)))
+    teleop = build_teleop(case, finish=False)
+    run = simulate(teleop, glitch.duration + 0.5, motion=glitch)
+    assert run.fault_events == 1
+    np.testing.assert_allclose(run.fault_times, np.arange(k, k + 3) * 0.005, atol=1e-9)
+    held = (run.t >= k * 0.005) & (run.t <= (k + 2 + 40) * 0.005)
+    p = run.p_WE[held]
+    assert np.linalg.norm(p - p[0], axis=1).max() < 3 * 0.01 * 0.005
+    steps = np.linalg.norm(np.diff(run.p_WE, axis=0), axis=1)
+    assert steps.max() <= 1.1 * 0.01 * 0.005  # never faster than the calm feed: no jump
+    # the feed went on after the hold: the tool moved in by the feed less the held 0.21 s
+    moved_in = (run.p_WE[-1] - run.p_WE[0]) @ -case.X_WTarget[:3, 0]
+    assert moved_in == pytest.approx(0.04 - 0.01 * 42 * 0.005, abs=1e-5)  # 3 bad + 39 held

@@ -188,6 +188,31 @@ def test_the_system_alone_filters_and_integrates():
     np.testing.assert_allclose(xd3[:3] - pose(x0)[:3, 3], [0.04 * DT, 0, 0], atol=1e-15)
 
 
+def test_every_integrated_step_keeps_the_command_limits():
+    """Whatever reaches it (the fixture's return, the guard's retreat, a supervisor used alone),
+    the supervisor integrates at most the limits' speed, direction kept, and holds on a
+    non-finite twist; on or off."""
+    from implantplan.systems.teleop.command_limits import CommandLimits
+
+    X_WE = pose(0.0)  # X_WC = I, R_ET = I: the state's Tool pose is X_WE
+    for enabled in (True, False):
+        system = SafetySupervisor(CYL, np.eye(4), X_WE, TOOL, barrier=BAR, period=DT,
+                                  enabled=enabled, limits=CommandLimits(linear_speed=0.02))
+        context = system.CreateDefaultContext()
+        port = system.GetInputPort("V_WE_corrected")
+        port.FixValue(context, [0, 0, 0, -0.3, 0.0, -0.4])  # 0.5 m/s away from the wall
+        xd = system.EvalUniquePeriodicDiscreteUpdate(context).get_vector(0).get_value()
+        np.testing.assert_allclose(xd[:3] - X_WE[:3, 3], [-0.012 * DT, 0, -0.016 * DT],
+                                   atol=1e-15)
+        port.FixValue(context, [0, 0, 0, np.nan, 0.0, 0.0])
+        xd = system.EvalUniquePeriodicDiscreteUpdate(context).get_vector(0).get_value()
+        np.testing.assert_array_equal(xd[:3], X_WE[:3, 3])
+    # the core does the same with ``limits``
+    out = supervise(CLEAR, pose(0.0)[None], np.array([[0, 0, 0, -0.3, 0, -0.4]]), BAR, DT,
+                    limits=CommandLimits(linear_speed=0.02))
+    np.testing.assert_allclose(out.V[0], [0, 0, 0, -0.012, 0, -0.016], atol=1e-15)
+
+
 def test_bad_settings():
     with pytest.raises(InputError, match="barrier.alpha"):
         Barrier(alpha=0.0)

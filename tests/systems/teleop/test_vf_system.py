@@ -37,7 +37,7 @@ def make(p_C, V_W, *, enabled=True, vf=VF, R=R_CT, integrate=True):
                                     integrate=integrate)
     context = system.CreateDefaultContext()
     system.GetInputPort("V_WE_command").FixValue(context, np.asarray(V_W, dtype=float))
-    system.GetInputPort("X_WE_measured").FixValue(
+    system.GetInputPort("X_WE").FixValue(
         context, AbstractValue.Make(RigidTransform(X_WE))
     )
     return system, context, X_WE
