@@ -191,19 +191,16 @@ class InstrumentSection:
 
 
 def _instrument(value, where: str) -> InstrumentSection:
+    """``instrument:`` as a word (the kind), ``{urdf: PATH}`` or ``{kind: ..., urdf: ...}``."""
     if isinstance(value, str):
         value = {"kind": value}
+    elif isinstance(value, dict) and "urdf" in value and "kind" not in value:
+        value = {"kind": "urdf", **value}
     section = v.parse(InstrumentSection, value, where)
     if (section.kind == "urdf") != (section.urdf is not None):
         raise InputError(f"{where}.urdf", "expected a URDF path exactly when kind is 'urdf' "
                          "(or write instrument: {urdf: PATH})")
     return section
-
-
-def _instrument_mapping(value, where: str) -> InstrumentSection:
-    if isinstance(value, dict) and "urdf" in value and "kind" not in value:
-        value = {"kind": "urdf", **value}
-    return _instrument(value, where)
 
 
 def _sites(value, where: str) -> tuple:
@@ -232,7 +229,7 @@ class Case:
     capability: CapabilitySection = v.spec(v.section(CapabilitySection), {})
     simulation: SimulationSection = v.spec(v.section(SimulationSection), {})
     safety: SafetySpec = v.spec(v.section(SafetySpec), {})
-    instrument: InstrumentSection = v.spec(_instrument_mapping, "paper")
+    instrument: InstrumentSection = v.spec(_instrument, "paper")
     source: Path | None = None
 
     def instrument_at(self, site: Site):

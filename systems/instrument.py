@@ -30,7 +30,7 @@ Where the cover's bound cannot decide, the exact reference resolves it.
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -170,7 +170,7 @@ class Instrument:
         from implantplan import models
 
         inst = cls.from_urdf(models.model_path("tools/implanting_actuator.urdf"))
-        return _renamed(inst, "actuator")
+        return replace(inst, name="actuator")
 
     @classmethod
     def from_urdf(cls, path, *, field: str = "instrument.urdf") -> Instrument:
@@ -292,9 +292,3 @@ def _length(name: str, value, positive: bool = False, *, finite: bool = True) ->
         kind = "positive" if positive else ">= 0"
         raise InputError(f"instrument.{name}", f"expected a {kind} length (m), got {value!r}")
     return v
-
-
-def _renamed(inst: Instrument, name: str) -> Instrument:
-    return Instrument(name, inst.shapes, rod_radius=inst.rod_radius,
-                      implant_length=inst.implant_length, rod_length=inst.rod_length,
-                      source=inst.source, line_offset=inst.line_offset)

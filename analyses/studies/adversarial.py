@@ -159,14 +159,10 @@ def study(*, seeds: int = 4, normal: int = 3, seed: int = 0, barrier: Barrier | 
           progress=print) -> dict:
     """Every site x (kinds x seeds + normal feeds) of the default case; see the module docs.
     ``fixture=False`` leaves the supervisor alone against the operator."""
-    cases, mesh = default_case_sites()
     barrier = barrier or Barrier()
     limits = limits or CommandLimits()
     runs = []
-    for k, tc in enumerate(cases):
-        teleop = build_teleop(tc, barrier=barrier, vf_enabled=fixture, limits=limits)
-        exact = exact_for(tc, mesh)
-        start, target = tc.X_WE(tc.q_start)[:3, 3], tc.X_WTarget[:3, 3]
+    for k, tc, teleop, exact, start, target in _sites(barrier, limits, fixture):
         dirs = Directions.of_case(tc.X_WTarget, tc.X_WCenter)
         todo = [(kind, i, adversarial_motion(kind, start, target, dirs,
                                              seed=np.random.SeedSequence([seed, k, j, i])))
@@ -188,14 +184,10 @@ def jump_study(*, sizes=JUMP_SIZES, seed: int = 0, fixture: bool = True,
                progress=print) -> dict:
     """The full jump sweep (module docstring): per site, every size x direction x (held, out and
     back), each jump at a seeded time of a seeded calm feed."""
-    cases, mesh = default_case_sites()
     barrier = barrier or Barrier()
     limits = limits or CommandLimits()
     runs = []
-    for k, tc in enumerate(cases):
-        teleop = build_teleop(tc, barrier=barrier, vf_enabled=fixture, limits=limits)
-        exact = exact_for(tc, mesh)
-        start, target = tc.X_WE(tc.q_start)[:3, 3], tc.X_WTarget[:3, 3]
+    for k, tc, teleop, exact, start, target in _sites(barrier, limits, fixture):
         D, names = jump_directions(Directions.of_case(tc.X_WTarget, tc.X_WCenter))
         for b, kind in enumerate(JUMP_KINDS):
             for i, size in enumerate(sizes):
@@ -207,6 +199,16 @@ def jump_study(*, sizes=JUMP_SIZES, seed: int = 0, fixture: bool = True,
                     runs.append(r)
                     _progress(progress, tc, kind, f"{1e3 * size:.0f} {name}", r)
     return _result(runs, barrier, limits, fixture)
+
+
+def _sites(barrier: Barrier, limits: CommandLimits, fixture: bool):
+    """Per site of the default case: (index, teleop case, its diagram, the exact reference, the
+    start and target TCP positions in World)."""
+    cases, mesh = default_case_sites()
+    for k, tc in enumerate(cases):
+        teleop = build_teleop(tc, barrier=barrier, vf_enabled=fixture, limits=limits)
+        yield (k, tc, teleop, exact_for(tc, mesh), tc.X_WE(tc.q_start)[:3, 3],
+               tc.X_WTarget[:3, 3])
 
 
 def _result(runs, barrier, limits, fixture) -> dict:

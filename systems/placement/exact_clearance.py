@@ -158,14 +158,19 @@ class ExactCavity:
         p0 is in tissue), negative and at least as deep as the cylinder's contact, since the
         cylinder lies inside that capsule."""
         A, B, r = self._batch(p0, p1, radius)
-        out = self.capsule_clearance(A, B, r, check_start=check_start)
-        for k in np.flatnonzero(out > -r):  # the axis is free: the cylinder itself decides
+        tissue = self.start_in_tissue(A) if check_start else np.zeros(len(A), dtype=bool)
+        out = np.empty(len(A))
+        for k in range(len(A)):
+            axis = self._segment_object(A[k], B[k], 0.0)
+            if tissue[k] or self._collides(axis):
+                out[k] = -r[k]
+                continue
             d = B[k] - A[k]
             length = float(np.linalg.norm(d))
             obj = fcl.CollisionObject(fcl.Cylinder(r[k], length),
                                       fcl.Transform(_rotation_to(d / length), 0.5 * (A[k] + B[k])))
-            if not self._collides(obj):
-                out[k] = self._distance(obj)
+            # free: the cylinder's own distance; touching: its axis capsule's (deeper or equal)
+            out[k] = self._distance(axis) - r[k] if self._collides(obj) else self._distance(obj)
         return out
 
     def tool_clearance(self, X_CTool, tool, *, check_start: bool = True) -> np.ndarray:
