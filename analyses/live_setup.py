@@ -46,6 +46,7 @@ from implantplan.systems.instrument import Instrument
 from implantplan.systems.placement.fixture import VirtualFixture
 from implantplan.systems.robot import kinematics as kin
 from implantplan.systems.robot import moprp
+from implantplan.systems.safety import SafetySpec
 from implantplan.systems.teleop.master_device import IncrementalMapping, MasterMotion
 from implantplan.systems.teleop.master_input import LiveMasterDevice, MasterInput
 
@@ -108,7 +109,14 @@ class StudioPlan:
             limits=self.sc.limits,
             label=f"site {s['name']}",
             instrument=_planned_instrument(s),
+            safety=self.safety,
         )
+
+    @property
+    def safety(self) -> SafetySpec:
+        """The plan's safety spec (plan.json ``safety``; a plan written before it recorded the
+        spec: the defaults)."""
+        return SafetySpec.from_dict(self.plan["safety"]) if "safety" in self.plan else SafetySpec()
 
 
 def _planned_instrument(site: dict):

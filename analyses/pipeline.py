@@ -371,6 +371,7 @@ def teleop_cases(case: Case, fit: FitResult, placements: list[Placement],
             limits=sc.limits,
             label=f"site {site.name}",
             instrument=case.instrument_at(site),
+            safety=case.safety,
         )
         for k, (site, p) in enumerate(zip(case.sites, placements, strict=True))
     ]

@@ -245,6 +245,7 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims, sites_checked) -> d
                  "instrument": {"kind": case.instrument.kind, "urdf": case.instrument.urdf,
                                 "note": "the instrument every tissue-side check verified; its "
                                         "solids per site in placement.verification.tool"}},
+        "safety": case.safety.to_dict(),
         "fpsm": {
             "file": "fpsm.json",
             "slices": fit.fpsm.slices,

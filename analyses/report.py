@@ -100,6 +100,8 @@ def render(plan: dict, figs: dict) -> str:
             for c in plan["checks"]], left=3),
     ]
 
+    parts += _safety_spec(plan.get("safety"))
+
     f = plan["fpsm"]
     parts += [
         "<h2>1. Surrogate of the oral cavity (FPSM)</h2>",
@@ -238,6 +240,32 @@ def render(plan: dict, figs: dict) -> str:
     parts += _provenance(plan.get("provenance"))
     parts.append("</body></html>")
     return "\n".join(parts)
+
+
+def _safety_spec(spec: dict | None) -> list[str]:
+    """The safety spec the plan verified and the feeding diagram executes (plan.json
+    ``safety``), in the case file's units."""
+    if not spec:
+        return []
+    cl = spec["command_limits"]
+    rows = [
+        ["clearance margin (every clearance check)", f"{spec['clearance_margin'] * 1e3:g} mm"],
+        ["fixture: lateral / angle tolerance (verified whole)",
+         f"{spec['lateral_tolerance'] * 1e3:g} mm / {np.rad2deg(spec['angle_tolerance']):.3g} deg"],
+        ["registration Monte Carlo: sigma, samples",
+         f"{spec['registration_sigma_translation'] * 1e3:g} mm, "
+         f"{np.rad2deg(spec['registration_sigma_rotation']):.3g} deg, "
+         f"{spec['registration_samples']}"],
+        ["estimator alarm margin", f"{spec['alarm_margin'] * 1e3:g} mm"],
+        ["supervisor barrier rate", f"{spec['barrier_rate']:g} /s"],
+        ["command limits: speed, turn rate",
+         f"{cl['linear_speed'] * 1e3:g} mm/s, {np.rad2deg(cl['angular_speed']):.3g} deg/s"],
+        ["command faults: jump, turn per period; clears after",
+         f"{cl['fault_jump'] * 1e3:g} mm, {np.rad2deg(cl['fault_turn']):.3g} deg; "
+         f"{cl['clear_after']:g} s"],
+    ]
+    return ["<h2>Safety spec (verified by the plan, executed by the feeding diagram)</h2>",
+            _table(["setting", "value"], rows)]
 
 
 def _provenance(block: dict | None) -> list[str]:

@@ -99,6 +99,7 @@ from implantplan.systems.instrument import Instrument
 from implantplan.systems.placement.fixture import VirtualFixture
 from implantplan.systems.robot import kinematics as kin
 from implantplan.systems.robot.moprp import R_OE
+from implantplan.systems.safety import SafetySpec
 from implantplan.systems.teleop.command_limits import FAULT, CommandLimiter, CommandLimits
 from implantplan.systems.teleop.fixture_system import VirtualFixtureForceLaw
 from implantplan.systems.teleop.fpsm_estimator import FpsmEstimator, ToolLines
@@ -130,6 +131,8 @@ class TeleopCase:
         instrument: the instrument in the mouth (systems.instrument), the body the supervisor
             and the estimator bound; None: the paper's tool of ``rod_radius`` and
             ``implant_length``.
+        safety: the plan's safety spec: the barrier's margin and rate, the alarm margin and
+            the command limits the diagram enforces (systems.safety; the plan's ``safety``).
     """
 
     scenario: str
@@ -144,6 +147,7 @@ class TeleopCase:
     limits: str = "175"
     label: str = ""
     instrument: Instrument | None = None
+    safety: SafetySpec = field(default_factory=SafetySpec)
 
     @property
     def tool(self) -> Instrument:
@@ -373,7 +377,7 @@ def build_teleop(
     plant_step: float = 0.001,
     stiffness: float = 2000.0,
     damping: float = 100.0,
-    alarm_margin: float = 0.001,
+    alarm_margin: float | None = None,
     estimator_period: float = 0.02,
     gains: tuple[float, float, float] = (900.0, 1.0, 60.0),
     meshcat=None,
@@ -397,13 +401,13 @@ def build_teleop(
         mapping: master -> slave incremental mapping (identity by default).
         vf_enabled: False lets the command through unfiltered (experiments without the fixture).
         supervisor_enabled: False integrates the fixture's command without the barrier filter.
-        barrier: the supervisor's settings (margin, rate); the defaults of
-            :class:`systems.teleop.supervisor.Barrier` if None.
+        barrier: the supervisor's settings (margin, rate); None: the case's safety spec's
+            (:meth:`systems.teleop.supervisor.Barrier.from_spec`).
         finish: the operator finishes by eye towards the feeding target after the script.
         period: control period of DiffIK, the fixture, the estimator and the loggers (s).
         plant_step: the plant's time step in dynamic mode (s).
         stiffness, damping: the fixture's admittance (N/m, N s/m).
-        alarm_margin: FPSM alarm threshold on min d_safe (m).
+        alarm_margin: FPSM alarm threshold on min d_safe (m); None: the case's safety spec's.
         estimator_period: update period of the FPSM estimator and its loggers (s).
         gains: (kp, ki, kd) of the inverse dynamics controller (dynamic mode).
         meshcat: a pydrake.geometry.Meshcat, or None.
@@ -416,7 +420,7 @@ def build_teleop(
         follow: with ``head_motion``, False lets the arm ignore the head (no tracker, no guard).
         guard: the HeadGuard's settings (GuardSettings() if None).
         limits: the command limits (the CommandLimiter before the fixture and every step the
-            supervisor integrates; CommandLimits() if None).
+            supervisor integrates); None: the case's safety spec's.
     """
     if mode not in MODES:
         raise InputError("mode", f"expected kinematic or dynamic, got {mode!r}")
@@ -433,7 +437,10 @@ def build_teleop(
     target = case.X_WTarget[:3, 3] if finish else None
     master = builder.AddSystem(master or MasterDevice(motion, mapping, target_W=target))
     master.set_name("master")
-    limits = limits or CommandLimits()
+    spec = case.safety
+    limits = spec.command_limits if limits is None else limits
+    barrier = Barrier.from_spec(spec) if barrier is None else barrier
+    alarm_margin = spec.alarm_margin if alarm_margin is None else alarm_margin
     limiter = builder.AddSystem(CommandLimiter(limits, period=period))
     limiter.set_name("command_limiter")
     vf = builder.AddSystem(

@@ -159,10 +159,9 @@ def study(*, seeds: int = 4, normal: int = 3, seed: int = 0, barrier: Barrier | 
           progress=print) -> dict:
     """Every site x (kinds x seeds + normal feeds) of the default case; see the module docs.
     ``fixture=False`` leaves the supervisor alone against the operator."""
-    barrier = barrier or Barrier()
-    limits = limits or CommandLimits()
     runs = []
     for k, tc, teleop, exact, start, target in _sites(barrier, limits, fixture):
+        barrier, limits = teleop.supervisor.barrier, teleop.limiter.limits
         dirs = Directions.of_case(tc.X_WTarget, tc.X_WCenter)
         todo = [(kind, i, adversarial_motion(kind, start, target, dirs,
                                              seed=np.random.SeedSequence([seed, k, j, i])))
@@ -184,10 +183,9 @@ def jump_study(*, sizes=JUMP_SIZES, seed: int = 0, fixture: bool = True,
                progress=print) -> dict:
     """The full jump sweep (module docstring): per site, every size x direction x (held, out and
     back), each jump at a seeded time of a seeded calm feed."""
-    barrier = barrier or Barrier()
-    limits = limits or CommandLimits()
     runs = []
     for k, tc, teleop, exact, start, target in _sites(barrier, limits, fixture):
+        barrier, limits = teleop.supervisor.barrier, teleop.limiter.limits
         D, names = jump_directions(Directions.of_case(tc.X_WTarget, tc.X_WCenter))
         for b, kind in enumerate(JUMP_KINDS):
             for i, size in enumerate(sizes):
@@ -203,7 +201,8 @@ def jump_study(*, sizes=JUMP_SIZES, seed: int = 0, fixture: bool = True,
 
 def _sites(barrier: Barrier, limits: CommandLimits, fixture: bool):
     """Per site of the default case: (index, teleop case, its diagram, the exact reference, the
-    start and target TCP positions in World)."""
+    start and target TCP positions in World); ``barrier`` and ``limits`` None: the case's safety
+    spec's (what its diagram executes)."""
     cases, mesh = default_case_sites()
     for k, tc in enumerate(cases):
         teleop = build_teleop(tc, barrier=barrier, vf_enabled=fixture, limits=limits)

@@ -205,7 +205,7 @@ def head_study(case: TeleopCase, inst, *, profiles=STUDY_PROFILES, runs: int = 5
     t0 = time.perf_counter()
     for m in motions:
         stills.append(simulate(still_tel, m.duration + F.FINISH_SECONDS, motion=m))
-    margin = 0.001  # Barrier().margin, the supervisor's default
+    margin = still_tel.supervisor.barrier.margin  # the case's safety spec's
     out = {"runs": runs, "seed": seed, "profiles": {}, "margin": margin}
     traces = {}
     base = tracker or TrackerParams()

@@ -58,9 +58,12 @@ import numba
 import numpy as np
 
 from implantplan.systems.errors import InputError
+from implantplan.systems.safety import DEFAULT as SAFETY
 
-LATERAL_TOLERANCE = 0.0005  # m, delta: the tool axis within 0.5 mm of line1 inside the mouth
-ANGLE_TOLERANCE = np.deg2rad(0.5)  # rad, beta
+# delta (m) and beta (rad): the fixture's admissible region, the safety spec's (one default each;
+# the planner builds every fixture with its case's spec, the region it verified)
+LATERAL_TOLERANCE = SAFETY.lateral_tolerance
+ANGLE_TOLERANCE = SAFETY.angle_tolerance
 _FAR = 1e3  # m: the last radius continues this far (and the uncapped cylinder back past T)
 
 

@@ -565,7 +565,8 @@ def place_instrument(
         restarts: further PSO runs (seeds spawned from ``seed``) while the optimum is not
             collision-free; the best optimum of all runs is kept. 0 = the paper's single run.
         verify: also run the exhaustive grid check (:func:`verify_by_grid`).
-        vf_options: keyword arguments for :meth:`VirtualFixture.from_placement`.
+        vf_options: keyword arguments for :meth:`VirtualFixture.from_placement` (its
+            tolerances default to ``safety``'s).
         tool: the tool body checked by the verification (default: the paper's model with
             ``rod_radius`` and ``implant_length``, :class:`Instrument`).
         safety: the fixture's admissible region (lateral and angle tolerances) and the
@@ -718,5 +719,8 @@ def place_instrument(
         },
         verification=verification,
     )
-    placement.vf = VirtualFixture.from_placement(placement, fpsm, **(vf_options or {}))
+    # the fixture guards the region the verification checked: the spec's tolerances
+    vf_options = {"lateral_tolerance": safety.lateral_tolerance,
+                  "angle_tolerance": safety.angle_tolerance, **(vf_options or {})}
+    placement.vf = VirtualFixture.from_placement(placement, fpsm, **vf_options)
     return placement

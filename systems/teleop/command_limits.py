@@ -40,31 +40,16 @@ most S = (linear_speed + L angular_speed) dt (:meth:`CommandLimits.step_path`). 
 point to the tissue is 1-Lipschitz along its path, so at any pose between X_k and X_{k+1} every
 point is within S/2 of its place at one of the two ends, and the whole tool's clearance there is
 at least min(h(X_k), h(X_{k+1})) - S/2. With the defaults and the actuator's reach (the rod's
-far end, L = 0.172 m) S/2 = (0.05 + 0.172 x 0.1) x 0.005 / 2 = 0.168 mm, inside the 0.2 mm the
+far end, L = 0.172 m) S/2 = (0.05 + 0.172 x 0.105) x 0.005 / 2 = 0.170 mm, inside the 0.2 mm the
 safety studies allow below the margin. The fixture (systems.teleop.fixture_system) bounds the
 same desired pose, so the commanded pose stays in its admissible region at every step, and the
 arm follows it one period behind: at 50 mm/s DiffIK's joint rates are a few deg/s, far below the
 AUBO-i10's 147-180 deg/s (DESIGN.md section 8), so the arm's own step between control steps is
 the desired pose's.
 
-**The defaults** (:class:`CommandLimits`; SI units, one default each, and where it comes from):
-
-- ``linear_speed`` 0.05 m/s: 5x the calm feed of seed 001's experiments (10 mm/s, the scripted
-  operator's), 2.5x the studio's fastest key and slider (20 mm/s); and the fastest speed whose
-  half-step, with the rotation's, keeps the swept bound above under 0.2 mm at 200 Hz;
-- ``angular_speed`` 0.1 rad/s (5.7 deg/s): the studio's default turning rate is 5 deg/s, the
-  fixture bounds the orientation to 0.5-1 deg of the plan anyway, and the rod's far end (0.17 m
-  from the TCP) then moves at most 17 mm/s;
-- ``fault_jump`` 5 mm per control period (1 m/s at 200 Hz): 20x the clipped step (0.25 mm) and
-  100x the calm feed's; no hand on a stylus in the mouth moves 5 mm in 5 ms, and the smallest
-  device jump the studies inject (50 mm) is 10x it;
-- ``fault_turn`` 0.05 rad per control period (10 rad/s, 570 deg/s): 100x the angular limit;
-- ``clear_after`` 0.2 s: a glitching device's burst of bad samples stays one fault instead of
-  letting single samples through between them, and the hold is short next to the operator's own
-  reaction time.
-
-:meth:`CommandLimits.from_dict` reads the case-file form (mm/s, deg/s, mm, deg, s; unknown keys
-are errors), so the limits can be a section of a case's safety settings as they stand.
+**The limits** are :class:`systems.safety.CommandLimits`, a section of the case's safety spec
+(``safety.command_limits``: the defaults and where each comes from are in its docstring); the
+limiter and the supervisor take the spec's, so what the plan records is what they enforce.
 """
 
 from __future__ import annotations
@@ -75,89 +60,11 @@ from dataclasses import dataclass
 import numpy as np
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from implantplan.systems import validate
-from implantplan.systems.errors import InputError
+from implantplan.systems.safety import CommandLimits
 
 CLEAN, CLIPPED, FAULT = 0, 1, 2  # the verdict on one command
 NO_FAULT, NON_FINITE, JUMP, TURN = 0, 1, 2, 3  # the cause of a fault
 CAUSES = {NON_FINITE: "non-finite", JUMP: "jump", TURN: "turn"}
-
-_MM, _DEG = 1e-3, math.pi / 180.0
-# case-file key -> (field, scale to SI)
-FILE_KEYS = {
-    "linear_speed_mm_s": ("linear_speed", _MM),
-    "angular_speed_deg_s": ("angular_speed", _DEG),
-    "fault_jump_mm": ("fault_jump", _MM),
-    "fault_turn_deg": ("fault_turn", _DEG),
-    "clear_after_s": ("clear_after", 1.0),
-}
-
-
-@dataclass(frozen=True)
-class CommandLimits:
-    """The limits on the operator's tool twist (SI units; the defaults and their sources are in
-    the module docstring).
-
-    Attributes:
-        linear_speed: the TCP's speed limit (m/s): faster commands are clipped to it.
-        angular_speed: the tool's angular speed limit (rad/s): faster commands are clipped.
-        fault_jump: a command that moves the TCP more than this in one control period is a
-            fault (m).
-        fault_turn: a command that turns the tool more than this in one control period is a
-            fault (rad).
-        clear_after: a fault clears once the command has been within the speed limits for
-            this long without interruption (s).
-    """
-
-    linear_speed: float = 0.05
-    angular_speed: float = 0.1
-    fault_jump: float = 0.005
-    fault_turn: float = 0.05
-    clear_after: float = 0.2
-
-    def __post_init__(self):
-        for name in ("linear_speed", "angular_speed", "fault_jump", "fault_turn", "clear_after"):
-            value = validate.number(getattr(self, name), f"command_limits.{name}", positive=True)
-            object.__setattr__(self, name, value)
-
-    def check_period(self, dt: float) -> float:
-        """The control period ``dt`` (s) these limits run at, checked: a clipped command must
-        not be a fault (linear_speed dt < fault_jump, angular_speed dt < fault_turn)."""
-        dt = validate.number(dt, "period", positive=True)
-        if not (self.linear_speed * dt < self.fault_jump
-                and self.angular_speed * dt < self.fault_turn):
-            raise InputError("command_limits", f"expected the fault thresholds above one period "
-                             f"({dt} s) at the speed limits")
-        return dt
-
-    def clear_samples(self, dt: float) -> int:
-        """n_clear: consecutive clean samples that clear a fault at the period ``dt``."""
-        return max(int(math.ceil(self.clear_after / dt - 1e-9)), 1)
-
-    def step_path(self, reach: float, dt: float) -> float:
-        """S (m): the longest path of a tool point within ``reach`` (m) of the TCP in one
-        control period ``dt`` (s) at the limits (module docstring); the clearance between two
-        consecutive desired poses is at least the smaller of theirs minus S / 2."""
-        return (self.linear_speed + float(reach) * self.angular_speed) * float(dt)
-
-    # -- files ----------------------------------------------------------------------------------
-
-    def to_dict(self) -> dict:
-        """The case-file form (mm/s, deg/s, mm, deg, s)."""
-        return {key: getattr(self, name) / scale for key, (name, scale) in FILE_KEYS.items()}
-
-    @classmethod
-    def from_dict(cls, data, where: str = "command_limits") -> CommandLimits:
-        """Read the case-file form; missing keys take the defaults, unknown keys are errors.
-        The signature of a systems.validate check (``check(value, field)``)."""
-        d = validate.mapping(data, where)
-        validate.unknown_keys(d, tuple(FILE_KEYS), f"{where}.")
-        values = {}
-        for key, (name, scale) in FILE_KEYS.items():
-            if d.get(key) is not None:
-                values[name] = validate.number(d[key], f"{where}.{key}", positive=True) * scale
-        return cls(**values)
-
 
 # -- the numpy core (batches) ---------------------------------------------------------------------
 

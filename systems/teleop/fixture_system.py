@@ -155,6 +155,11 @@ class VirtualFixtureForceLaw(LeafSystem):
 
     # -- the law ------------------------------------------------------------------------------
 
+    @property
+    def fixture(self) -> VirtualFixture:
+        """The virtual fixture (its admissible region) this force law enforces."""
+        return self._vf
+
     def law(self, context) -> np.ndarray:
         """(12) for the inputs in ``context``: corrected [w; v] in World, position violation
         (m), angle violation (rad), F in World (N), angle error (rad)."""

@@ -40,6 +40,7 @@ from implantplan.systems.fpsm.model import Fpsm, line_kernel
 from implantplan.systems.frames import apply, invert
 from implantplan.systems.instrument import Instrument
 from implantplan.systems.placement.tool_clearance import ToolClearance, clearance_field
+from implantplan.systems.safety import DEFAULT as SAFETY
 
 
 @dataclass(frozen=True)
@@ -167,7 +168,7 @@ def tool_safety(
     X_CenterT,
     lines: ToolLines,
     *,
-    alarm_margin: float = 0.001,
+    alarm_margin: float = SAFETY.alarm_margin,
     lambda_avg: float = 0.5,
     lambda_min: float = 0.5,
     method: str = "sound",
@@ -249,7 +250,7 @@ class FpsmEstimator(LeafSystem):
         X_WCenter,
         lines: ToolLines | None = None,
         *,
-        alarm_margin: float = 0.001,
+        alarm_margin: float = SAFETY.alarm_margin,
         period: float | None = None,
         method: str = "sound",
     ):
@@ -287,6 +288,11 @@ class FpsmEstimator(LeafSystem):
         self._alarm = self.DeclareVectorOutputPort(
             "alarm", 1, self._calc_alarm, prerequisites_of_calc={ticket}
         )
+
+    @property
+    def alarm_margin(self) -> float:
+        """The alarm threshold on min d_safe (m) this estimator raises its alarm at."""
+        return self._margin
 
     def estimate(self, context) -> np.ndarray:
         """[f_safe_line1, f_safe_line2, min_d_safe, alarm] for the input in ``context``."""

@@ -226,6 +226,9 @@ class LiveMasterDevice(LeafSystem):
     and kept (a re-evaluated output, or a second context, sees the same command). ``p_M`` (3):
     the integrated handle position p_M[k]; ``r_M`` (3): the integrated angular velocity r_M[k].
     The ports match systems.teleop.master_device.MasterDevice, so diagrams.teleop wires either.
+    A non-finite sample (a driver glitch) goes out as a NaN command, which the CommandLimiter
+    after the master turns into a logged fault (hold); it is counted in ``non_finite_samples``
+    and left out of the handle's integral (the recording stays finite).
 
     The recording (:meth:`recording`) lives in this system, not in a context: one live run per
     system.
@@ -243,6 +246,7 @@ class LiveMasterDevice(LeafSystem):
         self._w: list[np.ndarray] = []
         self._p: list[np.ndarray] = [np.zeros(3)]
         self._r: list[np.ndarray] = [np.zeros(3)]
+        self.non_finite_samples = 0  # samples the source gave as NaN/inf (faults downstream)
         self._V = self.DeclareVectorOutputPort("V_WE_command", 6, self._calc_velocity)
         self._pM = self.DeclareVectorOutputPort("p_M", 3, self._calc_handle)
         self._rM = self.DeclareVectorOutputPort("r_M", 3, self._calc_turn)
@@ -254,8 +258,14 @@ class LiveMasterDevice(LeafSystem):
             v = np.asarray(s.v_M, dtype=float).reshape(3)
             w = np.asarray(s.w_M, dtype=float).reshape(3)
             if not (np.all(np.isfinite(v)) and np.all(np.isfinite(w))):
-                raise InputError("master input", f"expected a finite handle velocity and "
-                                 f"angular velocity, got {v}, {w}")
+                # a driver glitch: the command goes out as it came (the CommandLimiter after
+                # the master faults on it, holds and logs); the handle's integral skips it
+                self.non_finite_samples += 1
+                self._v.append(v)
+                self._w.append(w)
+                self._p.append(self._p[-1].copy())
+                self._r.append(self._r[-1].copy())
+                continue
             self._v.append(v)
             self._w.append(w)
             self._p.append(self._p[-1] + v * self.dt)
@@ -264,6 +274,9 @@ class LiveMasterDevice(LeafSystem):
 
     def _calc_velocity(self, context, output: BasicVector):
         k = self._sample(context.get_time())
+        if not (np.isfinite(self._v[k]).all() and np.isfinite(self._w[k]).all()):
+            output.SetFromVector(np.full(6, np.nan))  # a glitch: the limiter faults on it
+            return
         out = np.zeros(6)
         out[:3] = self._mapping.angular_to_world(self._w[k])
         out[3:] = self._mapping.to_world(self._v[k])

@@ -60,6 +60,8 @@ from implantplan.systems.fpsm.model import Fpsm
 from implantplan.systems.frames import invert
 from implantplan.systems.instrument import Instrument
 from implantplan.systems.placement.tool_clearance import ToolClearance, tool_clearance_at
+from implantplan.systems.safety import DEFAULT as SAFETY
+from implantplan.systems.safety import SafetySpec
 from implantplan.systems.teleop.command_limits import CommandLimits, clip_twist
 from implantplan.systems.teleop.fixture_system import step_pose
 
@@ -83,14 +85,15 @@ class Barrier:
     """Settings of the barrier filter (SI units).
 
     Attributes:
-        margin: the clinical margin h must keep (m); default 1 mm.
-        alpha: the barrier's rate (1/s): an approach slower than alpha (h - margin) passes.
+        margin: the clinical margin h must keep (m); the safety spec's (``clearance_mm``).
+        alpha: the barrier's rate (1/s): an approach slower than alpha (h - margin) passes;
+            the safety spec's (``barrier_rate_per_s``).
         length_scale: L (m) of the twist metric L^2 |w|^2 + |v|^2.
         eps_p, eps_w: finite-difference steps of the gradient (m, rad).
     """
 
-    margin: float = 0.001
-    alpha: float = 20.0
+    margin: float = SAFETY.clearance_margin
+    alpha: float = SAFETY.barrier_rate
     length_scale: float = 10.0
     eps_p: float = 1e-4
     eps_w: float = 1e-3
@@ -100,6 +103,11 @@ class Barrier:
             value = getattr(self, name)
             if not np.isfinite(value) or value < 0 or (name != "margin" and value == 0):
                 raise InputError(f"barrier.{name}", f"expected a finite value > 0, got {value}")
+
+    @classmethod
+    def from_spec(cls, spec: SafetySpec, **options) -> Barrier:
+        """The barrier of a safety spec: its margin and rate (``options``: the other fields)."""
+        return cls(margin=spec.clearance_margin, alpha=spec.barrier_rate, **options)
 
 
 def stepped_poses(X_CT: np.ndarray, V: np.ndarray, dt) -> np.ndarray:
@@ -489,6 +497,11 @@ class SafetySupervisor(LeafSystem):
         self._h = self.DeclareVectorOutputPort(
             "barrier", 3, self._calc_barrier, prerequisites_of_calc={self.xd_ticket()}
         )
+
+    @property
+    def barrier(self) -> Barrier:
+        """The barrier's settings this supervisor enforces (margin, rate)."""
+        return self._barrier
 
     def _state_of(self, X_WE) -> np.ndarray:
         X_CT = self._X_CW @ X_WE @ self._X_ET

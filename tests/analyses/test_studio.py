@@ -278,7 +278,7 @@ def test_rotation_keys_roll_about_the_axis_tilt_held_by_the_fixture_and_replay(s
 
 
 # the command limits' turning rate raised to the 20 deg/s these tests command (the default,
-# 0.1 rad/s, would clip them: systems.teleop.command_limits)
+# 6 deg/s, would clip them: systems.safety.CommandLimits)
 TURNS = CommandLimits(angular_speed=float(np.deg2rad(20.0)))
 
 

@@ -13,7 +13,10 @@ from implantplan.systems.teleop import command_limits as C
 from implantplan.systems.teleop.command_limits import CommandLimiter, CommandLimits
 
 DT = 0.005
-LIM = CommandLimits()  # 50 mm/s, 0.1 rad/s; faults above 5 mm or 0.05 rad per period; 0.2 s
+# the round values these tests compute by hand: 50 mm/s, 0.1 rad/s; faults above 5 mm or 0.05 rad
+# per period; 0.2 s (the defaults differ only in the angles: 6 deg/s, 3 deg)
+LIM = CommandLimits(linear_speed=0.05, angular_speed=0.1, fault_jump=0.005, fault_turn=0.05,
+                    clear_after=0.2)
 
 
 def twist(w=(0.0, 0.0, 0.0), v=(0.0, 0.0, 0.0)):
@@ -128,9 +131,9 @@ def test_limits_are_validated_and_read_from_the_case_form():
         CommandLimits(clear_after=float("nan"))
     with pytest.raises(InputError, match="fault thresholds"):
         CommandLimits(linear_speed=2.0).check_period(DT)  # 10 mm per period > the 5 mm fault
-    lim = CommandLimits.from_dict({"linear_speed_mm_s": 20, "fault_turn_deg": 3.0})
+    lim = CommandLimits.from_dict({"linear_speed_mm_s": 20, "fault_turn_deg": 4.0})
     assert lim.linear_speed == pytest.approx(0.02)
-    assert lim.fault_turn == pytest.approx(math.radians(3.0))
+    assert lim.fault_turn == pytest.approx(math.radians(4.0))
     assert lim.angular_speed == CommandLimits().angular_speed  # the one default
     assert CommandLimits.from_dict(lim.to_dict()) == lim
     with pytest.raises(InputError, match="safety.command_limits.speed_mm_s"):
@@ -140,9 +143,10 @@ def test_limits_are_validated_and_read_from_the_case_form():
 
 
 def test_the_step_path_by_hand():
+    lim = LIM
     # (50 mm/s + 0.172 m x 0.1 rad/s) x 5 ms = 0.336 mm: half of it, 0.168 mm, is what the tool
     # between two steps may lose against its ends
-    assert LIM.step_path(0.172, DT) == pytest.approx(0.000336)
+    assert lim.step_path(0.172, DT) == pytest.approx(0.000336)
     # and a point at the reach travels that far when the turn carries it along v: the rod's end
     # (0.172, 0, 0) turning about z at 0.1 rad/s moves along +y, as v = 50 mm/s does
     V = twist(w=(0, 0, 0.1), v=(0, 0.05, 0))
@@ -150,8 +154,8 @@ def test_the_step_path_by_hand():
     x = np.stack([0.172 * np.cos(0.1 * s * DT), 0.172 * np.sin(0.1 * s * DT) + 0.05 * s * DT],
                  axis=1)
     path = np.linalg.norm(np.diff(x, axis=0), axis=1).sum()
-    assert np.allclose(C.clip_twist(V, LIM), V)
-    assert path == pytest.approx(LIM.step_path(0.172, DT), rel=1e-6)
+    assert np.allclose(C.clip_twist(V, lim), V)
+    assert path == pytest.approx(lim.step_path(0.172, DT), rel=1e-6)
 
 
 def _capsule_plane_clearance(X, a, b, r):

@@ -96,3 +96,35 @@ def test_live_master_records_turns_and_the_recording_replays_them():
         rctx.SetTime(k * 0.005)
         np.testing.assert_allclose(replay.GetOutputPort("V_WE_command").Eval(rctx), live[k],
                                    atol=1e-12)
+
+
+def test_a_non_finite_live_sample_is_passed_on_to_fault_not_raised():
+    """A driver glitch (NaN, inf) is a command fault downstream (the CommandLimiter holds and
+    logs it), not an exception that stops the diagram; the handle's integral skips it."""
+    from implantplan.systems.safety import CommandLimits
+    from implantplan.systems.teleop.command_limits import FAULT, NON_FINITE, classify
+    from implantplan.systems.teleop.master_input import MasterSample
+
+    class Glitchy:
+        def sample(self, t):
+            bad = 0.0495 < t < 0.0555  # samples 10 and 11
+            v = np.array([np.nan if bad else 0.01, 0.0, 0.0])
+            w = np.array([0.0, np.inf if bad else 0.0, 0.0])
+            return MasterSample(v, frozenset(), w)
+
+    dev = LiveMasterDevice(Glitchy(), dt=0.005)
+    ctx = dev.CreateDefaultContext()
+    out = []
+    for k in range(20):
+        ctx.SetTime(k * 0.005)
+        out.append(np.array(dev.GetOutputPort("V_WE_command").Eval(ctx)))
+    out = np.array(out)
+    assert dev.non_finite_samples == 2
+    assert not np.isfinite(out[10:12]).all(axis=1).any()
+    assert np.isfinite(out[np.r_[0:10, 12:20]]).all()
+    verdict = classify(out, CommandLimits(), 0.005)
+    np.testing.assert_array_equal(verdict.status[10:12], FAULT)
+    np.testing.assert_array_equal(verdict.cause[10:12], NON_FINITE)
+    motion = dev.recording(0.1)  # the recording stays finite: 18 samples of 0.01 m/s
+    assert np.isfinite(motion.p_M).all()
+    np.testing.assert_allclose(motion.p_M[-1], [0.01 * 0.005 * 18, 0.0, 0.0], atol=1e-15)

@@ -11,7 +11,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 
 from implantplan.systems.frames import rot_x, rot_y, transform
-from implantplan.systems.placement.fixture import LATERAL_TOLERANCE, VirtualFixture
+from implantplan.systems.placement.fixture import VirtualFixture
 from implantplan.systems.teleop.fixture_system import VirtualFixtureForceLaw
 
 K, B = 2000.0, 100.0  # N/m, N s/m -> return gain 20 1/s
@@ -119,9 +119,9 @@ def test_update_near_the_wall_uses_the_full_law():
 
 # -- the body: the rod axis and the orientation ------------------------------------------------
 
-# the same fixture with the default tolerances (delta 0.5 mm, beta 0.5 deg; tool radius 6 mm)
-# and the planned orientation
-BODY = dataclasses.replace(VF, lateral_tolerance=LATERAL_TOLERANCE, R_ref=R_CT)
+# the same fixture with delta 0.5 mm, beta 0.5 deg (tool radius 6 mm) and the planned orientation
+BODY = dataclasses.replace(VF, lateral_tolerance=0.0005, angle_tolerance=np.deg2rad(0.5),
+                           R_ref=R_CT)
 
 
 def test_the_rod_axis_is_bounded_not_only_the_tcp():
