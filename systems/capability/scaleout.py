@@ -152,7 +152,7 @@ def engine(
     try:
         if kind == LOCAL:
             with dask.config.set({"distributed.nanny.pre-spawn-environ": WORKER_ENV}):
-                cluster = _local_cluster(n)
+                cluster = local_cluster(n)
             client = Client(cluster)
             description = f"LocalCluster on 127.0.0.1, {n} worker processes x 1 thread"
         else:
@@ -181,7 +181,9 @@ def engine(
             cluster.close()
 
 
-def _local_cluster(n: int):
+def local_cluster(n: int):
+    """A Dask LocalCluster of ``n`` single-threaded worker processes, every server (scheduler,
+    workers, dashboard) on 127.0.0.1 at a free port."""
     from distributed import LocalCluster
 
     return LocalCluster(
@@ -190,7 +192,7 @@ def _local_cluster(n: int):
         processes=True,
         host="127.0.0.1",
         scheduler_port=0,
-        dashboard_address=None,
+        dashboard_address="127.0.0.1:0",  # loopback, a free port (None binds 8787)
         silence_logs=logging.ERROR,
         local_directory=tempfile.gettempdir(),
     )

@@ -150,3 +150,18 @@ def test_in_process_engine_runs_tasks_in_order():
             list(scaleout.run_unordered(eng, divmod, [(1, 0)]))
     eta = scaleout.Eta(10, skipped=4)
     assert eta(4) is None and eta.text(4) == "ETA --"
+
+
+@pytest.mark.cluster
+def test_the_local_cluster_binds_loopback_at_free_ports():
+    """No fixed port (Dask's dashboard default, 8787) and nothing outside 127.0.0.1."""
+    from urllib.parse import urlparse
+
+    cluster = scaleout.local_cluster(1)
+    try:
+        dash = urlparse(cluster.dashboard_link)
+        sched = urlparse(cluster.scheduler_address)
+        assert dash.hostname == "127.0.0.1" and dash.port != 8787
+        assert sched.hostname == "127.0.0.1"
+    finally:
+        cluster.close()
