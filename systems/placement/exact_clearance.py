@@ -33,12 +33,19 @@ from implantplan.systems.frames import invert, rotations
 from implantplan.systems.safety import SafetySpec
 
 
-def _rotation_to(u: np.ndarray) -> np.ndarray:
-    """A rotation whose z column is the unit vector ``u``."""
-    a = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = a - np.dot(a, u) * u
-    x /= np.linalg.norm(x)
-    return np.column_stack([x, np.cross(u, x), u])
+def _rotations_to(D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotations (n, 3, 3) whose z columns are the directions of the rows of ``D`` (n, 3), and
+    the rows' lengths (n,); rows shorter than 1e-12 get the identity (their solid is a sphere)."""
+    D = np.asarray(D, dtype=float).reshape(-1, 3)
+    length = np.linalg.norm(D, axis=1)
+    short = length < 1e-12
+    u = np.where(short[:, None], [0.0, 0.0, 1.0], D / np.where(short, 1.0, length)[:, None])
+    a = np.where((np.abs(u[:, 0]) < 0.9)[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    x = a - np.sum(a * u, axis=1)[:, None] * u
+    x /= np.linalg.norm(x, axis=1)[:, None]
+    y = np.stack([u[:, 1] * x[:, 2] - u[:, 2] * x[:, 1], u[:, 2] * x[:, 0] - u[:, 0] * x[:, 2],
+                  u[:, 0] * x[:, 1] - u[:, 1] * x[:, 0]], axis=1)
+    return np.stack([x, y, u], axis=2), length
 
 
 class ExactCavity:
@@ -85,13 +92,24 @@ class ExactCavity:
 
     # -- single queries -----------------------------------------------------------------------
 
-    def _segment_object(self, p0: np.ndarray, p1: np.ndarray, radius: float):
-        d = p1 - p0
-        length = float(np.linalg.norm(d))
-        if length < 1e-12:
-            return fcl.CollisionObject(fcl.Sphere(radius), fcl.Transform(np.eye(3), p0))
-        R = _rotation_to(d / length)
-        return fcl.CollisionObject(fcl.Capsule(radius, length), fcl.Transform(R, 0.5 * (p0 + p1)))
+    @staticmethod
+    def _segment_objects(A: np.ndarray, B: np.ndarray, radius, solid: str = "capsule") -> list:
+        """FCL objects of the segments A[k]-B[k] (n, 3): capsules (or solid cylinders) of
+        ``radius`` (scalar or (n,)) about them, spheres where a segment has no length. The
+        frames are computed for all segments at once (one FCL object each is what is left)."""
+        A = np.asarray(A, dtype=float).reshape(-1, 3)
+        B = np.asarray(B, dtype=float).reshape(-1, 3)
+        r = np.broadcast_to(np.asarray(radius, dtype=float), (len(A),))
+        R, length = _rotations_to(B - A)
+        centre = 0.5 * (A + B)
+        make = fcl.Cylinder if solid == "cylinder" else fcl.Capsule
+        return [
+            fcl.CollisionObject(fcl.Sphere(float(r[k])), fcl.Transform(np.eye(3), A[k]))
+            if length[k] < 1e-12
+            else fcl.CollisionObject(make(float(r[k]), float(length[k])),
+                                     fcl.Transform(R[k], centre[k]))
+            for k in range(len(A))
+        ]
 
     def _collides(self, obj) -> bool:
         return fcl.collide(obj, self._mesh_obj, self._creq, fcl.CollisionResult()) > 0
@@ -116,20 +134,16 @@ class ExactCavity:
     def capsule_collides(self, p0, p1, radius) -> np.ndarray:
         """(n,) True where the capsule (axis p0-p1, radius) touches the mesh (FCL collide)."""
         A, B, r = self._batch(p0, p1, radius)
-        return np.array(
-            [self._collides(self._segment_object(A[k], B[k], r[k])) for k in range(len(A))],
-            dtype=bool,
-        )
+        return np.array([self._collides(o) for o in self._segment_objects(A, B, r)], dtype=bool)
 
     def start_in_tissue(self, p0) -> np.ndarray:
         """(n,) True where p0 is in tissue: the horizontal segment from the Center axis at its
         height to p0 crosses the mesh (module notes; p0 inside the FPSM's slice range)."""
         A = np.atleast_2d(np.asarray(p0, dtype=float))
         out = np.zeros(len(A), dtype=bool)
-        for k, p in enumerate(A):
-            a = np.array([0.0, 0.0, p[2]])
-            if np.hypot(p[0], p[1]) > 1e-9:
-                out[k] = self._collides(self._segment_object(a, p, 0.0))
+        off = np.flatnonzero(np.hypot(A[:, 0], A[:, 1]) > 1e-9)
+        axis = np.column_stack([np.zeros((len(off), 2)), A[off, 2]])
+        out[off] = [self._collides(o) for o in self._segment_objects(axis, A[off], 0.0)]
         return out
 
     def capsule_clearance(self, p0, p1, radius, *, check_start: bool = True) -> np.ndarray:
@@ -140,11 +154,10 @@ class ExactCavity:
         A, B, r = self._batch(p0, p1, radius)
         tissue = self.start_in_tissue(A) if check_start else np.zeros(len(A), dtype=bool)
         out = np.empty(len(A))
-        for k in range(len(A)):
+        for k, axis in enumerate(self._segment_objects(A, B, 0.0)):
             if tissue[k]:
                 out[k] = -r[k]
                 continue
-            axis = self._segment_object(A[k], B[k], 0.0)
             if self._collides(axis):
                 out[k] = -r[k]
             else:
@@ -160,15 +173,12 @@ class ExactCavity:
         A, B, r = self._batch(p0, p1, radius)
         tissue = self.start_in_tissue(A) if check_start else np.zeros(len(A), dtype=bool)
         out = np.empty(len(A))
-        for k in range(len(A)):
-            axis = self._segment_object(A[k], B[k], 0.0)
+        axes = self._segment_objects(A, B, 0.0)
+        for k, axis in enumerate(axes):
             if tissue[k] or self._collides(axis):
                 out[k] = -r[k]
                 continue
-            d = B[k] - A[k]
-            length = float(np.linalg.norm(d))
-            obj = fcl.CollisionObject(fcl.Cylinder(r[k], length),
-                                      fcl.Transform(_rotation_to(d / length), 0.5 * (A[k] + B[k])))
+            obj = self._segment_objects(A[k], B[k], r[k], solid="cylinder")[0]
             # free: the cylinder's own distance; touching: its axis capsule's (deeper or equal)
             out[k] = self._distance(axis) - r[k] if self._collides(obj) else self._distance(obj)
         return out
