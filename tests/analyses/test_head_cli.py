@@ -2,6 +2,8 @@
 
 import json
 
+import pytest
+
 from implantplan.analyses.cli import main
 
 
@@ -40,9 +42,11 @@ def test_head_motion_study_small(tmp_path, capsys):
     assert "startle: 1 runs" in capsys.readouterr().out
 
 
+@pytest.mark.sweep
 def test_head_motion_study_on_the_scan(demo_plan, tmp_path, capsys):
     """The bundled default case's plan folder: every site, FCL against the moving opened
-    scan."""
+    scan (the default run has the study's small version; the studies' cores on the scan are
+    tested in tests/diagrams/test_teleop_head.py)."""
     out = tmp_path / "scan"
     code = main(["analyze", "head-motion", "--runs", "1", "--profiles", "breathing",
                  "--plan", str(demo_plan), "--out", str(out), "--quiet"])

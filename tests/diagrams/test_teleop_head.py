@@ -32,7 +32,7 @@ def _head(case, profile, seed):
 
 
 @pytest.mark.parametrize("run", [0, pytest.param(1, marks=pytest.mark.sweep)])
-@pytest.mark.parametrize("profile", ["breathing", "drift"])
+@pytest.mark.parametrize("profile", ["breathing", pytest.param("drift", marks=pytest.mark.sweep)])
 def test_feed_completes_following_the_mouth(setup, profile, run):
     """Each seeded run (run 0 by default, run 1 too in the sweep): the feed completes following
     the head, the exact clearance keeps the margin (less 0.2 mm) following and stays >= 0
