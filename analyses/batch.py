@@ -22,7 +22,7 @@ Statuses and the exit code of the batch (the first rule that applies):
 * 1: some case hit an internal error (a bug, or a worker lost more often than its retries);
 * 2: some case had bad input (status ``bad input``; ``plan`` would exit 2);
 * 3: some case failed planning (``planning failed``; ``plan`` exits 3) or planned with a failed
-  check (``checks failed``; ``plan`` exits 0 but the plan is not acceptable);
+  check (``checks failed``; ``plan`` exits 3 too);
 * 0: every case ``passed`` (planned, every check passing).
 
 ``--make-cohort`` writes a synthetic cohort from one case (analyses.cohort.make_cohort).
@@ -38,6 +38,7 @@ import time
 import traceback
 from pathlib import Path
 
+from implantplan.analyses import out_folder
 from implantplan.analyses.progress import Progress
 from implantplan.systems.capability import scaleout
 from implantplan.systems.errors import InputError, PlanningFailure
@@ -47,7 +48,7 @@ PASSED, CHECKS_FAILED, PLANNING_FAILED, BAD_INPUT, ERROR = (
     "passed", "checks failed", "planning failed", "bad input", "internal error",
 )  # fmt: skip
 # status -> (exit code `implantplan plan` would have had, rank in the batch's exit code)
-PLAN_EXIT = {PASSED: 0, CHECKS_FAILED: 0, PLANNING_FAILED: 3, BAD_INPUT: 2, ERROR: 1}
+PLAN_EXIT = {PASSED: 0, CHECKS_FAILED: 3, PLANNING_FAILED: 3, BAD_INPUT: 2, ERROR: 1}
 WARM_UP = ("implantplan.analyses.plan", "implantplan.analyses.pipeline")
 CSV_COLUMNS = ("case", "status", "plan_exit_code", "checks_passed", "checks_total",
                "failed_checks", "reason", "folder", "seconds", "case_file")  # fmt: skip
@@ -66,7 +67,7 @@ def batch_exit_code(statuses) -> int:
 
 
 def plan_one(case_file: str, out_dir: str, runs: int | None, figures: bool,
-             html_scene: bool) -> dict:  # fmt: skip
+             html_scene: bool, force: bool = False) -> dict:  # fmt: skip
     """One case, as ``implantplan plan`` does it: the task every worker runs (plain arguments
     in, a plain record out; user errors and planning failures are the record, not exceptions)."""
     from implantplan.analyses.case import load_case
@@ -79,7 +80,7 @@ def plan_one(case_file: str, out_dir: str, runs: int | None, figures: bool,
         case = load_case(case_file)
         rec["case"] = case.name
         plan = plan_case(case, Path(out_dir), runs=runs, html_scene=html_scene, quiet=True,
-                         figures=figures)  # fmt: skip
+                         figures=figures, force=force)  # fmt: skip
     except InputError as exc:
         rec.update(status=BAD_INPUT, reason=str(exc))
     except OSError as exc:  # as the CLI: an unreadable input or unwritable output is bad input
@@ -118,11 +119,11 @@ def case_folders(case_files) -> list[str]:
 
 def run_batch(case_files, out_dir, *, scheduler: str | None = None, workers: int | None = None,
               runs: int | None = None, figures: bool = True, html_scene: bool = True,
-              quiet: bool = False) -> tuple[list[dict], int]:  # fmt: skip
-    """Plan every case on the engine; write the summaries; returns (records, exit code)."""
-    out_dir = Path(out_dir)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError("--out", f"{out_dir} exists and is not a folder")
+              quiet: bool = False, force: bool = False) -> tuple[list[dict], int]:  # fmt: skip
+    """Plan every case on the engine; write the summaries; returns (records, exit code).
+    ``out_dir`` holding anything implantplan did not write is refused unless ``force``
+    (analyses.out_folder); it is marked as a batch folder."""
+    out_dir = out_folder.check_out(out_dir, force=force)
     if runs is not None and runs < 0:
         raise InputError("--runs", f"expected a number >= 0, got {runs}")
     scaleout.check_scheduler(scheduler, workers)
@@ -130,8 +131,9 @@ def run_batch(case_files, out_dir, *, scheduler: str | None = None, workers: int
     if not case_files:
         raise InputError("cases", "expected at least one case file (or --cohort)")
     out_dir.mkdir(parents=True, exist_ok=True)
+    out_folder.mark(out_dir, "batch")
     folders = case_folders(case_files)
-    tasks = [(str(f), str(out_dir.resolve() / d), runs, figures, html_scene)
+    tasks = [(str(f), str(out_dir.resolve() / d), runs, figures, html_scene, force)
              for f, d in zip(case_files, folders, strict=True)]  # fmt: skip
     records: list = [None] * len(tasks)
     prog = Progress("batch", quiet=quiet)
@@ -223,6 +225,9 @@ def register(subparsers) -> None:
     p.add_argument("--no-figures", action="store_true", help="as plan --no-figures")
     p.add_argument("--no-html-scene", action="store_true", help="as plan --no-html-scene")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--force", action="store_true",
+                   help="replace --out (and case folders) even if they hold files implantplan "
+                        "did not write")
     g = p.add_argument_group("synthetic cohort (--make-cohort)")
     g.add_argument(
         "--make-cohort",
@@ -251,6 +256,7 @@ def _cmd_batch(args) -> int:
                            shift_mm=args.shift_mm, site_jitter_mm=args.site_jitter_mm)  # fmt: skip
         print(json.dumps({"cohort": str(path), "cases": args.n_cases}))
         return 0
+    out_folder.check_out(args.out, force=args.force)  # before any work
     files = list(args.cases)
     if args.cohort is not None:
         if files:
@@ -260,7 +266,8 @@ def _cmd_batch(args) -> int:
         files = load_cohort(args.cohort)[1]
     records, code = run_batch(files, args.out, scheduler=args.scheduler, workers=args.workers,
                               runs=args.runs, figures=not args.no_figures,
-                              html_scene=not args.no_html_scene, quiet=args.quiet)  # fmt: skip
+                              html_scene=not args.no_html_scene, quiet=args.quiet,
+                              force=args.force)  # fmt: skip
     counts = {s: sum(r["status"] == s for r in records) for s in PLAN_EXIT}
     print(json.dumps({"out": str(args.out), "cases": len(records),
                       **{k.replace(" ", "_"): n for k, n in counts.items()},

@@ -2,8 +2,11 @@
 
 Each capability module exposes ``register(subparsers)``, adding its subcommands with a ``func``
 default that takes the parsed arguments and returns an exit code. Errors map to exit codes as
-DESIGN.md section 3 says: ``InputError`` -> 2, ``PlanningFailure`` -> 3, both with a one-line
-message and no traceback.
+DESIGN.md section 3 says (:data:`EXIT_CODES`): ``InputError`` -> 2, ``PlanningFailure`` -> 3,
+both with a one-line message and no traceback; any other exception is an internal error, exit 1,
+with one line naming the log file the traceback was written to (:func:`log_folder`). ``SIGTERM``
+is handled as Ctrl-C (a ``KeyboardInterrupt``, so every ``finally`` cleans up: the staging
+folders of analyses.out_folder), exit 143 (130 for Ctrl-C).
 """
 
 from __future__ import annotations
@@ -11,7 +14,13 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
+import signal
 import sys
+import tempfile
+import time
+import traceback
+from pathlib import Path
 
 from implantplan import __version__
 from implantplan.systems.errors import InputError, PlanningFailure
@@ -48,6 +57,50 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+EXIT_CODES = """exit codes: 0 every check passes; 3 a planning failure or a failed check;
+2 bad input (the message names the field); 1 an internal error (one line, the traceback in a
+log file); 130 interrupted (Ctrl-C), 143 terminated (SIGTERM)"""
+
+
+def log_folder() -> Path:
+    """Where internal errors' tracebacks go: ``$IMPLANTPLAN_LOG_DIR``, else
+    ``$XDG_STATE_HOME/implantplan/logs`` (``~/.local/state/...``), else a per-user folder in the
+    temp folder when the home folder cannot be written."""
+    if os.environ.get("IMPLANTPLAN_LOG_DIR"):
+        return Path(os.environ["IMPLANTPLAN_LOG_DIR"])
+    state = os.environ.get("XDG_STATE_HOME") or os.path.join(os.path.expanduser("~"), ".local",
+                                                             "state")
+    folder = Path(state) / "implantplan" / "logs"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        if os.access(folder, os.W_OK):
+            return folder
+    except OSError:
+        pass
+    return Path(tempfile.gettempdir()) / f"implantplan-{os.getuid()}" / "logs"
+
+
+def _write_log(argv: list[str]) -> Path | None:
+    """The current exception's traceback in a new log file; None when none can be written."""
+    try:
+        folder = log_folder()
+        folder.mkdir(parents=True, exist_ok=True)
+        path = folder / f"error-{time.strftime('%Y%m%dT%H%M%S')}-{os.getpid()}.log"
+        path.write_text(f"implantplan {__version__}\nargv: {argv}\n\n"
+                        + traceback.format_exc(), encoding="utf-8")
+        return path
+    except OSError:
+        return None
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where Ctrl-C would be (so the same cleanup runs)."""
+
+
+def _terminate(signum, frame):
+    raise Terminated()
+
+
 def _requested_command(argv: list[str]) -> str | None:
     """The first argument that names a command (options come before it only as -h/--version)."""
     for arg in argv:
@@ -62,7 +115,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="implantplan",
         description="Planning and teleoperation simulation for robot-assisted dental implant "
-        "surgery (AUBO-i10, Drake).",
+        "surgery (AUBO-i10, Drake).", epilog=EXIT_CODES,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"implantplan {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -90,6 +144,11 @@ def main(argv: list[str] | None = None) -> int:
     logging.getLogger("drake").addFilter(_warnings_and_up)
     parser = build_parser(argv)
     args = parser.parse_args(argv)
+    previous = None
+    try:
+        previous = signal.signal(signal.SIGTERM, _terminate)
+    except ValueError:  # not the main thread (main() called from a worker thread)
+        pass
     try:
         code = args.func(args)
     except InputError as exc:
@@ -102,9 +161,22 @@ def main(argv: list[str] | None = None) -> int:
     except PlanningFailure as exc:
         print(f"implantplan: planning failed: {exc.reason}", file=sys.stderr)
         return 3
+    except Terminated:
+        print("implantplan: terminated (SIGTERM)", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print("implantplan: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # a bug: one line here, the traceback in the log
+        log = _write_log(argv)
+        where = f"traceback in {log}" if log else "no log file could be written"
+        first = str(exc).splitlines()[0] if str(exc) else ""
+        print(f"implantplan: internal error: {type(exc).__name__}: {first[:200]} ({where})",
+              file=sys.stderr)
+        return 1
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     return int(code or 0)
 
 

@@ -19,16 +19,13 @@ exits 3 with the reason; bad input exits 2 naming the field.
 from __future__ import annotations
 
 import argparse
-import os
-import shutil
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
 from implantplan.analyses import checks as checks_
-from implantplan.analyses import pipeline
+from implantplan.analyses import out_folder, pipeline
 from implantplan.analyses.case import Case, default_case_path, load_case
 from implantplan.analyses.figures.plan import make_figures
 from implantplan.analyses.progress import Progress
@@ -68,69 +65,47 @@ def _common(p: argparse.ArgumentParser, default_out: Path | None) -> None:
                    help="skip the figures (and the 3D scene): plan.json, fpsm.json and a report "
                         "of tables only (studies of many cases)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--force", action="store_true",
+                   help="replace --out even if it holds files implantplan did not write")
 
 
 def _cmd_plan(args) -> int:
+    out_folder.check_out(args.out, force=args.force)  # before any work
     return _run(load_case(args.case), args)
 
 
 def _cmd_demo(args) -> int:
+    out_folder.check_out(args.out, force=args.force)
     return _run(load_case(default_case_path()), args)
 
 
 def _run(case: Case, args) -> int:
+    """Plan; exit 0 when every check passes, 3 when one fails (DESIGN.md section 3)."""
     if args.runs is not None and args.runs < 0:
         raise InputError("--runs", f"expected a number >= 0, got {args.runs}")
     t0 = time.perf_counter()
     plan = plan_case(case, args.out, runs=args.runs, html_scene=not args.no_html_scene,
-                     quiet=args.quiet, figures=not args.no_figures)
+                     quiet=args.quiet, figures=not args.no_figures, force=args.force)
     failed = [c["name"] for c in plan["checks"] if not c["pass"]]
     print(f"plan: {args.out / 'plan.json'}")
     print(f"checks: {len(plan['checks']) - len(failed)} of {len(plan['checks'])} pass"
           + (f" (failed: {', '.join(failed)})" if failed else ""))
     print(f"time: {time.perf_counter() - t0:.1f} s")
     print(f"report: {(args.out / 'report.html').resolve()}")
-    return 0
+    return 0 if not failed and plan["passed"] else 3
 
 
 def plan_case(case: Case, out_dir: Path, *, runs: int | None = None, html_scene: bool = True,
-              quiet: bool = False, figures: bool = True) -> dict:
-    """Run every stage on ``case`` and write the plan into ``out_dir`` (atomically); without
-    ``figures`` no PNG or 3D scene is drawn (plan.json does not depend on them)."""
-    out_dir = Path(out_dir)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError("--out", f"{out_dir} exists and is not a folder")
-    try:
-        out_dir.parent.mkdir(parents=True, exist_ok=True)
-        staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
-    except OSError as exc:
-        raise InputError("--out", f"cannot create a plan folder in {str(out_dir.parent)!r}: "
-                         f"{exc.strerror or exc}") from None
-    staging.chmod(0o777 & ~_umask())  # mkdtemp makes it 0700; a plan folder is for colleagues too
-    try:
+              quiet: bool = False, figures: bool = True, force: bool = False) -> dict:
+    """Run every stage on ``case`` and write the plan into ``out_dir`` (atomically, in a marked
+    plan folder: analyses.out_folder); without ``figures`` no PNG or 3D scene is drawn (plan.json
+    does not depend on them). ``out_dir`` holding anything but a plan is refused unless
+    ``force``."""
+    out_dir = out_folder.check_out(out_dir, force=force)
+    with out_folder.staged(out_dir, "plan") as staging:
         plan = _plan_into(case, staging, runs=runs, html_scene=html_scene, quiet=quiet,
                           figures=figures)
-        _swap_in(staging, out_dir)
-    finally:
-        if staging.exists():
-            shutil.rmtree(staging)
     return plan
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def _swap_in(staging: Path, out_dir: Path) -> None:
-    old = None
-    if out_dir.exists():
-        old = out_dir.with_name(f".{out_dir.name}.old-{time.time_ns()}")
-        out_dir.rename(old)
-    staging.rename(out_dir)
-    if old is not None:
-        shutil.rmtree(old)
 
 
 def _plan_into(case: Case, out: Path, *, runs, html_scene: bool, quiet: bool,

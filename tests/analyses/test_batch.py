@@ -13,6 +13,7 @@ import yaml
 from implantplan.analyses.batch import batch_exit_code
 from implantplan.analyses.cli import main
 from implantplan.analyses.cohort import load_cohort
+from implantplan.analyses.out_folder import MARKER
 from implantplan.analyses.provenance import without_volatile
 from tests.analyses.cases import default_case_data, write_case
 
@@ -103,7 +104,7 @@ def test_cohort_of_eight_with_one_broken_case(cohort):
     page = (out / "summary.html").read_text()
     assert "7 of 8 cases passed" in page and "summary.png" in page
     assert (out / "summary.png").stat().st_size > 10_000
-    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == [MARKER]
 
 
 @pytest.mark.cluster

@@ -1,0 +1,211 @@
+"""Output folders belong to the user (DESIGN.md section 3, "Output folders").
+
+A folder the project makes (a plan folder, a batch folder, a capability-map plan folder) carries
+a marker file, :data:`MARKER`. ``--out`` is checked before any work (:func:`check_out`):
+
+- an empty text, ``.``, the current folder or one of its parents, a symbolic link (a loop
+  included), a file, a device or a FIFO, a parent that cannot be written: exit 2 with what it is;
+- an existing folder that holds anything and no marker: exit 2 naming one of its entries, unless
+  ``force`` (``--force``): what the user keeps there is never replaced silently.
+
+A folder is built in a staging folder beside its destination (:func:`staged`) and moved in at the
+end: the previous folder stays whole until the new one is complete. Staging folders and the
+previous folder while it is being replaced are named
+``.<name>.implantplan-staging-<pid>-<random>`` and ``.<name>.implantplan-old-<pid>-<ns>``: a run
+that was killed (``kill -KILL``, a power cut) leaves them behind, and the next run towards the
+same ``--out`` removes those whose process is gone (:func:`remove_stale`). ``SIGTERM`` is turned
+into the same ``KeyboardInterrupt`` as Ctrl-C by the CLI (analyses.cli), so the ``finally`` of
+:func:`staged` removes the staging folder in both cases.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import re
+import shutil
+import stat
+import tempfile
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from implantplan import __version__
+from implantplan.systems.errors import InputError
+from implantplan.systems.files import current_umask
+
+MARKER = ".implantplan-folder"
+STAGING = "implantplan-staging"
+OLD = "implantplan-old"
+_LEFTOVER = re.compile(rf"^\.(?P<name>.+)\.(?:{STAGING}|{OLD})-(?P<pid>\d+)-[A-Za-z0-9_]+$")
+
+
+def is_project_folder(path: Path) -> bool:
+    """``path`` is a folder the project made (it holds :data:`MARKER`)."""
+    return (Path(path) / MARKER).is_file()
+
+
+def _kind_of(st: os.stat_result) -> str:
+    mode = st.st_mode
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "a device"
+    if stat.S_ISFIFO(mode):
+        return "a FIFO (named pipe)"
+    if stat.S_ISSOCK(mode):
+        return "a socket"
+    return "a file"
+
+
+def check_out(out, *, force: bool = False, field: str = "--out") -> Path:
+    """``out`` checked as an output folder before any work (module docstring); returns it as an
+    absolute path (symbolic links in its parents kept). Stale staging folders of earlier runs
+    towards it are removed."""
+    text = os.fspath(out) if out is not None else ""
+    if not text.strip():
+        raise InputError(field, "expected a folder path, got an empty text")
+    path = Path(os.path.abspath(text))
+    if Path(text).name in ("", ".", "..") or path == Path(path.anchor):
+        raise InputError(field, f"expected a folder of its own, got {text!r} (a plan is built "
+                         "beside its folder and moved in: give a new or a plan folder's name)")
+    cwd = Path.cwd()
+    if path == cwd or path in cwd.parents:
+        raise InputError(field, f"{text!r} is the current folder or holds it; expected a folder "
+                         "of its own")
+    if path.is_symlink():
+        try:
+            os.stat(path)
+        except OSError as exc:
+            if exc.errno == errno.ELOOP:
+                raise InputError(field, f"{text!r} is a symbolic link loop") from None
+            raise InputError(field, f"{text!r} is a broken symbolic link") from None
+        raise InputError(field, f"{text!r} is a symbolic link; give the folder it points to "
+                         f"({os.path.realpath(path)!r}) instead")
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        st = None
+    except OSError as exc:
+        what = "a symbolic link loop in its path" if exc.errno == errno.ELOOP else \
+            (exc.strerror or str(exc))
+        raise InputError(field, f"cannot use {text!r}: {what}") from None
+    if st is not None and not stat.S_ISDIR(st.st_mode):
+        raise InputError(field, f"{text!r} is {_kind_of(st)}, not a folder")
+    parent = _existing_ancestor(path.parent, text, field)
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(field, f"cannot write in {str(parent)!r} (permission denied)")
+    if st is not None:
+        if not os.access(path, os.R_OK | os.W_OK | os.X_OK):
+            raise InputError(field, f"cannot read and write {text!r} (permission denied)")
+        if not is_project_folder(path):
+            entries = sorted(os.listdir(path))
+            if entries and not force:
+                shown = ", ".join(repr(e) for e in entries[:3])
+                more = f" and {len(entries) - 3} more" if len(entries) > 3 else ""
+                raise InputError(field, f"{text!r} holds files implantplan did not write "
+                                 f"({shown}{more}); give a new or empty folder, or --force to "
+                                 "replace it")
+    if path.parent.is_dir():
+        remove_stale(path)
+    return path
+
+
+def _existing_ancestor(folder: Path, text: str, field: str) -> Path:
+    """The nearest existing folder at or above ``folder`` (where the output will be created)."""
+    for p in (folder, *folder.parents):
+        try:
+            st = os.stat(p)
+        except FileNotFoundError:
+            continue
+        except OSError as exc:
+            what = "a symbolic link loop" if exc.errno == errno.ELOOP else \
+                (exc.strerror or str(exc))
+            raise InputError(field, f"cannot use {text!r}: {what} at {str(p)!r}") from None
+        if not stat.S_ISDIR(st.st_mode):
+            raise InputError(field, f"cannot create {text!r}: {str(p)!r} is {_kind_of(st)}, "
+                             "not a folder")
+        return p
+    return Path(folder.anchor)
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def leftovers(out: Path) -> list[Path]:
+    """Staging and old folders beside ``out`` left by runs towards it whose process is gone."""
+    out = Path(out)
+    found = []
+    try:
+        entries = list(out.parent.iterdir())
+    except OSError:
+        return []
+    for entry in entries:
+        m = _LEFTOVER.match(entry.name)
+        if m and m["name"] == out.name and not _alive(int(m["pid"])) and entry.is_dir() \
+                and not entry.is_symlink():
+            found.append(entry)
+    return found
+
+
+def remove_stale(out: Path) -> list[Path]:
+    """Remove :func:`leftovers` that hold the marker or nothing (nothing else is ours: a folder
+    of the user's renamed aside by a ``--force`` run that was killed stays)."""
+    removed = []
+    for entry in leftovers(out):
+        if is_project_folder(entry) or not any(entry.iterdir()):
+            shutil.rmtree(entry, ignore_errors=True)
+            removed.append(entry)
+    return removed
+
+
+def mark(folder: Path, kind: str) -> Path:
+    """Write the marker into ``folder`` (what made it, for the next run's check)."""
+    marker = Path(folder) / MARKER
+    marker.write_text(json.dumps({"schema_version": 1, "kind": kind,
+                                  "written_by": f"implantplan {__version__}"}) + "\n")
+    return marker
+
+
+@contextmanager
+def staged(out: Path, kind: str, *, field: str = "--out") -> Iterator[Path]:
+    """A staging folder beside ``out`` (marked); when the block ends without an exception it
+    replaces ``out`` atomically (``out`` renamed aside, the staging folder renamed in, the old
+    one removed); in every case the staging folder is gone afterwards."""
+    out = Path(out)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.{STAGING}-{os.getpid()}-",
+                                    dir=out.parent))
+    except OSError as exc:
+        raise InputError(field, f"cannot create a folder in {str(out.parent)!r}: "
+                         f"{exc.strerror or exc}") from None
+    try:
+        tmp.chmod(0o777 & ~current_umask())  # mkdtemp makes 0700; a plan is for colleagues too
+        mark(tmp, kind)
+        yield tmp
+        swap_in(tmp, out)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def swap_in(staging: Path, out: Path) -> None:
+    """Move ``staging`` onto ``out``; a previous ``out`` is renamed aside first and removed
+    after (a kill in between leaves it under an ``old`` name the next run removes)."""
+    old = None
+    if out.exists():
+        old = out.with_name(f".{out.name}.{OLD}-{os.getpid()}-{time.time_ns()}")
+        out.rename(old)
+    staging.rename(out)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
