@@ -67,7 +67,8 @@ def batch_exit_code(statuses) -> int:
 
 
 def plan_one(case_file: str, out_dir: str, runs: int | None, figures: bool,
-             html_scene: bool, force: bool = False) -> dict:  # fmt: skip
+             html_scene: bool, force: bool = False, accept: tuple = (),
+             memory_budget: float | None = None) -> dict:  # fmt: skip
     """One case, as ``implantplan plan`` does it: the task every worker runs (plain arguments
     in, a plain record out; user errors and planning failures are the record, not exceptions)."""
     from implantplan.analyses.case import load_case
@@ -80,7 +81,8 @@ def plan_one(case_file: str, out_dir: str, runs: int | None, figures: bool,
         case = load_case(case_file)
         rec["case"] = case.name
         plan = plan_case(case, Path(out_dir), runs=runs, html_scene=html_scene, quiet=True,
-                         figures=figures, force=force)  # fmt: skip
+                         figures=figures, force=force, accept=frozenset(accept),
+                         memory_budget=memory_budget)  # fmt: skip
     except InputError as exc:
         rec.update(status=BAD_INPUT, reason=str(exc))
     except OSError as exc:  # as the CLI: an unreadable input or unwritable output is bad input
@@ -119,7 +121,8 @@ def case_folders(case_files) -> list[str]:
 
 def run_batch(case_files, out_dir, *, scheduler: str | None = None, workers: int | None = None,
               runs: int | None = None, figures: bool = True, html_scene: bool = True,
-              quiet: bool = False, force: bool = False) -> tuple[list[dict], int]:  # fmt: skip
+              quiet: bool = False, force: bool = False, accept: tuple = (),
+              memory_budget: float | None = None) -> tuple[list[dict], int]:  # fmt: skip
     """Plan every case on the engine; write the summaries; returns (records, exit code).
     ``out_dir`` holding anything implantplan did not write is refused unless ``force``
     (analyses.out_folder); it is marked as a batch folder."""
@@ -133,7 +136,8 @@ def run_batch(case_files, out_dir, *, scheduler: str | None = None, workers: int
     out_dir.mkdir(parents=True, exist_ok=True)
     out_folder.mark(out_dir, "batch")
     folders = case_folders(case_files)
-    tasks = [(str(f), str(out_dir.resolve() / d), runs, figures, html_scene, force)
+    tasks = [(str(f), str(out_dir.resolve() / d), runs, figures, html_scene, force,
+              tuple(sorted(accept)), memory_budget)
              for f, d in zip(case_files, folders, strict=True)]  # fmt: skip
     records: list = [None] * len(tasks)
     prog = Progress("batch", quiet=quiet)
@@ -228,6 +232,11 @@ def register(subparsers) -> None:
     p.add_argument("--force", action="store_true",
                    help="replace --out (and case folders) even if they hold files implantplan "
                         "did not write")
+    p.add_argument("--accept-small-margin", action="store_true",
+                   help="as plan --accept-small-margin")
+    p.add_argument("--accept-repairs", action="store_true", help="as plan --accept-repairs")
+    p.add_argument("--memory-budget-mb", type=float, default=None,
+                   help="as plan --memory-budget-mb, per case")
     g = p.add_argument_group("synthetic cohort (--make-cohort)")
     g.add_argument(
         "--make-cohort",
@@ -256,6 +265,8 @@ def _cmd_batch(args) -> int:
                            shift_mm=args.shift_mm, site_jitter_mm=args.site_jitter_mm)  # fmt: skip
         print(json.dumps({"cohort": str(path), "cases": args.n_cases}))
         return 0
+    from implantplan.analyses.plan import accepted, memory_budget
+
     out_folder.check_out(args.out, force=args.force)  # before any work
     files = list(args.cases)
     if args.cohort is not None:
@@ -267,7 +278,8 @@ def _cmd_batch(args) -> int:
     records, code = run_batch(files, args.out, scheduler=args.scheduler, workers=args.workers,
                               runs=args.runs, figures=not args.no_figures,
                               html_scene=not args.no_html_scene, quiet=args.quiet,
-                              force=args.force)  # fmt: skip
+                              force=args.force, accept=accepted(args),
+                              memory_budget=memory_budget(args))  # fmt: skip
     counts = {s: sum(r["status"] == s for r in records) for s in PLAN_EXIT}
     print(json.dumps({"out": str(args.out), "cases": len(records),
                       **{k.replace(" ", "_"): n for k, n in counts.items()},

@@ -23,12 +23,19 @@ import numpy as np
 from implantplan import models
 from implantplan.systems import validate as v
 from implantplan.systems.errors import InputError
-from implantplan.systems.files import read_yaml
+from implantplan.systems.files import MAX_MESH_BYTES, input_file, read_yaml
 from implantplan.systems.robot.scenario import load_scenario
 from implantplan.systems.safety import SafetySpec
 
 MM = 1e-3
 DEFAULT_CASE = "cases/default.yaml"  # under models/
+# Upper bounds of the case's counts and lengths (docs/formats.md, "Bounds"): each is checked when
+# the case is read, before any work; a value past one is a typo, not a request.
+COORD_MM = 10_000.0  # any point in mm (the mesh frame: a scan of 10 m is not a mouth)
+SITE_MM = 300.0      # a site's position in Center, mm
+MAX_RUNS = 100       # feeding simulations per site (simulation.runs, --runs)
+_coord = partial(v.vector, n=3, limit=COORD_MM)
+_length_mm = partial(v.number, positive=True, high=1000.0)
 
 
 def resolve_path(value: str, base_dir: Path, field_name: str) -> Path:
@@ -42,9 +49,7 @@ def resolve_path(value: str, base_dir: Path, field_name: str) -> Path:
         path = Path(value).expanduser()
         if not path.is_absolute():
             path = base_dir / path
-    if not path.is_file():
-        raise InputError(field_name, f"file {str(path)!r} does not exist")
-    return path
+    return input_file(path, field_name, max_bytes=MAX_MESH_BYTES)
 
 
 def default_case_path() -> Path:
@@ -69,13 +74,14 @@ class MeshSection:
     path: str | Path = v.spec(v.text)
     units: str = v.spec(v.one_of("mm", "m"), "mm")
     close_open_cuts: bool = v.spec(v.boolean, False)
-    cap_radius: float | None = v.spec(v.positive, None, key="cap_radius_mm", scale=MM)
+    cap_radius: float | None = v.spec(partial(v.number, positive=True, high=200.0), None,
+                                      key="cap_radius_mm", scale=MM)
     mouth_opening_deg: float = v.spec(partial(v.number, low=0.0, high=45.0), 0.0)
-    hinge_point: np.ndarray | None = v.spec(v.vec3, None, key="hinge_point_mm", scale=MM)
+    hinge_point: np.ndarray | None = v.spec(_coord, None, key="hinge_point_mm", scale=MM)
     hinge_axis: np.ndarray | None = v.spec(v.direction, None)
-    occlusal_point: np.ndarray | None = v.spec(v.vec3, None, key="occlusal_point_mm", scale=MM)
+    occlusal_point: np.ndarray | None = v.spec(_coord, None, key="occlusal_point_mm", scale=MM)
     occlusal_normal: np.ndarray | None = v.spec(v.direction, None)
-    blend: float = v.spec(v.positive, 20.0, key="opening_blend_mm", scale=MM)
+    blend: float = v.spec(_length_mm, 20.0, key="opening_blend_mm", scale=MM)
 
     @property
     def opening(self) -> dict:
@@ -91,7 +97,7 @@ class MeshSection:
 class CenterSection:
     """``center:`` the Center frame in the (opened) mesh frame."""
 
-    origin: np.ndarray = v.spec(v.vec3, key="origin_mm", scale=MM)
+    origin: np.ndarray = v.spec(_coord, key="origin_mm", scale=MM)
     z_axis: np.ndarray = v.spec(v.direction)
     x_hint: np.ndarray | None = v.spec(v.direction, None)
 
@@ -101,12 +107,18 @@ class FpsmSection:
     """``fpsm:`` the FPSM fit (systems.fpsm.fit.fit_fpsm). ``margin`` is the fit's offset from
     the wall, not the clinical margin (that is ``safety.clearance_margin``)."""
 
-    slices: int = v.spec(partial(v.integer, low=2), 15)
-    control_points: int = v.spec(partial(v.integer, low=3), 15)
-    samples: int = v.spec(partial(v.integer, low=8), 150)
+    slices: int = v.spec(partial(v.integer, low=2, high=200), 15)
+    control_points: int = v.spec(partial(v.integer, low=3, high=100), 15)
+    samples: int = v.spec(partial(v.integer, low=8, high=2000), 150)
     method: str = v.spec(v.one_of("exact", "paper"), "exact")
-    margin: float = v.spec(v.nonneg, 0.0, key="margin_mm", scale=MM)
+    margin: float = v.spec(partial(v.number, nonneg=True, high=20.0), 0.0, key="margin_mm",
+                           scale=MM)
     z_range: np.ndarray | None = v.spec(v.interval, None, key="z_range_mm", scale=MM)
+
+    def __post_init__(self):
+        if self.z_range is not None and np.abs(self.z_range).max() > SITE_MM * MM:
+            raise InputError("fpsm.z_range_mm", f"expected heights within +-{SITE_MM:g} mm of "
+                             f"the Center origin, got {np.round(self.z_range / MM, 3).tolist()}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -114,18 +126,22 @@ class Site:
     """One implant site. position (m) and axis (unit, from the bone into the cavity) in Center;
     ``name`` is ``site<k>`` in a loaded :class:`Case` when the file gives none."""
 
-    name: str | None = v.spec(v.label, None)
-    position: np.ndarray = v.spec(v.vec3, key="position_mm", scale=MM)
+    name: str | None = v.spec(v.safe_name, None)
+    position: np.ndarray = v.spec(partial(v.vector, n=3, limit=SITE_MM), key="position_mm",
+                                  scale=MM)
     axis: np.ndarray = v.spec(v.direction)
-    implant_length: float = v.spec(v.positive, 31.0, key="implant_length_mm", scale=MM)
-    rod_radius: float = v.spec(v.nonneg, 6.0, key="rod_radius_mm", scale=MM)
+    implant_length: float = v.spec(partial(v.number, positive=True, high=100.0), 31.0,
+                                   key="implant_length_mm", scale=MM)
+    rod_radius: float = v.spec(partial(v.number, nonneg=True, high=20.0), 6.0,
+                               key="rod_radius_mm", scale=MM)
 
 
 @dataclass(frozen=True)
 class SiteCheckSection:
     """``site_check:`` how far a site may lie from the scanned tissue (systems.fpsm.sites)."""
 
-    tolerance: float = v.spec(v.positive, 1.0, key="tolerance_mm", scale=MM)
+    tolerance: float = v.spec(partial(v.number, positive=True, high=10.0), 1.0,
+                              key="tolerance_mm", scale=MM)
 
 
 @dataclass(frozen=True)
@@ -147,23 +163,24 @@ class RobotSection:
     validated when the case is loaded."""
 
     scenario: str | None = v.spec(v.text, None)
-    pop: int = v.spec(partial(v.integer, low=4), 100)
-    gen: int = v.spec(partial(v.integer, low=1), 60)
+    pop: int = v.spec(partial(v.integer, low=4, high=1000), 100)
+    gen: int = v.spec(partial(v.integer, low=1, high=500), 60)
 
 
 @dataclass(frozen=True)
 class CapabilitySection:
     """``capability:`` the capability map around the feeding targets (seed 004)."""
 
-    voxel: float = v.spec(partial(v.number, low=10.0), 50.0, key="voxel_mm", scale=MM)
-    directions: int = v.spec(partial(v.integer, low=4), 100)
+    voxel: float = v.spec(partial(v.number, low=10.0, high=500.0), 50.0, key="voxel_mm",
+                          scale=MM)
+    directions: int = v.spec(partial(v.integer, low=4, high=2000), 100)
 
 
 @dataclass(frozen=True)
 class SimulationSection:
     """``simulation:`` the teleoperated feeding runs per site."""
 
-    runs: int = v.spec(partial(v.integer, low=0), 1)
+    runs: int = v.spec(partial(v.integer, low=0, high=MAX_RUNS), 1)
     mode: str = v.spec(v.one_of("kinematic", "dynamic"), "kinematic")
 
 
@@ -216,8 +233,8 @@ class Case:
     name, the site names, the scenario) and resolves the paths; ``source`` is the case file."""
 
     schema_version: int = v.spec(v.version(1))
-    name: str | None = v.spec(v.label, None)
-    seed: int = v.spec(partial(v.integer, low=0), 0)
+    name: str | None = v.spec(v.safe_name, None)
+    seed: int = v.spec(partial(v.integer, low=0, high=2**63 - 1), 0)
     mesh: MeshSection = v.spec(v.section(MeshSection))
     center: CenterSection = v.spec(v.section(CenterSection))
     fpsm: FpsmSection = v.spec(v.section(FpsmSection), {})
@@ -235,6 +252,37 @@ class Case:
     def instrument_at(self, site: Site):
         """The instrument the plan checks at ``site`` (:meth:`InstrumentSection.instrument`)."""
         return self.instrument.instrument(site)
+
+
+SPACING_BEYOND_DIAMETER_MM = 1.5  # DESIGN.md section 4, clinical spacing
+
+
+def _check_spacing(sites) -> None:
+    """Sites closer than an implant's diameter + 1.5 mm (DESIGN.md section 4's clinical spacing;
+    the diameter is the actuator's implant, systems.actuator) are an InputError naming the later
+    site and the one it is too close to."""
+    from implantplan.systems.actuator import IMPLANT_RADIUS
+
+    if len(sites) < 2:
+        return
+    P = np.array([s.position for s in sites])
+    D = np.linalg.norm(P[:, None] - P[None], axis=-1)
+    minimum = 2 * IMPLANT_RADIUS + SPACING_BEYOND_DIAMETER_MM * MM
+    i, j = np.nonzero(np.triu(D < minimum, k=1))
+    if i.size:
+        a, b = int(i[0]), int(j[0])
+        raise InputError(f"sites[{b}].position_mm", f"site {sites[b].name!r} lies "
+                         f"{D[a, b] / MM:.2f} mm from site {sites[a].name!r}; expected at least "
+                         f"{minimum / MM:g} mm (implant diameter {2 * IMPLANT_RADIUS / MM:g} mm "
+                         f"+ {SPACING_BEYOND_DIAMETER_MM:g} mm)")
+
+
+def _stem_name(source: Path) -> str:
+    """The case file's stem as a safe name (analyses.batch's folder rule: other characters
+    become ``_``)."""
+    import re
+
+    return re.sub(r"[^A-Za-z0-9._-]", "_", source.stem)[:64].strip(".") or "case"
 
 
 def case_from_dict(data: dict, *, source: Path) -> Case:
@@ -259,6 +307,7 @@ def case_from_dict(data: dict, *, source: Path) -> Case:
         names.add(name)
         sites.append(replace(s, name=name))
 
+    _check_spacing(sites)
     posture = case.patient.posture
     scenario = case.robot.scenario or posture
     if scenario not in ("lying", "sitting"):
@@ -277,7 +326,7 @@ def case_from_dict(data: dict, *, source: Path) -> Case:
     return replace(
         case,
         instrument=instrument,
-        name=source.stem if case.name is None else case.name,
+        name=_stem_name(source) if case.name is None else case.name,
         source=source,
         mesh=replace(mesh, path=resolve_path(mesh.path, base_dir, "mesh.path")),
         sites=tuple(sites),

@@ -24,17 +24,20 @@ from pathlib import Path
 
 import numpy as np
 
+from implantplan.analyses import budget, out_folder, pipeline
 from implantplan.analyses import checks as checks_
-from implantplan.analyses import out_folder, pipeline
-from implantplan.analyses.case import Case, default_case_path, load_case
+from implantplan.analyses.case import MAX_RUNS, Case, default_case_path, load_case
 from implantplan.analyses.figures.plan import make_figures
 from implantplan.analyses.progress import Progress
 from implantplan.analyses.provenance import provenance
 from implantplan.systems import seeds
+from implantplan.systems import validate as v
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import write_json
 
 DEMO_OUT = "out/implantplan-demo"  # out/ is where every README command writes
+MIN_MARGIN_MM = 0.5  # a clinical margin below this needs --accept-small-margin
+ACCEPT = ("accept-small-margin", "accept-repairs")
 # Pass/fail limits of the checks (DESIGN.md section 4).
 
 
@@ -67,6 +70,21 @@ def _common(p: argparse.ArgumentParser, default_out: Path | None) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--force", action="store_true",
                    help="replace --out even if it holds files implantplan did not write")
+    acceptance_flags(p)
+
+
+def acceptance_flags(p: argparse.ArgumentParser) -> None:
+    """The flags that let a user plan what a clinician would stop at (``plan``, ``demo``,
+    ``batch``): each is recorded in plan.json (``acknowledged``) and marked in the report."""
+    p.add_argument("--accept-small-margin", action="store_true",
+                   help=f"plan with safety.clearance_mm below {MIN_MARGIN_MM:g} mm (marked in "
+                        "the report)")
+    p.add_argument("--accept-repairs", action="store_true",
+                   help="plan a scan whose open boundary is more than "
+                        f"{pipeline.MAX_OPEN_EDGE_SHARE:.0%} of its edges (marked in the report)")
+    p.add_argument("--memory-budget-mb", type=float, default=None,
+                   help="refuse a plan estimated to need more memory (default: half the "
+                        "machine's, or $IMPLANTPLAN_MEMORY_BUDGET_MB)")
 
 
 def _cmd_plan(args) -> int:
@@ -81,11 +99,12 @@ def _cmd_demo(args) -> int:
 
 def _run(case: Case, args) -> int:
     """Plan; exit 0 when every check passes, 3 when one fails (DESIGN.md section 3)."""
-    if args.runs is not None and args.runs < 0:
-        raise InputError("--runs", f"expected a number >= 0, got {args.runs}")
+    if args.runs is not None:
+        v.integer(args.runs, "--runs", low=0, high=MAX_RUNS)
     t0 = time.perf_counter()
     plan = plan_case(case, args.out, runs=args.runs, html_scene=not args.no_html_scene,
-                     quiet=args.quiet, figures=not args.no_figures, force=args.force)
+                     quiet=args.quiet, figures=not args.no_figures, force=args.force,
+                     accept=accepted(args), memory_budget=memory_budget(args))
     failed = [c["name"] for c in plan["checks"] if not c["pass"]]
     print(f"plan: {args.out / 'plan.json'}")
     print(f"checks: {len(plan['checks']) - len(failed)} of {len(plan['checks'])} pass"
@@ -95,26 +114,63 @@ def _run(case: Case, args) -> int:
     return 0 if not failed and plan["passed"] else 3
 
 
+def accepted(args) -> frozenset:
+    """The acceptance flags given (:func:`acceptance_flags`) as names."""
+    return frozenset(name for name in ACCEPT if getattr(args, name.replace("-", "_"), False))
+
+
+def memory_budget(args) -> float | None:
+    """``--memory-budget-mb`` in bytes (None: analyses.budget's default)."""
+    if getattr(args, "memory_budget_mb", None) is None:
+        return None
+    return v.number(args.memory_budget_mb, "--memory-budget-mb", positive=True) * 1e6
+
+
+def check_plausible(case: Case, accept: frozenset = frozenset()) -> list[dict]:
+    """What a clinician would stop at, before any work: a clinical margin below
+    :data:`MIN_MARGIN_MM` needs ``accept_small_margin``. Returns the acknowledgements to record
+    (plan.json ``acknowledged``)."""
+    notes = []
+    margin_mm = case.safety.clearance_margin * 1e3
+    if margin_mm < MIN_MARGIN_MM:
+        if "accept-small-margin" not in accept:
+            raise InputError("safety.clearance_mm", f"{margin_mm:g} mm is below "
+                             f"{MIN_MARGIN_MM:g} mm (robots place implants to about 1 mm); "
+                             "expected >= 0.5 mm, or --accept-small-margin to plan with it")
+        notes.append({"flag": "--accept-small-margin",
+                      "what": f"safety.clearance_mm {margin_mm:g} mm, below {MIN_MARGIN_MM:g} "
+                              "mm"})
+    return notes
+
+
 def plan_case(case: Case, out_dir: Path, *, runs: int | None = None, html_scene: bool = True,
-              quiet: bool = False, figures: bool = True, force: bool = False) -> dict:
+              quiet: bool = False, figures: bool = True, force: bool = False,
+              accept: frozenset = frozenset(), memory_budget: float | None = None) -> dict:
     """Run every stage on ``case`` and write the plan into ``out_dir`` (atomically, in a marked
     plan folder: analyses.out_folder); without ``figures`` no PNG or 3D scene is drawn (plan.json
-    does not depend on them). ``out_dir`` holding anything but a plan is refused unless
-    ``force``."""
+    does not depend on them). Before any work: ``out_dir`` holding anything but a plan is
+    refused unless ``force``; the plan's memory estimate is checked against ``memory_budget``
+    (bytes; analyses.budget); what :func:`check_plausible` and the scan's repairs stop at needs
+    its name in ``accept``."""
     out_dir = out_folder.check_out(out_dir, force=force)
+    budget.check(case, runs=runs, budget=memory_budget)
+    notes = check_plausible(case, accept)
     with out_folder.staged(out_dir, "plan") as staging:
         plan = _plan_into(case, staging, runs=runs, html_scene=html_scene, quiet=quiet,
-                          figures=figures)
+                          figures=figures, accept=accept, notes=notes)
     return plan
 
 
 def _plan_into(case: Case, out: Path, *, runs, html_scene: bool, quiet: bool,
-               figures: bool = True) -> dict:
+               figures: bool = True, accept: frozenset = frozenset(),
+               notes: list | None = None) -> dict:
     fig_dir = out / "figures"
     timing = {}
 
     prog = Progress("1/5 fpsm", quiet=quiet)
-    fit = pipeline.fit_stage(case, progress=prog)
+    notes = list(notes or [])
+    fit = pipeline.fit_stage(case, progress=prog, accept_repairs="accept-repairs" in accept,
+                             notes=notes)
     fit.fpsm.save(out / "fpsm.json")
     timing["fpsm"] = prog.elapsed
     prog.say(f"fitted {case.fpsm.slices} slices x {case.fpsm.control_points} control points "
@@ -145,6 +201,8 @@ def _plan_into(case: Case, out: Path, *, runs, html_scene: bool, quiet: bool,
 
     prog = Progress("report", quiet=quiet)
     plan = plan_dict(case, fit, placements, robot, cap, sims, sites_checked)
+    if notes:
+        plan["acknowledged"] = notes
     plan["timing"] = timing
     plan["provenance"] = provenance(case_file=case.source, meshes=[case.mesh.path],
                                     seed=case.seed)

@@ -90,6 +90,8 @@ def render(plan: dict, figs: dict) -> str:
         f"<p class='muted'>case {html.escape(plan['case']['source'])}, seed "
         f"{html.escape(str(plan['case']['seed']))}; all checks: "
         f"<span class='{'pass' if ok else 'fail'}'>{'PASS' if ok else 'FAIL'}</span></p>",
+        *[f"<p class='fail'>Accepted by the user ({html.escape(a['flag'])}): "
+          f"{html.escape(a['what'])}</p>" for a in plan.get("acknowledged", [])],
         "<h2>Checks</h2>",
         _table(["check", "id", "site", "value", "limit", "bound", "margin", "result"], [
             [c["name"] + (f" ({c['pair']})" if c.get("pair") else ""), c.get("id", ""),

@@ -7,8 +7,10 @@ file already there is kept until the new one is complete.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import stat
 import tempfile
 from collections.abc import Callable
 from functools import partial
@@ -161,13 +163,43 @@ def _check_keys(loader: yaml.SafeLoader, node: yaml.Node, where: str, path: Path
             _check_keys(loader, value_node, name, path)
 
 
+MAX_TEXT_BYTES = 1_000_000  # a case, scenario, cohort or plan file (docs/formats.md, Bounds)
+MAX_MESH_BYTES = 500_000_000  # a scan file
+
+
+def input_file(path: str | os.PathLike, field: str, *, max_bytes: int | None = None) -> Path:
+    """``path`` checked as a regular file to read, at most ``max_bytes`` long: a missing file, a
+    folder, a device (``/dev/zero``), a FIFO, a socket, a broken link or a link loop, a file too
+    large is an InputError naming ``field`` and saying which (nothing is opened before)."""
+    path = Path(path)
+    shown = repr(str(path))
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        if path.is_symlink():
+            raise InputError(field, f"{shown} is a broken symbolic link") from None
+        raise InputError(field, f"file {shown} does not exist") from None
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise InputError(field, f"{shown} is a symbolic link loop; expected a file") from None
+        raise InputError(field, f"cannot read {shown}: {exc.strerror or exc}") from None
+    mode = st.st_mode
+    if stat.S_ISDIR(mode):
+        raise InputError(field, f"{shown} is a folder; expected a file")
+    if not stat.S_ISREG(mode):
+        kind = ("a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else
+                "a FIFO (named pipe)" if stat.S_ISFIFO(mode) else "not a regular file")
+        raise InputError(field, f"{shown} is {kind}; expected a file")
+    if max_bytes is not None and st.st_size > max_bytes:
+        raise InputError(field, f"{shown} is {st.st_size / 1e6:.1f} MB; expected at most "
+                         f"{max_bytes / 1e6:g} MB")
+    return path
+
+
 def _parsed(path: Path, field: str, loads, error, what: str) -> Any:
-    """``loads`` of the file's text; a missing, folder, unreadable or non-UTF-8 file or a parse
-    ``error`` is an InputError."""
-    if path.is_dir():
-        raise InputError(field, f"{str(path)!r} is a folder; expected a file")
-    if not path.is_file():
-        raise InputError(field, f"file {str(path)!r} does not exist")
+    """``loads`` of the file's text; a missing, folder, special, too large, unreadable or
+    non-UTF-8 file or a parse ``error`` is an InputError."""
+    input_file(path, field, max_bytes=MAX_TEXT_BYTES)
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:

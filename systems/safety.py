@@ -32,6 +32,12 @@ from implantplan.systems.errors import InputError
 MM = 1e-3
 DEG = np.pi / 180.0
 _positive = partial(v.number, positive=True)
+MAX_REGISTRATION_SAMPLES = 100_000  # registration Monte Carlo draws (docs/formats.md, Bounds)
+
+
+def _mm_upto(high: float):
+    """A length in mm, >= 0 and at most ``high`` (a physical range: more is a typo)."""
+    return partial(v.number, nonneg=True, high=high)
 
 
 @dataclass(frozen=True)
@@ -131,17 +137,19 @@ class SafetySpec:
         command_limits: the operator's command limits before the fixture (:class:`CommandLimits`).
     """
 
-    clearance_margin: float = v.spec(v.nonneg, 1.0, key="clearance_mm", scale=MM)
-    lateral_tolerance: float = v.spec(v.nonneg, 0.5, key="lateral_tolerance_mm", scale=MM)
+    clearance_margin: float = v.spec(_mm_upto(20.0), 1.0, key="clearance_mm", scale=MM)
+    lateral_tolerance: float = v.spec(_mm_upto(10.0), 0.5, key="lateral_tolerance_mm", scale=MM)
     angle_tolerance: float = v.spec(partial(v.number, low=0.0, high=10.0), 1.0,
                                     key="angle_tolerance_deg", scale=DEG)
-    registration_sigma_translation: float = v.spec(v.nonneg, 0.5, key="registration_sigma_mm",
-                                                   scale=MM)
+    registration_sigma_translation: float = v.spec(_mm_upto(10.0), 0.5,
+                                                   key="registration_sigma_mm", scale=MM)
     registration_sigma_rotation: float = v.spec(partial(v.number, low=0.0, high=10.0), 0.5,
                                                 key="registration_sigma_deg", scale=DEG)
-    registration_samples: int = v.spec(partial(v.integer, low=0), 1000)
-    alarm_margin: float = v.spec(v.nonneg, 1.0, key="alarm_margin_mm", scale=MM)
-    barrier_rate: float = v.spec(_positive, 20.0, key="barrier_rate_per_s")
+    registration_samples: int = v.spec(partial(v.integer, low=0, high=MAX_REGISTRATION_SAMPLES),
+                                       1000)
+    alarm_margin: float = v.spec(_mm_upto(20.0), 1.0, key="alarm_margin_mm", scale=MM)
+    barrier_rate: float = v.spec(partial(v.number, positive=True, high=1000.0), 20.0,
+                                 key="barrier_rate_per_s")
     command_limits: CommandLimits = v.spec(v.section(CommandLimits), {})
 
     def __post_init__(self):

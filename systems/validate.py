@@ -17,6 +17,7 @@ aliases.
 from __future__ import annotations
 
 import copy
+import re
 from collections.abc import Callable
 from dataclasses import MISSING, field, fields
 from functools import partial
@@ -56,35 +57,49 @@ def number(
 ) -> float:
     """A finite number (bools are not), optionally positive/non-negative/whole/within bounds."""
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise InputError(field, f"expected a number, got {value!r}")
-    v = float(value)
+        raise InputError(field, f"expected a number, got {_shown(value)}")
+    try:
+        v = float(value)
+    except OverflowError:  # an integer of hundreds of digits
+        v = float("inf")
+    shown = _shown(value)
     if not np.isfinite(v):
-        raise InputError(field, f"expected a finite number, got {value!r}")
+        raise InputError(field, f"expected a finite number, got {shown}")
     if positive and v <= 0:
-        raise InputError(field, f"expected a positive number, got {value!r}")
+        raise InputError(field, f"expected a positive number, got {shown}")
     if nonneg and v < 0:
-        raise InputError(field, f"expected a number >= 0, got {value!r}")
+        raise InputError(field, f"expected a number >= 0, got {shown}")
     if integer and v != int(v):
-        raise InputError(field, f"expected a whole number, got {value!r}")
+        raise InputError(field, f"expected a whole number, got {shown}")
     if low is not None and v < low:
-        raise InputError(field, f"expected a number >= {low}, got {value!r}")
+        raise InputError(field, f"expected a number >= {low:g}, got {shown}")
     if high is not None and v > high:
-        raise InputError(field, f"expected a number <= {high}, got {value!r}")
+        raise InputError(field, f"expected a number <= {high:g} (the documented upper bound), "
+                         f"got {shown}")
     return v
 
 
-def integer(value: Any, field: str, *, low: int | None = None) -> int:
-    return int(number(value, field, integer=True, low=low))
+def _shown(value: Any, width: int = 40) -> str:
+    """``repr(value)`` cut to ``width`` characters (a message stays one short line)."""
+    text = repr(value)
+    return text if len(text) <= width else f"{text[:width]}... ({len(text)} characters)"
 
 
-def vector(value: Any, field: str, n: int) -> np.ndarray:
-    """``n`` finite numbers."""
+def integer(value: Any, field: str, *, low: int | None = None, high: int | None = None) -> int:
+    return int(number(value, field, integer=True, low=low, high=high))
+
+
+def vector(value: Any, field: str, n: int, *, limit: float | None = None) -> np.ndarray:
+    """``n`` finite numbers (with ``limit``: each within [-limit, limit])."""
     try:
         arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(field, f"expected {n} numbers, got {value!r}") from None
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(field, f"expected {n} numbers, got {_shown(value)}") from None
     if arr.shape != (n,) or not np.all(np.isfinite(arr)):
-        raise InputError(field, f"expected {n} finite numbers, got {value!r}")
+        raise InputError(field, f"expected {n} finite numbers, got {_shown(value)}")
+    if limit is not None and np.abs(arr).max() > limit:
+        raise InputError(field, f"expected {n} numbers within +-{limit:g} (the documented "
+                         f"bound), got {_shown(value)}")
     return arr
 
 
@@ -295,6 +310,20 @@ def label(value: Any, field: str) -> str:
     if isinstance(value, (dict, list)) or str(value) == "":
         raise InputError(field, f"expected a name, got {value!r}")
     return str(value)
+
+
+NAME = re.compile(r"[A-Za-z0-9_.-]{1,64}")  # names that become file and folder names
+
+
+def safe_name(value: Any, field: str) -> str:
+    """A :func:`label` that is safe as a file or folder name (sites, cases): 1-64 letters,
+    digits, ``-``, ``_`` or ``.``, and not ``.`` or ``..``."""
+    name = label(value, field)
+    if not NAME.fullmatch(name) or name in (".", ".."):
+        shown = name if len(name) <= 40 else f"{name[:40]}... ({len(name)} characters)"
+        raise InputError(field, f"expected a name of 1 to 64 letters, digits, '-', '_' or '.' "
+                         f"(not '.' or '..'; it becomes a file name), got {shown!r}")
+    return name
 
 
 def version(expected: int) -> Callable[[Any, str], int]:

@@ -25,16 +25,17 @@ floor, teeth ridges, mouth opening), so tests know the wall distances the fit mu
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 import trimesh
 
 from implantplan import models
 from implantplan.systems.errors import InputError
+from implantplan.systems.files import MAX_MESH_BYTES, input_file
 from implantplan.systems.frames import frame_from_z, unit
 
 UNITS = {"mm": 1e-3, "m": 1.0}
+MAX_FACES = 2_000_000  # triangles of a scan (docs/formats.md, Bounds; the bundled one has 24,598)
 
 _MODELS = models.MODELS_DIR / "oral"
 
@@ -82,11 +83,7 @@ def load_oral_mesh(path, *, units: str = "mm", field: str = "mesh") -> trimesh.T
     """
     if units not in UNITS:
         raise InputError("units", f"expected one of {sorted(UNITS)}, got {units!r}")
-    path = Path(path)
-    if path.is_dir():
-        raise InputError(field, f"{str(path)!r} is a folder; expected a mesh file")
-    if not path.is_file():
-        raise InputError(field, f"file {str(path)!r} does not exist")
+    path = input_file(path, field, max_bytes=MAX_MESH_BYTES)
     try:
         with open(path, "rb") as stream:
             stream.read(1)
@@ -102,6 +99,9 @@ def load_oral_mesh(path, *, units: str = "mm", field: str = "mesh") -> trimesh.T
         raise InputError(field, f"could not read {path} as a mesh ({exc})") from None
     if not isinstance(loaded, trimesh.Trimesh) or len(getattr(loaded, "faces", ())) == 0:
         raise InputError(field, f"{path} holds no triangle mesh")
+    if len(loaded.faces) > MAX_FACES:
+        raise InputError(field, f"{path} has {len(loaded.faces)} faces; expected at most "
+                         f"{MAX_FACES} (decimate the scan)")
     mesh = trimesh.Trimesh(
         vertices=np.asarray(loaded.vertices, dtype=float) * UNITS[units],
         faces=np.asarray(loaded.faces),

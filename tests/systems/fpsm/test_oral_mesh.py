@@ -113,7 +113,7 @@ def test_corrupt_folder_and_unreadable_meshes_are_input_errors(tmp_path, monkeyp
     corrupt.write_bytes(b"solid x\n\x00\xff\xfe not a mesh" * 40)
     with pytest.raises(InputError, match="mesh: could not read .*corrupt or not a mesh"):
         load_oral_mesh(corrupt)
-    with pytest.raises(InputError, match="is a folder; expected a mesh file"):
+    with pytest.raises(InputError, match="is a folder; expected a file"):
         load_oral_mesh(tmp_path)
     locked = tmp_path / "locked.stl"
     locked.write_bytes(b"x")
