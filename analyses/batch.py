@@ -217,7 +217,7 @@ def register(subparsers) -> None:
     )  # fmt: skip
     p.add_argument("cases", nargs="*", type=Path, help="case YAML files")
     p.add_argument("--cohort", type=Path, default=None, help="a cohort YAML listing case files")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--scheduler", default=None, help=scaleout.SCHEDULER_HELP)
     p.add_argument("--workers", type=int, default=None, help=scaleout.WORKERS_HELP)
     p.add_argument(
@@ -260,7 +260,7 @@ def _cmd_batch(args) -> int:
             raise InputError("--make-cohort", "plans nothing: give no CASES or --cohort with it")
         from implantplan.analyses.cohort import make_cohort
 
-        path = make_cohort(args.make_cohort, args.out, args.n_cases, seed=args.seed,
+        path = make_cohort(args.make_cohort, Path(args.out), args.n_cases, seed=args.seed,
                            scale_sd=args.scale_sd, rotation_deg=args.rotation_deg,
                            shift_mm=args.shift_mm, site_jitter_mm=args.site_jitter_mm)  # fmt: skip
         print(json.dumps({"cohort": str(path), "cases": args.n_cases}))
@@ -268,6 +268,7 @@ def _cmd_batch(args) -> int:
     from implantplan.analyses.plan import accepted, memory_budget
 
     out_folder.check_out(args.out, force=args.force)  # before any work
+    args.out = Path(args.out)
     files = list(args.cases)
     if args.cohort is not None:
         if files:

@@ -87,6 +87,8 @@ def check_out(out, *, force: bool = False, field: str = "--out") -> Path:
     except FileNotFoundError:
         st = None
     except OSError as exc:
+        if exc.errno == errno.ENOTDIR:  # a file where a folder of the path should be
+            _existing_ancestor(path.parent, text, field)
         what = "a symbolic link loop in its path" if exc.errno == errno.ELOOP else \
             (exc.strerror or str(exc))
         raise InputError(field, f"cannot use {text!r}: {what}") from None
@@ -116,7 +118,7 @@ def _existing_ancestor(folder: Path, text: str, field: str) -> Path:
     for p in (folder, *folder.parents):
         try:
             st = os.stat(p)
-        except FileNotFoundError:
+        except (FileNotFoundError, NotADirectoryError):
             continue
         except OSError as exc:
             what = "a symbolic link loop" if exc.errno == errno.ELOOP else \

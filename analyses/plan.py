@@ -58,7 +58,7 @@ def register(subparsers) -> None:
 
 
 def _common(p: argparse.ArgumentParser, default_out: Path | None) -> None:
-    p.add_argument("--out", type=Path, required=default_out is None, default=default_out,
+    p.add_argument("--out", required=default_out is None, default=default_out,
                    help="output folder" + (f" (default: ./{default_out})" if default_out else ""))
     p.add_argument("--runs", type=int, default=None,
                    help="feeding simulations per site (default: the case's simulation.runs)")
@@ -88,12 +88,14 @@ def acceptance_flags(p: argparse.ArgumentParser) -> None:
 
 
 def _cmd_plan(args) -> int:
-    out_folder.check_out(args.out, force=args.force)  # before any work
+    out_folder.check_out(args.out, force=args.force)  # before any work (the text as typed)
+    args.out = Path(args.out)
     return _run(load_case(args.case), args)
 
 
 def _cmd_demo(args) -> int:
     out_folder.check_out(args.out, force=args.force)
+    args.out = Path(args.out)
     return _run(load_case(default_case_path()), args)
 
 

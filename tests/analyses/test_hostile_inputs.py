@@ -1,0 +1,461 @@
+"""A catalogue of hostile and careless inputs to ``implantplan plan`` (DESIGN.md section 3: output
+folders belong to the user, exit codes are a contract, bounded work, names are names).
+
+Each entry runs the real command line in a child process whose address space is limited to 2 GB
+(``RLIMIT_AS``, applied only in the subprocess that runs tests/analyses/hostile_harness.py, never
+in this process or an xdist worker) with a 10 s alarm, and asserts: the exit code; one line on
+stderr naming the field (the case's own key or the flag), no traceback; the previous plan in
+``--out`` untouched; nothing written anywhere else (the inputs, the working folder, the folder
+around ``--out``); no internal-error log. The entries that plan (exit 3) are marked ``sweep``
+except one planning failure. Then ``kill -TERM`` of a running ``plan`` and ``kill -KILL`` followed
+by a rerun, each in its own subprocess.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from implantplan import models
+from implantplan.analyses.out_folder import MARKER, STAGING, mark
+from tests.analyses.cases import default_case_data
+
+HARNESS = Path(__file__).with_name("hostile_harness.py")
+AS_LIMIT = 2 * 1024**3  # bytes of address space per run
+TIMEOUT = 10  # s per run unless the input is legitimately large
+PREVIOUS = b'{"schema_version": 1, "kind": "plan", "note": "the previous plan"}\n'
+
+
+def _limit_memory():  # runs in the child between fork and exec
+    resource.setrlimit(resource.RLIMIT_AS, (AS_LIMIT, AS_LIMIT))
+
+
+def small_case(**edits) -> dict:
+    """The small default case without feeds, with ``edits`` (dotted keys, list indices)."""
+    data = default_case_data(small=True)
+    data["simulation"]["runs"] = 0
+    data["safety"]["registration_samples"] = 20
+    for dotted, value in edits.items():
+        d, keys = data, dotted.split(".")
+        for k in keys[:-1]:
+            d = d[int(k)] if isinstance(d, list) else d[k]
+        if isinstance(d, list):
+            d[int(keys[-1])] = value
+        else:
+            d[keys[-1]] = value
+    return data
+
+
+@dataclass
+class Ctx:
+    """One entry's folders: ``inputs`` (case files), ``cwd`` (the run's working folder, empty),
+    ``out`` (a previous plan folder, marked, inside ``outs``)."""
+
+    root: Path
+    inputs: Path
+    cwd: Path
+    out: Path
+
+    def case(self, data: dict | None = None, *, text: str | None = None,
+             name: str = "case.yaml") -> str:
+        path = self.inputs / name
+        path.write_text(text if text is not None else yaml.safe_dump(data or small_case()))
+        return str(path)
+
+    def plan(self, case: str, *flags: str, out: str | None = None) -> list[str]:
+        return ["plan", case, "--out", str(self.out) if out is None else out, "--quiet",
+                "--no-figures", *flags]
+
+
+def _symlink(ctx: Ctx, target: Path, name: str = "link") -> Path:
+    link = ctx.root / "outs" / name
+    link.symlink_to(target)
+    return link
+
+
+def _loop(ctx: Ctx) -> Path:
+    a, b = ctx.root / "outs" / "loop_a", ctx.root / "outs" / "loop_b"
+    a.symlink_to(b)
+    b.symlink_to(a)
+    return a
+
+
+def _fifo(folder: Path, name: str = "fifo") -> Path:
+    path = folder / name
+    os.mkfifo(path)
+    return path
+
+
+def _alias_bomb() -> str:
+    text = yaml.safe_dump(small_case())
+    lines = ['l0: &l0 ["lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol"]']
+    lines += [f"l{i}: &l{i} [{', '.join([f'*l{i - 1}'] * 9)}]" for i in range(1, 9)]
+    return "\n".join(lines) + "\n" + text.replace("name: default", "name: *l8")
+
+
+def _holey_scan(ctx: Ctx, share: float) -> str:
+    """The bundled scan with ``share`` of its triangles deleted (seeded), as OBJ."""
+    import trimesh
+
+    mesh = trimesh.load(models.model_path("oral/oralCavityMesh.obj"), process=False,
+                        force="mesh")
+    keep = np.random.default_rng(0).random(len(mesh.faces)) >= share
+    path = ctx.inputs / f"holey_{share:g}.obj"
+    trimesh.Trimesh(mesh.vertices, mesh.faces[keep], process=False).export(path)
+    return str(path)
+
+
+def _far_scenario(ctx: Ctx) -> str:
+    data = yaml.safe_load(models.model_path("scenarios/lying.yaml").read_text())
+    data["base_bounds_m"] = {"x": [3.0, 3.5], "y": [-0.7, 0.1], "z": [-0.5, 0.5]}
+    path = ctx.inputs / "far.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return str(path)
+
+
+def _user_folder(ctx: Ctx) -> str:
+    folder = ctx.root / "outs" / "patient42"
+    folder.mkdir()
+    (folder / "consent_form.pdf").write_bytes(b"%PDF-1.4 the patient's consent")
+    (folder / "scan.obj").write_text("v 0 0 0\n")
+    return str(folder)
+
+
+SITE0 = small_case()["sites"][0]["position_mm"]
+
+# name -> (argv maker, exit code, what the one-line message must say); the message names the
+# field (a case key, a flag) or the path as the user typed it
+CATALOGUE = {
+    # -- --out: the user's folders, special files, links -----------------------------------------
+    "out holds the patient's files": (
+        lambda c: c.plan(c.case(), out=_user_folder(c)), 2, "--out: "),
+    "out is an empty text": (lambda c: c.plan(c.case(), out=""), 2,
+                             "--out: expected a folder path, got an empty text"),
+    "out is .": (lambda c: c.plan(c.case(), out="."), 2, "--out: expected a folder of its own"),
+    "out is ..": (lambda c: c.plan(c.case(), out=".."), 2, "--out: expected a folder of its own"),
+    "out is the working folder": (lambda c: c.plan(c.case(), out=str(c.cwd)), 2,
+                                  "is the current folder or holds it"),
+    "out is /": (lambda c: c.plan(c.case(), out="/"), 2, "--out: expected a folder of its own"),
+    "out is a symlink to the plan": (lambda c: c.plan(c.case(), out=str(_symlink(c, c.out))),
+                                     2, "is a symbolic link; give the folder it points to"),
+    "out is a symlink loop": (lambda c: c.plan(c.case(), out=str(_loop(c))), 2,
+                              "is a symbolic link loop"),
+    "out is below a symlink loop": (lambda c: c.plan(c.case(), out=str(_loop(c) / "plan")), 2,
+                                    "symbolic link loop"),
+    "out is a broken symlink": (
+        lambda c: c.plan(c.case(), out=str(_symlink(c, c.root / "nowhere"))), 2,
+        "is a broken symbolic link"),
+    "out is a file": (lambda c: c.plan(c.case(), out=c.case(name="notes.txt")), 2,
+                      "is a file, not a folder"),
+    "out is below a file": (lambda c: c.plan(c.case(), out=c.case(name="f.txt") + "/plan"), 2,
+                            "is a file, not a folder"),
+    "out is /dev/null": (lambda c: c.plan(c.case(), out="/dev/null"), 2, "is a device"),
+    "out is a FIFO": (lambda c: c.plan(c.case(), out=str(_fifo(c.root / "outs"))), 2,
+                      "is a FIFO"),
+    "out cannot be written": (lambda c: c.plan(c.case(), out="/proc/1/plan"), 2,
+                              "--out: cannot write in '/proc/1'"),
+    # -- names that would become paths --------------------------------------------------------
+    "site name escapes": (lambda c: c.plan(c.case(small_case(**{
+        "sites.0.name": "../../../../ESCAPED"}))), 2, "sites[0].name: expected a name"),
+    "site name makes folders": (lambda c: c.plan(c.case(small_case(**{"sites.0.name": "a/b"}))),
+                                2, "sites[0].name: expected a name"),
+    "site name of 300 characters": (
+        lambda c: c.plan(c.case(small_case(**{"sites.1.name": "x" * 300}))), 2,
+        "sites[1].name: expected a name of 1 to 64"),
+    "site name is ..": (lambda c: c.plan(c.case(small_case(**{"sites.0.name": ".."}))), 2,
+                        "sites[0].name"),
+    "site name with a newline": (
+        lambda c: c.plan(c.case(small_case(**{"sites.0.name": "36\n46"}))), 2, "sites[0].name"),
+    "case name escapes": (lambda c: c.plan(c.case(small_case(name="../../x"))), 2,
+                          "name: expected a name"),
+    # -- counts and sizes past their bounds ---------------------------------------------------
+    "fpsm samples 1e9": (lambda c: c.plan(c.case(small_case(**{"fpsm.samples": 10**9}))), 2,
+                         "fpsm.samples: expected a number <= 2000"),
+    "fpsm slices 100000": (lambda c: c.plan(c.case(small_case(**{"fpsm.slices": 100000}))), 2,
+                           "fpsm.slices: expected a number <= 200"),
+    "fpsm control points 1e6": (
+        lambda c: c.plan(c.case(small_case(**{"fpsm.control_points": 10**6}))), 2,
+        "fpsm.control_points"),
+    "robot pop 1e9": (lambda c: c.plan(c.case(small_case(**{"robot.pop": 10**9}))), 2,
+                      "robot.pop: expected a number <= 1000"),
+    "robot generations 1e6": (lambda c: c.plan(c.case(small_case(**{"robot.gen": 10**6}))), 2,
+                              "robot.gen"),
+    "registration samples 1e9": (
+        lambda c: c.plan(c.case(small_case(**{"safety.registration_samples": 10**9}))), 2,
+        "safety.registration_samples: expected a number <= 100000"),
+    "capability directions 1e9": (
+        lambda c: c.plan(c.case(small_case(**{"capability.directions": 10**9}))), 2,
+        "capability.directions"),
+    "simulation runs 1e6": (lambda c: c.plan(c.case(small_case(**{"simulation.runs": 10**6}))),
+                            2, "simulation.runs"),
+    "--runs 1e6": (lambda c: c.plan(c.case(), "--runs", "1000000"), 2,
+                   "--runs: expected a number <= 100"),
+    "rod radius 1e308 mm": (
+        lambda c: c.plan(c.case(small_case(**{"sites.0.rod_radius_mm": 1e308}))), 2,
+        "sites[0].rod_radius_mm: expected a number <= 20"),
+    "implant length 1 km": (
+        lambda c: c.plan(c.case(small_case(**{"sites.0.implant_length_mm": 1e6}))), 2,
+        "sites[0].implant_length_mm"),
+    "site 1e300 mm away": (
+        lambda c: c.plan(c.case(small_case(**{"sites.0.position_mm": [1e300, 0, 0]}))), 2,
+        "sites[0].position_mm: expected 3 numbers within +-300"),
+    "a 400-digit seed": (lambda c: c.plan(c.case(text=yaml.safe_dump(small_case()).replace(
+        "seed: 0", "seed: " + "9" * 400))), 2, "seed: expected a finite number"),
+    "clearance 1e308 mm": (
+        lambda c: c.plan(c.case(small_case(**{"safety.clearance_mm": 1e308}))), 2,
+        "safety.clearance_mm: expected a number <= 20"),
+    "memory over a small budget": (lambda c: c.plan(c.case(), "--memory-budget-mb", "300"), 2,
+                                   "over the memory budget of 300 MB"),
+    "a large dense check over the budget": (
+        lambda c: c.plan(c.case(small_case(**{"fpsm.slices": 200, "fpsm.samples": 2000})),
+                         "--memory-budget-mb", "3000"), 2, "fpsm.slices/samples: the plan "
+        "would need about"),
+    "a negative memory budget": (lambda c: c.plan(c.case(), "--memory-budget-mb", "-5"), 2,
+                                 "--memory-budget-mb: expected a positive number"),
+    # -- files: YAML, special files, sizes ----------------------------------------------------
+    "an alias bomb under name": (lambda c: c.plan(c.case(text=_alias_bomb())), 2,
+                                 "YAML anchors and aliases are not supported"),
+    "a duplicated tolerance": (lambda c: c.plan(c.case(text=yaml.safe_dump(small_case()).replace(
+        "tolerance_mm: 1.0", "tolerance_mm: 1.0\n  tolerance_mm: 50"))), 2,
+        "site_check.tolerance_mm: duplicate key"),
+    "a 2 MB case file": (lambda c: c.plan(c.case(text=yaml.safe_dump(small_case())
+                                                 + "# " + "x" * 2_000_000 + "\n")), 2,
+                         "expected at most 1 MB"),
+    "case is /dev/zero": (lambda c: c.plan("/dev/zero"), 2, "case: '/dev/zero' is a device"),
+    "case is a FIFO": (lambda c: c.plan(str(_fifo(c.inputs))), 2, "is a FIFO (named pipe)"),
+    "case is a symlink loop": (lambda c: c.plan(str(_loop(c))), 2,
+                               "case: '%s' is a symbolic link loop"),
+    "mesh is /dev/zero": (lambda c: c.plan(c.case(small_case(**{"mesh.path": "/dev/zero"}))), 2,
+                          "mesh.path: '/dev/zero' is a device"),
+    "mesh is a FIFO": (lambda c: c.plan(c.case(small_case(**{
+        "mesh.path": str(_fifo(c.inputs, "scan.obj"))}))), 2, "mesh.path: "),
+    # -- what a clinician would stop at -------------------------------------------------------
+    "two sites at the same place": (
+        lambda c: c.plan(c.case(small_case(**{"sites.1.position_mm": SITE0}))), 2,
+        "sites[1].position_mm: site '46' lies 0.00 mm from site '36'; expected at least 5.5"),
+    "sites 4 mm apart": (lambda c: c.plan(c.case(small_case(**{
+        "sites.1.position_mm": [SITE0[0] - 4.0, SITE0[1], SITE0[2]]}))), 2,
+        "sites[1].position_mm"),
+    "no clearance margin": (lambda c: c.plan(c.case(small_case(**{"safety.clearance_mm": 0}))),
+                            2, "safety.clearance_mm: 0 mm is below 0.5 mm"),
+    "margin 0.3 mm": (lambda c: c.plan(c.case(small_case(**{"safety.clearance_mm": 0.3}))), 2,
+                      "--accept-small-margin"),
+    "a scan with 30% of its faces missing": (
+        lambda c: c.plan(c.case(small_case(**{"mesh.path": _holey_scan(c, 0.3)}))), 2,
+        "mesh.close_open_cuts: the scan has"),
+    "the memory budget variable is not a number": (
+        lambda c: c.plan(c.case()), 2, "IMPLANTPLAN_MEMORY_BUDGET_MB: expected a positive"),
+}
+ENV = {"the memory budget variable is not a number": {"IMPLANTPLAN_MEMORY_BUDGET_MB": "lots"}}
+
+# entries that plan (each a few seconds on the small case, legitimately more than 10 s on a busy
+# machine): exit 3
+PLANNING_TIMEOUT = 90
+PLANNING = {
+    "no base reaches the sites": (
+        lambda c: c.plan(c.case(small_case(**{"robot.scenario": _far_scenario(c)}))), 3,
+        "planning failed: no base position in the bounds"),
+}
+SWEEP = {
+    "a failed check exits 3 (30% of the scan missing, accepted)": (
+        lambda c: c.plan(c.case(small_case(**{"mesh.path": _holey_scan(c, 0.3)})),
+                         "--accept-repairs"), 3, "(failed: "),
+}
+
+
+def _snapshot(root: Path, skip: Path) -> dict:
+    """Every path under ``root`` but ``skip``'s contents -> (size, mtime) for files and links
+    (not followed), None for folders (a staging folder made and removed again changes its
+    folder's mtime, not its entries)."""
+    out = {}
+    for dirpath, dirnames, filenames in os.walk(root):
+        if Path(dirpath) == skip:
+            dirnames[:] = []
+            continue
+        for name in dirnames + filenames:
+            p = Path(dirpath) / name
+            st = p.lstat()
+            out[str(p.relative_to(root))] = (None if p.is_dir() and not p.is_symlink()
+                                             else (st.st_size, st.st_mtime_ns))
+    return out
+
+
+def _prepare(base: Path, name: str, entries: dict) -> tuple[Ctx, dict]:
+    root = base / name.replace(" ", "_").replace("/", "_").replace(".", "dot")
+    ctx = Ctx(root, root / "inputs", root / "cwd", root / "outs" / "plan")
+    for folder in (ctx.inputs, ctx.cwd, ctx.out):
+        folder.mkdir(parents=True)
+    mark(ctx.out, "plan")
+    (ctx.out / "plan.json").write_bytes(PREVIOUS)
+    make, code, message = entries[name]
+    argv = make(ctx)
+    message = message.replace("%s", argv[1])
+    run = {"id": name, "argv": argv, "cwd": str(ctx.cwd), "timeout": TIMEOUT,
+           "env": ENV.get(name, {})}
+    return ctx, {"run": run, "code": code, "message": message,
+                 "before": _snapshot(root, ctx.out)}
+
+
+def _run_harness(base: Path, entries: dict, logs: Path, timeouts: dict | None = None) -> dict:
+    """Every entry in one harness subprocess (limited to :data:`AS_LIMIT`), each run in its own
+    fork with its timeout (``timeouts[name]``, else :data:`TIMEOUT`)."""
+    timeouts = timeouts or {}
+    prepared = {name: _prepare(base, name, entries) for name in entries}
+    (base / "capture").mkdir()
+    runs = [p[1]["run"] | {"timeout": timeouts.get(name, TIMEOUT),
+                           "capture": str(base / "capture" / str(i))}
+            for i, (name, p) in enumerate(prepared.items())]
+    runs_path, results_path = base / "runs.json", base / "results.json"
+    runs_path.write_text(json.dumps(runs))
+    env = dict(os.environ, IMPLANTPLAN_LOG_DIR=str(logs))
+    env.pop("IMPLANTPLAN_MEMORY_BUDGET_MB", None)
+    subprocess.run([sys.executable, str(HARNESS), str(runs_path), str(results_path)], env=env,
+                   preexec_fn=_limit_memory, check=True,
+                   timeout=60 + sum(run["timeout"] for run in runs))
+    results = json.loads(results_path.read_text())
+    return {name: (ctx, info, results[name]) for name, (ctx, info) in prepared.items()}
+
+
+@pytest.fixture(scope="module")
+def catalogue(tmp_path_factory):
+    base = tmp_path_factory.mktemp("hostile")
+    logs = base / "logs"
+    return _run_harness(base, CATALOGUE | PLANNING, logs,
+                        timeouts={name: PLANNING_TIMEOUT for name in PLANNING}), logs
+
+
+def _assert_clean_failure(ctx: Ctx, info: dict, result: dict, logs: Path) -> None:
+    assert result["signal"] is None, f"killed by signal {result['signal']} (timeout or memory)"
+    assert result["code"] == info["code"], result["stderr"]
+    err = result["stderr"]
+    assert "Traceback" not in err and "Error:" not in err.replace("error:", ""), err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1, err  # one line
+    assert info["message"] in lines[0], lines[0]
+    assert lines[0].startswith("implantplan: "), lines[0]
+    assert (ctx.out / "plan.json").read_bytes() == PREVIOUS  # the previous plan intact
+    assert sorted(p.name for p in ctx.out.iterdir()) == sorted([MARKER, "plan.json"])
+    assert _snapshot(ctx.root, ctx.out) == info["before"]  # nothing written anywhere else
+    assert not list(ctx.cwd.iterdir())
+    assert result["max_rss_mb"] < AS_LIMIT / 2**20
+    assert not logs.exists() or not list(logs.iterdir())  # no internal error
+
+
+@pytest.mark.parametrize("name", list(CATALOGUE) + list(PLANNING))
+def test_a_hostile_input_fails_cleanly(name, catalogue):
+    results, logs = catalogue
+    ctx, info, result = results[name]
+    _assert_clean_failure(ctx, info, result, logs)
+
+
+def test_the_catalogue_has_at_least_40_hostile_inputs():
+    assert len(CATALOGUE) + len(PLANNING) + len(SWEEP) >= 40
+
+
+def test_the_escaping_name_wrote_nothing_above(catalogue):
+    results, _ = catalogue
+    ctx = results["site name escapes"][0]
+    for folder in [ctx.root, *ctx.root.parents][:6]:
+        assert not (folder / "ESCAPED").exists()
+
+
+def test_the_patients_files_are_kept(catalogue):
+    results, _ = catalogue
+    ctx = results["out holds the patient's files"][0]
+    folder = ctx.root / "outs" / "patient42"
+    assert sorted(p.name for p in folder.iterdir()) == ["consent_form.pdf", "scan.obj"]
+    err = results["out holds the patient's files"][2]["stderr"]
+    assert "'consent_form.pdf'" in err and "--force" in err
+
+
+@pytest.mark.sweep
+def test_a_failed_check_exits_3_and_is_marked(tmp_path):
+    logs = tmp_path / "logs"
+    results = _run_harness(tmp_path, SWEEP, logs, timeouts={name: 300 for name in SWEEP})
+    for ctx, info, result in results.values():
+        assert result["code"] == info["code"], result["stderr"]
+        assert info["message"] in result["stdout"], result["stdout"]
+        plan = json.loads((ctx.out / "plan.json").read_text())
+        assert not plan["passed"] and plan["acknowledged"][0]["flag"] == "--accept-repairs"
+        assert "Traceback" not in result["stderr"]
+
+
+# -- signals -------------------------------------------------------------------------------------
+
+
+def _start_plan(tmp_path: Path, out: Path) -> subprocess.Popen:
+    case = tmp_path / "case.yaml"
+    case.write_text(yaml.safe_dump(small_case()))
+    env = dict(os.environ, IMPLANTPLAN_LOG_DIR=str(tmp_path / "logs"))
+    return subprocess.Popen([sys.executable, "-m", "implantplan.analyses.cli", "plan", str(case),
+                             "--out", str(out), "--no-figures"], cwd=tmp_path, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            preexec_fn=_limit_memory)
+
+
+def _staging(out: Path) -> list[Path]:
+    return sorted(out.parent.glob(f".{out.name}.{STAGING}-*"))
+
+
+def _wait_for_staging(proc: subprocess.Popen, out: Path) -> None:
+    """Until the run has made its staging folder and started fitting (the first stage)."""
+    for _ in range(600):
+        if _staging(out) and any((s / MARKER).is_file() for s in _staging(out)):
+            return
+        assert proc.poll() is None, proc.communicate()
+        time.sleep(0.05)
+    raise AssertionError("the plan made no staging folder in 30 s")
+
+
+def _previous_plan(tmp_path: Path) -> Path:
+    out = tmp_path / "outs" / "plan"
+    out.mkdir(parents=True)
+    mark(out, "plan")
+    (out / "plan.json").write_bytes(PREVIOUS)
+    return out
+
+
+def test_sigterm_stops_a_plan_and_cleans_up(tmp_path):
+    out = _previous_plan(tmp_path)
+    proc = _start_plan(tmp_path, out)
+    _wait_for_staging(proc, out)
+    time.sleep(0.3)  # inside the FPSM fit
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=30)
+    print(f"exited {time.monotonic() - t0:.2f} s after SIGTERM")
+    assert proc.returncode == 143, err
+    assert "terminated (SIGTERM)" in err.decode() and "Traceback" not in err.decode()
+    assert _staging(out) == []
+    assert (out / "plan.json").read_bytes() == PREVIOUS
+    assert sorted(p.name for p in out.parent.iterdir()) == ["plan"]
+
+
+def test_the_run_after_a_sigkill_removes_its_leftovers(tmp_path):
+    out = _previous_plan(tmp_path)
+    proc = _start_plan(tmp_path, out)
+    _wait_for_staging(proc, out)
+    proc.kill()
+    proc.communicate(timeout=30)
+    left = _staging(out)
+    assert len(left) == 1 and (out / "plan.json").read_bytes() == PREVIOUS
+    # the next run towards the same --out (here one that stops at its bad case) removes them
+    env = dict(os.environ, IMPLANTPLAN_LOG_DIR=str(tmp_path / "logs"))
+    rerun = subprocess.run([sys.executable, "-m", "implantplan.analyses.cli", "plan",
+                            str(tmp_path / "missing.yaml"), "--out", str(out)], cwd=tmp_path,
+                           env=env, capture_output=True, text=True, timeout=60,
+                           preexec_fn=_limit_memory)
+    assert rerun.returncode == 2 and "case: file" in rerun.stderr
+    assert _staging(out) == [] and sorted(p.name for p in out.parent.iterdir()) == ["plan"]
+    assert (out / "plan.json").read_bytes() == PREVIOUS
