@@ -39,7 +39,7 @@ import traceback
 from pathlib import Path
 
 from implantplan.analyses import out_folder
-from implantplan.analyses.progress import Progress
+from implantplan.analyses.progress import Progress, quiet_drake
 from implantplan.systems.capability import scaleout
 from implantplan.systems.errors import InputError, PlanningFailure
 from implantplan.systems.files import write_json, write_text_atomic
@@ -73,6 +73,8 @@ def plan_one(case_file: str, out_dir: str, runs: int | None, figures: bool,
     in, a plain record out; user errors and planning failures are the record, not exceptions)."""
     from implantplan.analyses.case import load_case
     from implantplan.analyses.plan import plan_case
+
+    quiet_drake()  # a worker process: Drake's INFO lines (Meshcat) dropped, repeats once
 
     t0 = time.perf_counter()
     rec = {"case": Path(case_file).stem, "case_file": str(case_file), "folder": str(out_dir),

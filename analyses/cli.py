@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import logging
 import os
 import signal
 import sys
@@ -23,6 +22,7 @@ import traceback
 from pathlib import Path
 
 from implantplan import __version__
+from implantplan.analyses.progress import quiet_drake
 from implantplan.systems.errors import InputError, PlanningFailure
 
 # Each top-level command, the module that registers it (``register(subparsers)``) and its help
@@ -132,16 +132,13 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     return parser
 
 
-def _warnings_and_up(record: logging.LogRecord) -> bool:
-    return record.levelno >= logging.WARNING
-
-
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     # Drake logs through Python's logging; its INFO lines ("Meshcat listening ...") are noise in
-    # a command's output: warnings and errors still show. A filter, because pydrake sets the
-    # logger's level when it is first imported.
-    logging.getLogger("drake").addFilter(_warnings_and_up)
+    # a command's output: warnings and errors still show, a repeated one once with its count at
+    # the end. A filter, because pydrake sets the logger's level when it is first imported.
+    noise = quiet_drake()
+    noise.reset()
     parser = build_parser(argv)
     args = parser.parse_args(argv)
     previous = None
@@ -177,6 +174,8 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
+        for line in noise.summary():
+            print(f"implantplan: {line}", file=sys.stderr)
     return int(code or 0)
 
 

@@ -58,10 +58,11 @@ def _kind_of(st: os.stat_result) -> str:
     return "a file"
 
 
-def check_out(out, *, force: bool = False, field: str = "--out") -> Path:
+def check_out(out, *, force: bool | None = False, field: str = "--out") -> Path:
     """``out`` checked as an output folder before any work (module docstring); returns it as an
     absolute path (symbolic links in its parents kept). Stale staging folders of earlier runs
-    towards it are removed."""
+    towards it are removed. ``force`` None: the command has no ``--force`` (a folder of the
+    user's is refused, and the message does not offer the flag)."""
     text = os.fspath(out) if out is not None else ""
     if not text.strip():
         raise InputError(field, "expected a folder path, got an empty text")
@@ -105,9 +106,9 @@ def check_out(out, *, force: bool = False, field: str = "--out") -> Path:
             if entries and not force:
                 shown = ", ".join(repr(e) for e in entries[:3])
                 more = f" and {len(entries) - 3} more" if len(entries) > 3 else ""
+                offer = "" if force is None else ", or --force to replace it"
                 raise InputError(field, f"{text!r} holds files implantplan did not write "
-                                 f"({shown}{more}); give a new or empty folder, or --force to "
-                                 "replace it")
+                                 f"({shown}{more}); give a new or empty folder{offer}")
     if path.parent.is_dir():
         remove_stale(path)
     return path
@@ -168,6 +169,15 @@ def remove_stale(out: Path) -> list[Path]:
             shutil.rmtree(entry, ignore_errors=True)
             removed.append(entry)
     return removed
+
+
+def claim(folder: Path, kind: str) -> Path:
+    """Make ``folder`` (checked by :func:`check_out` before the work) and mark it: the output
+    folder of a command that writes its files one by one (studies), not atomically."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    mark(folder, kind)
+    return folder
 
 
 def mark(folder: Path, kind: str) -> Path:

@@ -11,6 +11,7 @@ analyses.case), never a command module (tests/test_layers.py).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import time
 from dataclasses import dataclass, field
@@ -41,6 +42,31 @@ class FitResult:
     opened: trimesh.Trimesh  # after the jaw-opening model (the scanned mesh when 0 deg)
     fpsm: Fpsm  # its X_WC is the Center frame in the mesh frame
     seconds: float
+
+
+# The FPSM core's field names and the `fpsm fit` command's flags in its messages -> the case's
+# keys: a case file's user is told what to change in the case.
+CASE_KEYS = {
+    "mesh": "mesh.path", "center_origin": "center.origin_mm", "z_range": "fpsm.z_range_mm",
+    "margin": "fpsm.margin_mm", "cap_radius": "mesh.cap_radius_mm", "samples": "fpsm.samples",
+    "slices": "fpsm.slices", "control_points": "fpsm.control_points",
+    "--cap-radius-mm": "mesh.cap_radius_mm", "--close-open-cuts": "mesh.close_open_cuts: true",
+    "--z-range-mm": "fpsm.z_range_mm", "Pass ": "Set ",
+}
+
+
+@contextlib.contextmanager
+def case_keys():
+    """Re-raise an InputError of a core called on a case with the case's keys for the core's
+    field names and the command flags its message suggests (:data:`CASE_KEYS`)."""
+    try:
+        yield
+    except InputError as exc:
+        message = exc.message
+        for old, new in CASE_KEYS.items():
+            if old.startswith(("-", "Pass")):
+                message = message.replace(old, new)
+        raise InputError(CASE_KEYS.get(exc.field, exc.field), message) from None
 
 
 MAX_OPEN_EDGE_SHARE = 0.03  # a scan's open boundary edges, share of its edges, closed unasked
@@ -95,19 +121,20 @@ def fit_stage(case: Case, *, progress=None, accept_repairs: bool = False,
                           "what": f"{repairs['loops']} open boundary loops closed "
                                   f"({repairs['share']:.1%} of the scan's edges)"})
     X_WC = center_frame(center.origin, center.z_axis, x_hint=center.x_hint)
-    fpsm = fit_fpsm(
-        opened,
-        X_WC,
-        slices=fp.slices,
-        control_points=fp.control_points,
-        samples=fp.samples,
-        z_range=fp.z_range,
-        method=fp.method,
-        margin=fp.margin,
-        cap_radius=mesh.cap_radius,
-        close_open_cuts=mesh.close_open_cuts,
-        progress=progress,
-    )
+    with case_keys():
+        fpsm = fit_fpsm(
+            opened,
+            X_WC,
+            slices=fp.slices,
+            control_points=fp.control_points,
+            samples=fp.samples,
+            z_range=fp.z_range,
+            method=fp.method,
+            margin=fp.margin,
+            cap_radius=mesh.cap_radius,
+            close_open_cuts=mesh.close_open_cuts,
+            progress=progress,
+        )
     fpsm.settings["mesh_units"] = mesh.units
     return FitResult(scanned, opened, fpsm, time.perf_counter() - t0)
 

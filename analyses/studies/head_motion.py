@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from implantplan.analyses import out_folder
 from implantplan.diagrams import feeding as F
 from implantplan.diagrams.teleop import TeleopCase, build_teleop, simulate
 from implantplan.systems import seeds
@@ -371,12 +372,13 @@ def cmd_head_motion(args) -> int:
            "predict_samples": tracker.predict_samples,
            "noise_position": tracker.noise_position, "noise_angle": tracker.noise_angle}
     out = Path(args.out)
+    out_folder.check_out(out, force=None)  # before any work: a folder of the user's is refused
     if args.case == "cylinder":
         case, inst = default_case(args.seed)
         result = head_study(case, inst, profiles=profiles, runs=args.runs, seed=args.seed,
                             progress=progress, tracker=tracker)
         traces = result.pop("_traces")
-        out.mkdir(parents=True, exist_ok=True)
+        out_folder.claim(out, "head_motion")
         figs = {"cylinder": [p.name for p in plot_head(traces, out)]}
         study = {"case": "cylinder", "tracker": trk, **result}
         study["passed"] = _never_below_zero({"cylinder": result})
@@ -395,6 +397,7 @@ def cmd_head_motion(args) -> int:
             result = head_study(tc, None, profiles=profiles, runs=args.runs, seed=args.seed,
                                 progress=progress, cavity=cavity, tracker=tracker)
             traces = result.pop("_traces")
+            out_folder.claim(out, "head_motion")
             (out / tc.label).mkdir(parents=True, exist_ok=True)
             figs[tc.label] = [f"{tc.label}/{p.name}"
                               for p in plot_head(traces, out / tc.label)]
@@ -407,7 +410,7 @@ def cmd_head_motion(args) -> int:
     write_text_atomic(out / "report.html", render_head_motion(to_jsonable(study), figs))
     print(f"exact clearance never below 0 in any run: {'yes' if study['passed'] else 'NO'}; "
           f"wrote {out / 'head_motion.json'} and {out / 'report.html'}")
-    return 0
+    return 0 if study["passed"] else 3  # a failed check exits 3 (DESIGN.md section 3)
 
 
 def _never_below_zero(sites: dict) -> bool:

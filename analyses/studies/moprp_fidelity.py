@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from implantplan.analyses import out_folder
 from implantplan.analyses.progress import Progress
 from implantplan.systems import actuator, seeds
 from implantplan.systems.errors import InputError
@@ -276,10 +277,11 @@ def _cmd(args: argparse.Namespace) -> int:
     for name in ("draws", "random", "pool"):
         if getattr(args, name) < 1:
             raise InputError(f"--{name}", f"expected >= 1, got {getattr(args, name)}")
+    out_folder.check_out(args.out, force=None)  # before any work
     progress = Progress("moprp-fidelity", quiet=args.quiet)
     result = study(args.scenario, draws=args.draws, random_layouts=args.random, pool=args.pool,
                    seed=args.seed, progress=progress)
-    args.out.mkdir(parents=True, exist_ok=True)
+    out_folder.claim(args.out, "moprp_fidelity")
     write_json(args.out / "moprp_fidelity.json", result, kind="moprp_fidelity")
     plot(result, args.out / "moprp_fidelity.png")
     print(table_text(result))

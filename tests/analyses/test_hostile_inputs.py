@@ -254,6 +254,9 @@ CATALOGUE = {
     "a scan with 30% of its faces missing": (
         lambda c: c.plan(c.case(small_case(**{"mesh.path": _holey_scan(c, 0.3)}))), 2,
         "mesh.close_open_cuts: the scan has"),
+    "an open scan not closed": (
+        lambda c: c.plan(c.case(small_case(**{"mesh.close_open_cuts": False}))), 2,
+        "Set mesh.cap_radius_mm to cap those rays or mesh.close_open_cuts: true"),
     "the memory budget variable is not a number": (
         lambda c: c.plan(c.case()), 2, "IMPLANTPLAN_MEMORY_BUDGET_MB: expected a positive"),
 }
@@ -459,3 +462,49 @@ def test_the_run_after_a_sigkill_removes_its_leftovers(tmp_path):
     assert rerun.returncode == 2 and "case: file" in rerun.stderr
     assert _staging(out) == [] and sorted(p.name for p in out.parent.iterdir()) == ["plan"]
     assert (out / "plan.json").read_bytes() == PREVIOUS
+
+
+# -- noise ---------------------------------------------------------------------------------------
+
+
+def test_drake_info_is_dropped_and_a_repeated_warning_shows_once_with_its_count():
+    import logging
+
+    from implantplan.analyses.progress import DrakeNoise
+
+    logger = logging.Logger("drake-test")  # not the real "drake" logger: nothing else logs here
+    shown = []
+    handler = logging.Handler()
+    handler.emit = lambda record: shown.append(record.getMessage())
+    logger.addHandler(handler)
+    noise = DrakeNoise()
+    logger.addFilter(noise)
+    logger.info("Meshcat listening for connections at http://localhost:7000")
+    for t in range(94):
+        logger.warning(f"Differential IK is stuck at t = {t * 0.005:.3f} s (status 2)")
+    logger.warning("another warning")
+    assert shown == ["Differential IK is stuck at t = 0.000 s (status 2)", "another warning"]
+    assert noise.summary() == ["drake warning repeated 94 times in all (shown once): "
+                               "Differential IK is stuck at t = 0.000 s (status 2)"]
+    noise.reset()
+    assert noise.summary() == []
+
+
+def test_an_internal_error_is_one_line_naming_its_log(tmp_path, monkeypatch, capsys):
+    from implantplan.analyses import plan
+    from implantplan.analyses.cli import main
+
+    def bug(args):
+        raise ZeroDivisionError("a bug\nwith a second line")
+
+    monkeypatch.setattr(plan, "_cmd_plan", bug)
+    monkeypatch.setenv("IMPLANTPLAN_LOG_DIR", str(tmp_path / "logs"))
+    assert main(["plan", "case.yaml", "--out", str(tmp_path / "x")]) == 1
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert lines[0].startswith("implantplan: internal error: ZeroDivisionError: a bug (traceback "
+                               f"in {tmp_path / 'logs'}")
+    (log,) = (tmp_path / "logs").iterdir()
+    text = log.read_text()
+    assert "Traceback" in text and "ZeroDivisionError: a bug" in text and "'plan'" in text
