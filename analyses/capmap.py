@@ -46,7 +46,7 @@ from implantplan.systems.capability import rasscmap_inputs as rin
 from implantplan.systems.capability import scaleout
 from implantplan.systems.capability import setup_search as ss
 from implantplan.systems.capability import store as ms
-from implantplan.systems.errors import InputError, PlanningFailure
+from implantplan.systems.errors import InputError, PlanningFailure, fields_renamed
 from implantplan.systems.files import write_json
 from implantplan.systems.frames import invert
 
@@ -141,13 +141,18 @@ def build_map(
     return cmap, info
 
 
+BUILD_FLAGS = {"voxel": "--voxel-mm", "directions": "--directions", "rolls": "--rolls",
+               "limits": "--limits", "cell": "--cell"}
+
+
 def _cmd_build(args) -> int:
     t0 = time.perf_counter()
-    cmap, info = build_map(
-        args.voxel_mm, args.directions, args.limits, args.tool, args.rolls, args.workers,
-        self_collision=args.self_collision, cell=args.cell, scheduler=args.scheduler, out=args.out,
-        resume=args.resume, poses_per_block=args.block_poses,
-    )  # fmt: skip
+    with fields_renamed(BUILD_FLAGS):  # the core's names -> the flags typed
+        cmap, info = build_map(
+            args.voxel_mm, args.directions, args.limits, args.tool, args.rolls, args.workers,
+            self_collision=args.self_collision, cell=args.cell, scheduler=args.scheduler,
+            out=args.out, resume=args.resume, poses_per_block=args.block_poses,
+        )  # fmt: skip
     summary = {
         "out": str(args.out),
         "params": cmap.params.as_dict(),

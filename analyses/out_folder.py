@@ -98,6 +98,11 @@ def check_out(out, *, force: bool | None = False, field: str = "--out") -> Path:
     parent = _existing_ancestor(path.parent, text, field)
     if not os.access(parent, os.W_OK | os.X_OK):
         raise InputError(field, f"cannot write in {str(parent)!r} (permission denied)")
+    try:  # what permissions cannot tell (root, a read-only or special file system): try it
+        os.rmdir(tempfile.mkdtemp(prefix=".implantplan-probe-", dir=parent))
+    except OSError as exc:
+        raise InputError(field, f"cannot create a folder in {str(parent)!r}: "
+                         f"{exc.strerror or exc}") from None
     if st is not None:
         if not os.access(path, os.R_OK | os.W_OK | os.X_OK):
             raise InputError(field, f"cannot read and write {text!r} (permission denied)")

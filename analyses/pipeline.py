@@ -11,7 +11,6 @@ analyses.case), never a command module (tests/test_layers.py).
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import time
 from dataclasses import dataclass, field
@@ -25,7 +24,7 @@ from implantplan.diagrams.feeding import run_feeding
 from implantplan.diagrams.teleop import TeleopCase
 from implantplan.systems import actuator, seeds
 from implantplan.systems.capability import maps as cm
-from implantplan.systems.errors import InputError, PlanningFailure
+from implantplan.systems.errors import InputError, PlanningFailure, fields_renamed
 from implantplan.systems.fpsm.fit import fit_fpsm
 from implantplan.systems.fpsm.model import Fpsm
 from implantplan.systems.fpsm.oral_mesh import center_frame, load_oral_mesh, open_mouth
@@ -46,27 +45,14 @@ class FitResult:
 
 # The FPSM core's field names and the `fpsm fit` command's flags in its messages -> the case's
 # keys: a case file's user is told what to change in the case.
-CASE_KEYS = {
+CASE_FIELDS = {
     "mesh": "mesh.path", "center_origin": "center.origin_mm", "z_range": "fpsm.z_range_mm",
     "margin": "fpsm.margin_mm", "cap_radius": "mesh.cap_radius_mm", "samples": "fpsm.samples",
     "slices": "fpsm.slices", "control_points": "fpsm.control_points",
-    "--cap-radius-mm": "mesh.cap_radius_mm", "--close-open-cuts": "mesh.close_open_cuts: true",
-    "--z-range-mm": "fpsm.z_range_mm", "Pass ": "Set ",
 }
-
-
-@contextlib.contextmanager
-def case_keys():
-    """Re-raise an InputError of a core called on a case with the case's keys for the core's
-    field names and the command flags its message suggests (:data:`CASE_KEYS`)."""
-    try:
-        yield
-    except InputError as exc:
-        message = exc.message
-        for old, new in CASE_KEYS.items():
-            if old.startswith(("-", "Pass")):
-                message = message.replace(old, new)
-        raise InputError(CASE_KEYS.get(exc.field, exc.field), message) from None
+CASE_TEXTS = {"Pass --cap-radius-mm": "Set mesh.cap_radius_mm",
+              "--close-open-cuts": "mesh.close_open_cuts: true",
+              "--z-range-mm": "fpsm.z_range_mm"}
 
 
 MAX_OPEN_EDGE_SHARE = 0.03  # a scan's open boundary edges, share of its edges, closed unasked
@@ -121,7 +107,7 @@ def fit_stage(case: Case, *, progress=None, accept_repairs: bool = False,
                           "what": f"{repairs['loops']} open boundary loops closed "
                                   f"({repairs['share']:.1%} of the scan's edges)"})
     X_WC = center_frame(center.origin, center.z_axis, x_hint=center.x_hint)
-    with case_keys():
+    with fields_renamed(CASE_FIELDS, CASE_TEXTS):
         fpsm = fit_fpsm(
             opened,
             X_WC,

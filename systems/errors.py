@@ -8,6 +8,8 @@ the reason; neither is ever shown as a traceback.
 
 from __future__ import annotations
 
+import contextlib
+
 
 class InputError(ValueError):
     """Bad user input. ``field`` names what is wrong, the message says what was expected."""
@@ -25,3 +27,17 @@ class PlanningFailure(RuntimeError):
         self.reason = reason
         self.result = result
         super().__init__(reason)
+
+
+@contextlib.contextmanager
+def fields_renamed(fields: dict[str, str], texts: dict[str, str] | None = None):
+    """Re-raise an InputError raised inside the block with ``fields[field]`` for its field and
+    each ``texts`` key replaced by its value in its message: a core's own names (``voxel``,
+    ``z_range``) become what the user typed (``--voxel-mm``, ``fpsm.z_range_mm``)."""
+    try:
+        yield
+    except InputError as exc:
+        message = exc.message
+        for old, new in (texts or {}).items():
+            message = message.replace(old, new)
+        raise InputError(fields.get(exc.field, exc.field), message) from None

@@ -257,6 +257,22 @@ CATALOGUE = {
     "an open scan not closed": (
         lambda c: c.plan(c.case(small_case(**{"mesh.close_open_cuts": False}))), 2,
         "Set mesh.cap_radius_mm to cap those rays or mesh.close_open_cuts: true"),
+    # -- the other commands that write folders and maps ---------------------------------------
+    "demo into the patient's folder": (lambda c: ["demo", "--out", _user_folder(c), "--quiet"],
+                                       2, "--out: "),
+    "batch into the patient's folder": (
+        lambda c: ["batch", c.case(), "--out", _user_folder(c), "--quiet"], 2,
+        "holds files implantplan did not write"),
+    "batch into a symlink loop": (lambda c: ["batch", c.case(), "--out", str(_loop(c))], 2,
+                                  "--out: "),
+    "capmap voxels of 1 mm": (lambda c: ["capmap", "build", "--voxel-mm", "1", "--out",
+                                         str(c.root / "outs" / "map.h5")], 2,
+                              "--voxel-mm: expected a voxel edge in [5 mm, 500 mm]"),
+    "capmap 1e6 directions": (lambda c: ["capmap", "build", "--directions", "1000000", "--out",
+                                         str(c.root / "outs" / "map.h5")], 2, "--directions: "),
+    "head-motion study into the patient's folder": (
+        lambda c: ["analyze", "head-motion", "--out", _user_folder(c), "--quiet"], 2,
+        "give a new or empty folder"),
     "the memory budget variable is not a number": (
         lambda c: c.plan(c.case()), 2, "IMPLANTPLAN_MEMORY_BUDGET_MB: expected a positive"),
 }

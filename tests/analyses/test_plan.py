@@ -248,7 +248,7 @@ def test_an_unwritable_out_folder_is_exit_2_naming_out(where, tmp_path, capsys):
     case = _case(tmp_path)
     assert main(["plan", str(case), "--out", where, *FAST]) == 2
     err = capsys.readouterr().err
-    assert "--out: cannot create a plan folder" in err and "Traceback" not in err
+    assert "--out: cannot " in err and "Traceback" not in err
 
 
 def test_an_unreadable_case_file_is_exit_2_naming_the_case(tmp_path, capsys, monkeypatch):
