@@ -524,3 +524,11 @@ def test_an_internal_error_is_one_line_naming_its_log(tmp_path, monkeypatch, cap
     (log,) = (tmp_path / "logs").iterdir()
     text = log.read_text()
     assert "Traceback" in text and "ZeroDivisionError: a bug" in text and "'plan'" in text
+
+
+def test_help_states_the_exit_codes():
+    from implantplan.analyses.cli import build_parser
+
+    text = " ".join(build_parser([]).format_help().split())
+    assert ("exit codes: 0 every check passes; 3 a planning failure or a failed check; 2 bad "
+            "input") in text
