@@ -532,3 +532,33 @@ def test_help_states_the_exit_codes():
     text = " ".join(build_parser([]).format_help().split())
     assert ("exit codes: 0 every check passes; 3 a planning failure or a failed check; 2 bad "
             "input") in text
+
+
+def test_sigterm_stops_a_capmap_build_and_keeps_only_its_resumable_blocks(tmp_path):
+    """``capmap build`` stopped by SIGTERM as by Ctrl-C: exit 143, no map and no temporary file;
+    the finished blocks stay in the store beside the map for ``--resume`` (by design)."""
+    out = tmp_path / "map.h5"
+    proc = subprocess.Popen([sys.executable, "-m", "implantplan.analyses.cli", "capmap", "build",
+                             "--voxel-mm", "50", "--directions", "20", "--cell", "centre",
+                             "--workers", "1", "--block-poses", "2000", "--out", str(out)],
+                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            preexec_fn=_limit_memory)
+    for _ in range(1200):
+        stores = list(tmp_path.glob("map.h5.blocks-*"))
+        if stores and list(stores[0].glob("block-*.npz")):
+            break
+        assert proc.poll() is None, proc.communicate()
+        time.sleep(0.05)
+    else:
+        raise AssertionError("no block finished in 60 s")
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143, err
+    assert "Traceback" not in err.decode()
+    assert not out.exists()
+    (store,) = [p for p in tmp_path.iterdir()]
+    assert store.name.startswith("map.h5.blocks-")
+    names = [p.name for p in store.iterdir()]
+    assert "manifest.json" in names and len(names) >= 2
+    assert all(n == "manifest.json" or (n.startswith("block-") and n.endswith(".npz"))
+               for n in names), names  # no temporary file of a half-written block
