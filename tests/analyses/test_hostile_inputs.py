@@ -562,3 +562,30 @@ def test_sigterm_stops_a_capmap_build_and_keeps_only_its_resumable_blocks(tmp_pa
     assert "manifest.json" in names and len(names) >= 2
     assert all(n == "manifest.json" or (n.startswith("block-") and n.endswith(".npz"))
                for n in names), names  # no temporary file of a half-written block
+
+
+@pytest.mark.sweep  # plans a case and starts the studio's servers: ~50 s at load
+def test_sigterm_stops_the_studio(tmp_path):
+    """The studio serving a case it planned stops on SIGTERM as on Ctrl-C (it closes its
+    servers and exits), its plan folder kept."""
+    case = tmp_path / "case.yaml"
+    case.write_text(yaml.safe_dump(small_case()))
+    printed = tmp_path / "printed.txt"
+    with printed.open("wb") as stdout:
+        proc = subprocess.Popen([sys.executable, "-m", "implantplan.analyses.cli", "studio",
+                                 str(case), "--out", str(tmp_path / "plan"), "--quiet"],
+                                cwd=tmp_path, stdout=stdout, stderr=subprocess.STDOUT,
+                                preexec_fn=_limit_memory)
+        for _ in range(2400):
+            if "studio: http" in printed.read_text(errors="replace"):
+                break
+            assert proc.poll() is None, printed.read_text()
+            time.sleep(0.05)
+        else:
+            raise AssertionError("the studio did not start in 120 s")
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=60)
+    text = printed.read_text(errors="replace")
+    assert "studio: closed" in text and "Traceback" not in text, text
+    assert (tmp_path / "plan" / "plan.json").is_file() and (tmp_path / "plan" / MARKER).is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["case.yaml", "plan", "printed.txt"]
