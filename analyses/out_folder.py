@@ -42,9 +42,27 @@ OLD = "implantplan-old"
 _LEFTOVER = re.compile(rf"^\.(?P<name>.+)\.(?:{STAGING}|{OLD})-(?P<pid>\d+)-[A-Za-z0-9_]+$")
 
 
+# What a plan folder written before the marker existed holds (plan, demo, studio recordings)
+_PLAN_ENTRIES = re.compile(r"^(plan\.json|fpsm\.json|report\.html|layout\.html|figures|"
+                           r"recordings|scene_[A-Za-z0-9_.-]+\.html)$")
+
+
 def is_project_folder(path: Path) -> bool:
-    """``path`` is a folder the project made (it holds :data:`MARKER`)."""
-    return (Path(path) / MARKER).is_file()
+    """``path`` is a folder the project made: it holds :data:`MARKER`, or it is a plan folder
+    of a version before the marker (a ``plan.json`` of kind "plan" and nothing but the entries a
+    plan folder has)."""
+    path = Path(path)
+    if (path / MARKER).is_file():
+        return True
+    try:
+        entries = os.listdir(path)
+        if "plan.json" not in entries or not all(_PLAN_ENTRIES.match(e) for e in entries):
+            return False
+        with open(path / "plan.json", encoding="utf-8") as f:
+            head = f.read(200)
+    except (OSError, UnicodeDecodeError):
+        return False
+    return re.search(r'"kind":\s*"plan"', head) is not None
 
 
 def _kind_of(st: os.stat_result) -> str:

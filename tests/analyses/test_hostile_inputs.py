@@ -589,3 +589,22 @@ def test_sigterm_stops_the_studio(tmp_path):
     assert "studio: closed" in text and "Traceback" not in text, text
     assert (tmp_path / "plan" / "plan.json").is_file() and (tmp_path / "plan" / MARKER).is_file()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["case.yaml", "plan", "printed.txt"]
+
+
+def test_a_plan_folder_from_before_the_marker_is_the_projects_and_a_mixed_one_is_not(tmp_path):
+    from implantplan.analyses.out_folder import check_out, is_project_folder
+
+    old = tmp_path / "old"
+    (old / "figures").mkdir(parents=True)
+    (old / "plan.json").write_bytes(PREVIOUS)
+    (old / "report.html").write_text("<html></html>")
+    (old / "scene_36.html").write_text("<html></html>")
+    assert is_project_folder(old) and check_out(old) == old
+    (old / "consent_form.pdf").write_bytes(b"%PDF")
+    assert not is_project_folder(old)
+    with pytest.raises(Exception, match="consent_form.pdf"):
+        check_out(old)
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "plan.json").write_text('{"kind": "capmap_plan"}')
+    assert not is_project_folder(other)
