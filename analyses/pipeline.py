@@ -12,6 +12,7 @@ analyses.case), never a command module (tests/test_layers.py).
 from __future__ import annotations
 
 import dataclasses
+import re
 import time
 from dataclasses import dataclass, field
 
@@ -171,7 +172,19 @@ def placement_stage(case: Case, fpsm: Fpsm, *, progress=None, require_valid: boo
                 exact=exact,
             )
         except InputError as exc:  # name the case's field, not the placement's argument
-            raise InputError(f"sites[{k}] (site {site.name})", str(exc)) from None
+            message = str(exc)
+            if exc.field == "hole" and "outside the model" in exc.message:
+                # the site passed the scan check (site_stage): what is wrong is the surrogate
+                core = re.sub(r"\(tolerance ([\d.]+) mm\)", r"(the placement allows \1 mm)",
+                              exc.message.replace("the model", "the FPSM").replace(
+                                  "; expected a site on the cavity wall", ""))
+                message = (f"{core} although it lies on "
+                           f"the scanned tissue (within site_check.tolerance_mm "
+                           f"{case.site_check.tolerance * 1e3:g} mm): the fitted cavity does "
+                           "not reach the site (a wall between the mouth opening and the site, "
+                           "a large fpsm.margin_mm, or fpsm.z_range_mm / center.origin_mm "
+                           "missing it)")
+            raise InputError(f"sites[{k}] (site {site.name})", message) from None
         if progress is not None:
             progress.step(k, len(case.sites), f"site {site.name}: d_T {p.d_T * 1e3:.1f} mm, "
                           f"theta_T {np.rad2deg(p.theta_T):.1f} deg, F_safe {p.F_safe:.4f}, "

@@ -273,6 +273,10 @@ CATALOGUE = {
     "head-motion study into the patient's folder": (
         lambda c: ["analyze", "head-motion", "--out", _user_folder(c), "--quiet"], 2,
         "give a new or empty folder"),
+    "an FPSM that does not reach the site": (
+        lambda c: c.plan(c.case(small_case(**{"fpsm.margin_mm": 8.0}))), 2,
+        "outside the FPSM (the placement allows 5.000 mm) although it lies on the scanned "
+        "tissue (within site_check.tolerance_mm 1 mm)"),
     "the memory budget variable is not a number": (
         lambda c: c.plan(c.case()), 2, "IMPLANTPLAN_MEMORY_BUDGET_MB: expected a positive"),
 }
