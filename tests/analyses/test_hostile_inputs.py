@@ -612,3 +612,22 @@ def test_a_plan_folder_from_before_the_marker_is_the_projects_and_a_mixed_one_is
     other.mkdir()
     (other / "plan.json").write_text('{"kind": "capmap_plan"}')
     assert not is_project_folder(other)
+
+
+def test_sigterm_stops_a_batch_and_cleans_up(tmp_path):
+    """``batch`` on this process (``--workers 1``) stopped by SIGTERM while a case plans: exit
+    143, the case's staging folder removed, no summary written (the batch did not finish)."""
+    case = tmp_path / "case.yaml"
+    case.write_text(yaml.safe_dump(small_case()))
+    out = tmp_path / "study"
+    proc = subprocess.Popen([sys.executable, "-m", "implantplan.analyses.cli", "batch", str(case),
+                             "--workers", "1", "--no-figures", "--quiet", "--out", str(out)],
+                            cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            preexec_fn=_limit_memory)
+    _wait_for_staging(proc, out / "case")
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 143, err
+    assert "Traceback" not in err.decode()
+    assert sorted(p.name for p in out.iterdir()) == [MARKER]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["case.yaml", "study"]
