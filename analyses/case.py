@@ -22,6 +22,7 @@ import numpy as np
 
 from implantplan import models
 from implantplan.systems import validate as v
+from implantplan.systems.anatomy.cbct import is_volume_path
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import read_yaml
 from implantplan.systems.robot.scenario import load_scenario
@@ -31,8 +32,9 @@ MM = 1e-3
 DEFAULT_CASE = "cases/default.yaml"  # under models/
 
 
-def resolve_path(value: str, base_dir: Path, field_name: str) -> Path:
-    """``package://implantplan/REL`` -> models/REL; a relative path is relative to the case file."""
+def resolve_path(value: str, base_dir: Path, field_name: str, *, folder_ok: bool = False) -> Path:
+    """``package://implantplan/REL`` -> models/REL; a relative path is relative to the case file.
+    With ``folder_ok`` a folder is accepted too (a DICOM series)."""
     if not isinstance(value, str) or not value:
         raise InputError(field_name, f"expected a file path, got {value!r}")
     prefix = "package://implantplan/"
@@ -42,8 +44,9 @@ def resolve_path(value: str, base_dir: Path, field_name: str) -> Path:
         path = Path(value).expanduser()
         if not path.is_absolute():
             path = base_dir / path
-    if not path.is_file():
-        raise InputError(field_name, f"file {str(path)!r} does not exist")
+    if not (path.is_file() or (folder_ok and path.is_dir())):
+        what = "file or folder" if folder_ok else "file"
+        raise InputError(field_name, f"{what} {str(path)!r} does not exist")
     return path
 
 
@@ -64,7 +67,10 @@ def load_case(path) -> Case:
 @dataclass(frozen=True)
 class MeshSection:
     """``mesh:`` the oral scan and the jaw-opening model (systems.fpsm.oral_mesh.open_mouth).
-    ``path`` is the text of the file; in a loaded :class:`Case`, the file it names."""
+    ``path`` is the text of the file; in a loaded :class:`Case`, the file it names. A DICOM
+    series folder or a NIfTI file is a CBCT (systems.anatomy.cbct): its surfaces are extracted
+    at ``air_threshold_hu`` (the oral cavity's air/tissue boundary) and ``bone_threshold_hu``,
+    and the case's frames are DICOM's patient frame (LPS, mm; ``units`` must be mm)."""
 
     path: str | Path = v.spec(v.text)
     units: str = v.spec(v.one_of("mm", "m"), "mm")
@@ -76,6 +82,8 @@ class MeshSection:
     occlusal_point: np.ndarray | None = v.spec(v.vec3, None, key="occlusal_point_mm", scale=MM)
     occlusal_normal: np.ndarray | None = v.spec(v.direction, None)
     blend: float = v.spec(v.positive, 20.0, key="opening_blend_mm", scale=MM)
+    air_threshold_hu: float = v.spec(partial(v.number, low=-1000.0, high=0.0), -500.0)
+    bone_threshold_hu: float = v.spec(partial(v.number, low=100.0, high=2000.0), 300.0)
 
     @property
     def opening(self) -> dict:
@@ -251,6 +259,11 @@ def case_from_dict(data: dict, *, source: Path) -> Case:
             if value is None:
                 raise InputError(f"mesh.{key}", "missing (required)")
 
+    mesh = replace(mesh, path=resolve_path(mesh.path, base_dir, "mesh.path", folder_ok=True))
+    if is_volume_path(mesh.path) and mesh.units != "mm":
+        raise InputError("mesh.units", f"{mesh.units!r} for a CBCT; expected 'mm' (DICOM's "
+                         "patient frame is in mm)")
+
     sites, names = [], set()
     for k, s in enumerate(case.sites):
         name = f"site{k + 1}" if s.name is None else s.name
@@ -279,7 +292,7 @@ def case_from_dict(data: dict, *, source: Path) -> Case:
         instrument=instrument,
         name=source.stem if case.name is None else case.name,
         source=source,
-        mesh=replace(mesh, path=resolve_path(mesh.path, base_dir, "mesh.path")),
+        mesh=mesh,
         sites=tuple(sites),
         robot=replace(case.robot, scenario=scenario),
     )
