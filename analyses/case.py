@@ -127,6 +127,12 @@ class Site:
     axis: np.ndarray = v.spec(v.direction)
     implant_length: float = v.spec(v.positive, 31.0, key="implant_length_mm", scale=MM)
     rod_radius: float = v.spec(v.nonneg, 6.0, key="rod_radius_mm", scale=MM)
+    # the planned implant placed at the site (plan.dcm and its STL): diameter and length
+    # (implant_length_mm is the instrument's d12, the path of its tip, seed 000)
+    implant_diameter: float = v.spec(partial(v.number, low=2.0, high=8.0), 4.0,
+                                     key="implant_diameter_mm", scale=MM)
+    planned_length: float = v.spec(partial(v.number, low=4.0, high=25.0), 10.0,
+                                   key="planned_length_mm", scale=MM)
 
 
 @dataclass(frozen=True)
@@ -145,7 +151,12 @@ class PlacementSection:
 
 @dataclass(frozen=True)
 class PatientSection:
+    """``patient:`` the posture; ``id`` and ``name`` label plan.dcm when the scan is not a DICOM
+    series (a series' own identifiers win)."""
+
     posture: str = v.spec(v.one_of("lying", "sitting"), "lying")
+    id: str | None = v.spec(v.text, None)
+    name: str | None = v.spec(v.text, None)
 
 
 @dataclass(frozen=True)
