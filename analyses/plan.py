@@ -209,7 +209,8 @@ def write_plan_dicom(case: Case, fit, out: Path) -> dict:
     ids = StudyIds(
         patient_id=info.get("patient_id") or case.patient.id or case.name,
         patient_name=info.get("patient_name") or case.patient.name or case.name,
-        study_uid=info.get("study_instance_uid") or str(generate_uid()),
+        study_uid=info.get("study_instance_uid")
+        or str(generate_uid(entropy_srcs=["implantplan", str(case.name), str(case.seed)])),
         study_id=info.get("study_id") or "1",
         accession_number=info.get("accession_number", ""),
         frame_uid=(info.get("frame_of_reference_uid") or None)
