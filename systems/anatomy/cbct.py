@@ -64,6 +64,15 @@ def is_volume_path(path) -> bool:
     return path.is_dir() or path.name.lower().endswith(NIFTI_SUFFIXES)
 
 
+def scan_files(path) -> list[Path]:
+    """The files a scan path stands for (provenance hashes them): the file, or a series folder's
+    files in name order."""
+    path = Path(path)
+    if path.is_dir():
+        return sorted(p for p in path.iterdir() if p.is_file() and not p.name.startswith("."))
+    return [path]
+
+
 def read_volume(path, *, field: str = "mesh.path") -> Volume:
     """A DICOM series folder or a NIfTI file as a :class:`Volume`."""
     path = Path(path)
@@ -109,7 +118,7 @@ def read_dicom_series(folder, *, field: str = "mesh.path") -> Volume:
     import pydicom
 
     folder = Path(folder)
-    files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
+    files = scan_files(folder)
     if not files:
         raise InputError(field, f"{folder}: the folder holds no DICOM files")
     if len(files) > MAX_FILES:
