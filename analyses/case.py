@@ -22,6 +22,7 @@ import numpy as np
 
 from implantplan import models
 from implantplan.systems import validate as v
+from implantplan.systems.anatomy.cbct import is_volume_path
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import MAX_MESH_BYTES, input_file, read_yaml
 from implantplan.systems.robot.scenario import load_scenario
@@ -38,8 +39,9 @@ _coord = partial(v.vector, n=3, limit=COORD_MM)
 _length_mm = partial(v.number, positive=True, high=1000.0)
 
 
-def resolve_path(value: str, base_dir: Path, field_name: str) -> Path:
-    """``package://implantplan/REL`` -> models/REL; a relative path is relative to the case file."""
+def resolve_path(value: str, base_dir: Path, field_name: str, *, folder_ok: bool = False) -> Path:
+    """``package://implantplan/REL`` -> models/REL; a relative path is relative to the case file.
+    With ``folder_ok`` a folder is accepted too (a DICOM series)."""
     if not isinstance(value, str) or not value:
         raise InputError(field_name, f"expected a file path, got {value!r}")
     prefix = "package://implantplan/"
@@ -49,6 +51,8 @@ def resolve_path(value: str, base_dir: Path, field_name: str) -> Path:
         path = Path(value).expanduser()
         if not path.is_absolute():
             path = base_dir / path
+    if folder_ok and path.is_dir():
+        return path  # a DICOM series folder (its files are checked when the series is read)
     return input_file(path, field_name, max_bytes=MAX_MESH_BYTES)
 
 
@@ -69,7 +73,10 @@ def load_case(path) -> Case:
 @dataclass(frozen=True)
 class MeshSection:
     """``mesh:`` the oral scan and the jaw-opening model (systems.fpsm.oral_mesh.open_mouth).
-    ``path`` is the text of the file; in a loaded :class:`Case`, the file it names."""
+    ``path`` is the text of the file; in a loaded :class:`Case`, the file it names. A DICOM
+    series folder or a NIfTI file is a CBCT (systems.anatomy.cbct): its surfaces are extracted
+    at ``air_threshold_hu`` (the oral cavity's air/tissue boundary) and ``bone_threshold_hu``,
+    and the case's frames are DICOM's patient frame (LPS, mm; ``units`` must be mm)."""
 
     path: str | Path = v.spec(v.text)
     units: str = v.spec(v.one_of("mm", "m"), "mm")
@@ -82,6 +89,8 @@ class MeshSection:
     occlusal_point: np.ndarray | None = v.spec(_coord, None, key="occlusal_point_mm", scale=MM)
     occlusal_normal: np.ndarray | None = v.spec(v.direction, None)
     blend: float = v.spec(_length_mm, 20.0, key="opening_blend_mm", scale=MM)
+    air_threshold_hu: float = v.spec(partial(v.number, low=-1000.0, high=0.0), -500.0)
+    bone_threshold_hu: float = v.spec(partial(v.number, low=100.0, high=2000.0), 300.0)
 
     @property
     def opening(self) -> dict:
@@ -134,6 +143,12 @@ class Site:
                                    key="implant_length_mm", scale=MM)
     rod_radius: float = v.spec(partial(v.number, nonneg=True, high=20.0), 6.0,
                                key="rod_radius_mm", scale=MM)
+    # the planned implant placed at the site (plan.dcm and its STL): diameter and length
+    # (implant_length_mm is the instrument's d12, the path of its tip, seed 000)
+    implant_diameter: float = v.spec(partial(v.number, low=2.0, high=8.0), 4.0,
+                                     key="implant_diameter_mm", scale=MM)
+    planned_length: float = v.spec(partial(v.number, low=4.0, high=25.0), 10.0,
+                                   key="planned_length_mm", scale=MM)
 
 
 @dataclass(frozen=True)
@@ -153,7 +168,12 @@ class PlacementSection:
 
 @dataclass(frozen=True)
 class PatientSection:
+    """``patient:`` the posture; ``id`` and ``name`` label plan.dcm when the scan is not a DICOM
+    series (a series' own identifiers win)."""
+
     posture: str = v.spec(v.one_of("lying", "sitting"), "lying")
+    id: str | None = v.spec(v.text, None)
+    name: str | None = v.spec(v.text, None)
 
 
 @dataclass(frozen=True)
@@ -299,6 +319,11 @@ def case_from_dict(data: dict, *, source: Path) -> Case:
             if value is None:
                 raise InputError(f"mesh.{key}", "missing (required)")
 
+    mesh = replace(mesh, path=resolve_path(mesh.path, base_dir, "mesh.path", folder_ok=True))
+    if is_volume_path(mesh.path) and mesh.units != "mm":
+        raise InputError("mesh.units", f"{mesh.units!r} for a CBCT; expected 'mm' (DICOM's "
+                         "patient frame is in mm)")
+
     sites, names = [], set()
     for k, s in enumerate(case.sites):
         name = f"site{k + 1}" if s.name is None else s.name
@@ -328,7 +353,7 @@ def case_from_dict(data: dict, *, source: Path) -> Case:
         instrument=instrument,
         name=_stem_name(source) if case.name is None else case.name,
         source=source,
-        mesh=replace(mesh, path=resolve_path(mesh.path, base_dir, "mesh.path")),
+        mesh=mesh,
         sites=tuple(sites),
         robot=replace(case.robot, scenario=scenario),
     )

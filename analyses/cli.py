@@ -50,6 +50,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "implantplan.analyses.studio",
         "the planning studio: live setup planning and teleoperation in the browser (Meshcat)",
     ),
+    "phantom": (
+        "implantplan.analyses.phantom",
+        "a synthetic CBCT (DICOM CT series) of a mesh case, to plan from",
+    ),
     "batch": (
         "implantplan.analyses.batch",
         "plan many cases in parallel (Dask), one folder each, with a summary",

@@ -24,6 +24,7 @@ from implantplan.diagrams.arm_clearance import SceneGraphClearance, confirm_feed
 from implantplan.diagrams.feeding import run_feeding
 from implantplan.diagrams.teleop import TeleopCase
 from implantplan.systems import actuator, seeds
+from implantplan.systems.anatomy.cbct import CbctScan, is_volume_path, load_cbct_scan
 from implantplan.systems.capability import maps as cm
 from implantplan.systems.errors import InputError, PlanningFailure, fields_renamed
 from implantplan.systems.fpsm.fit import fit_fpsm
@@ -42,6 +43,7 @@ class FitResult:
     opened: trimesh.Trimesh  # after the jaw-opening model (the scanned mesh when 0 deg)
     fpsm: Fpsm  # its X_WC is the Center frame in the mesh frame
     seconds: float
+    cbct: CbctScan | None = None  # the CBCT the scan was extracted from (mesh.path a volume)
 
 
 # The FPSM core's field names and the `fpsm fit` command's flags in its messages -> the case's
@@ -85,7 +87,17 @@ def fit_stage(case: Case, *, progress=None, accept_repairs: bool = False,
     an accepted excess is appended to ``notes``."""
     t0 = time.perf_counter()
     mesh, center, fp = case.mesh, case.center, case.fpsm
-    scanned = load_oral_mesh(mesh.path, units=mesh.units, field="mesh.path")
+    cbct = None
+    if is_volume_path(mesh.path):
+        cbct = load_cbct_scan(mesh.path, air_threshold_hu=mesh.air_threshold_hu,
+                              bone_threshold_hu=mesh.bone_threshold_hu, field="mesh.path")
+        scanned = cbct.mesh
+        if progress is not None:
+            progress.say(f"CBCT {cbct.info['shape_kji']} voxels of "
+                         f"{np.round(cbct.info['spacing_mm'], 3).tolist()} mm: air surface "
+                         f"{cbct.info['air']['faces']} triangles at {mesh.air_threshold_hu:g} HU")
+    else:
+        scanned = load_oral_mesh(mesh.path, units=mesh.units, field="mesh.path")
     opened = scanned
     if mesh.mouth_opening_deg > 0:
         opened = open_mouth(scanned, mesh.mouth_opening_deg, **mesh.opening)
@@ -123,7 +135,7 @@ def fit_stage(case: Case, *, progress=None, accept_repairs: bool = False,
             progress=progress,
         )
     fpsm.settings["mesh_units"] = mesh.units
-    return FitResult(scanned, opened, fpsm, time.perf_counter() - t0)
+    return FitResult(scanned, opened, fpsm, time.perf_counter() - t0, cbct)
 
 
 def site_stage(case: Case, fit: FitResult) -> SiteCheck:

@@ -32,8 +32,11 @@ from implantplan.analyses.progress import Progress
 from implantplan.analyses.provenance import provenance
 from implantplan.systems import seeds
 from implantplan.systems import validate as v
+from implantplan.systems.anatomy.cbct import scan_files
+from implantplan.systems.anatomy.dicom_plan import PlannedImplant, StudyIds, write_dicom_plan
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import write_json
+from implantplan.systems.frames import apply
 
 DEMO_OUT = "out/implantplan-demo"  # out/ is where every README command writes
 MIN_MARGIN_MM = 0.5  # a clinical margin below this needs --accept-small-margin
@@ -206,13 +209,15 @@ def _plan_into(case: Case, out: Path, *, runs, html_scene: bool, quiet: bool,
     if notes:
         plan["acknowledged"] = notes
     plan["timing"] = timing
-    plan["provenance"] = provenance(case_file=case.source, meshes=[case.mesh.path],
+    plan["scan"] = scan_record(fit)
+    plan["provenance"] = provenance(case_file=case.source, meshes=scan_files(case.mesh.path),
                                     seed=case.seed)
     figs = {}
     if figures:
         fig_dir.mkdir()
         figs = make_figures(case, fit, placements, robot, cap, sims, fig_dir,
                             html_scene=html_scene, out=out)
+    plan["dicom"] = write_plan_dicom(case, fit, out)
     write_json(out / "plan.json", plan, kind="plan")
     from implantplan.analyses.report import write_report
 
@@ -223,6 +228,42 @@ def _plan_into(case: Case, out: Path, *, runs, html_scene: bool, quiet: bool,
 
 
 # -- the plan ------------------------------------------------------------------------------------
+
+
+def write_plan_dicom(case: Case, fit, out: Path) -> dict:
+    """plan.dcm (Implantation Plan SR) with the scan and implant STLs (systems.anatomy.
+    dicom_plan) in the opened mesh frame the sites are planned in; identifiers from the CBCT
+    series, else the case's ``patient.id``/``patient.name`` (default: the case's name)."""
+    from pydicom.uid import generate_uid
+
+    X_WC = fit.fpsm.X_WC
+    implants = [PlannedImplant(site=s.name, entry=apply(X_WC, s.position),
+                               axis=X_WC[:3, :3] @ s.axis, diameter=s.implant_diameter,
+                               length=s.planned_length) for s in case.sites]
+    info = fit.cbct.info if fit.cbct is not None else {}
+    ids = StudyIds(
+        patient_id=info.get("patient_id") or case.patient.id or case.name,
+        patient_name=info.get("patient_name") or case.patient.name or case.name,
+        study_uid=info.get("study_instance_uid")
+        or str(generate_uid(entropy_srcs=["implantplan", str(case.name), str(case.seed)])),
+        study_id=info.get("study_id") or "1",
+        accession_number=info.get("accession_number", ""),
+        frame_uid=(info.get("frame_of_reference_uid") or None)
+        if case.mesh.mouth_opening_deg == 0 else None)
+    files = write_dicom_plan(out, fit.opened, implants, ids)
+    frame = ("the case's mesh frame" + (" after the jaw-opening model" if
+             case.mesh.mouth_opening_deg > 0 else "") + (" (DICOM patient frame, LPS, mm)"
+             if fit.cbct is not None else "") + ", mm")
+    return {**files, "frame": frame, "patient_id": ids.patient_id,
+            "study_instance_uid": ids.study_uid}
+
+
+def scan_record(fit) -> dict:
+    """plan.json's ``scan``: what the scan was (a mesh file, or a CBCT and its series, surfaces
+    and thresholds) and the frame the case's coordinates are in."""
+    if fit.cbct is None:
+        return {"kind": "mesh", "frame": "the scan file's coordinates (the case's mesh frame)"}
+    return {"kind": "cbct", **fit.cbct.info}
 
 
 def plan_dict(case: Case, fit, placements, robot, cap, sims, sites_checked) -> dict:

@@ -106,6 +106,7 @@ def test_allowed_exceptions_still_exist():
 STAGES = {
     "ground": set(),
     "fpsm": {"ground"},
+    "anatomy": {"ground", "fpsm"},
     "placement": {"ground", "fpsm"},
     "robot": {"ground"},
     "capability": {"ground", "robot"},

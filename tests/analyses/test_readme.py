@@ -52,6 +52,8 @@ BIN = Path(sys.executable).parent
 SWEEP = {
     "implantplan plan models/cases/default.yaml --out out/default": "the whole default case",
     "implantplan batch --cohort out/cohort/cohort.yaml": "plans two cases",
+    "implantplan phantom --out out/phantom --voxel-mm 0.4": "a 34 M-voxel CT series, 45 s",
+    "implantplan plan out/phantom/case.yaml": "plans the phantom's CBCT, 2-3 min",
     "implantplan analyze head-motion --runs 2": "plans the default case, then the startles",
     "implantplan analyze moprp-fidelity --scenario lying": "25 draws of 20 random layouts",
     "implantplan simulate feeding --scenario lying --runs 10": "ten feeds",

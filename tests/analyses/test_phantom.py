@@ -1,0 +1,127 @@
+"""``implantplan phantom`` and a CBCT case end to end: the phantom of the default case, read back
+through the case's ``mesh.path``, fits the FPSM as the mesh case does and keeps the sites on the
+tissue (a coarse phantom by default); under ``sweep`` the 0.4 mm phantom plans like the mesh case
+(curves, valid sites, feeding targets within 1 mm / 1 deg, every check passing, plan.dcm)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from implantplan.analyses import pipeline
+from implantplan.analyses.case import default_case_path, load_case
+from implantplan.analyses.cli import main
+from implantplan.analyses.out_folder import MARKER
+from implantplan.analyses.phantom import make_phantom_folder
+from implantplan.systems.anatomy.dicom_plan import read_dicom_plan
+from implantplan.systems.errors import InputError
+from implantplan.systems.frames import apply
+
+COARSE_MM = 1.5
+
+
+def curve_distance(a, b, *, angles: int = 720) -> np.ndarray:
+    """Per slice, the Hausdorff distance (m) between two FPSMs' closed curves (same slices)."""
+    th = np.linspace(0, 2 * np.pi, angles, endpoint=False)
+    out = []
+    for z in a.slice_z:
+        pa, pb = ([f.radius_at(th, np.full_like(th, z)) * np.cos(th),
+                   f.radius_at(th, np.full_like(th, z)) * np.sin(th)] for f in (a, b))
+        A, B = np.column_stack(pa), np.column_stack(pb)
+        out.append(max(cKDTree(B).query(A)[0].max(), cKDTree(A).query(B)[0].max()))
+    return np.array(out)
+
+
+@pytest.fixture(scope="module")
+def mesh_fit():
+    case = load_case(default_case_path())
+    return case, pipeline.fit_stage(case)
+
+
+@pytest.fixture(scope="module")
+def coarse(tmp_path_factory):
+    out = tmp_path_factory.mktemp("phantom") / "default"
+    info = make_phantom_folder(default_case_path(), out, voxel_mm=COARSE_MM, noise_hu=20.0,
+                               seed=None, force=False)
+    return out, info
+
+
+def test_phantom_folder(coarse):
+    out, info = coarse
+    assert (out / MARKER).exists() and info["canals"] == 2
+    assert len(list((out / "ct").glob("*.dcm"))) == info["slices"] == info["shape_kji"][0]
+    case = load_case(out / "case.yaml")
+    assert case.mesh.path == (out / "ct").resolve() or case.mesh.path == out / "ct"
+
+
+def test_coarse_phantom_fits_like_the_mesh_case(coarse, mesh_fit):
+    out, _ = coarse
+    case, fit_m = mesh_fit
+    cbct_case = load_case(out / "case.yaml")
+    fit_c = pipeline.fit_stage(cbct_case)
+    assert fit_c.cbct is not None and fit_c.cbct.info["patient_id"] == "PHANTOM-default"
+    np.testing.assert_allclose(fit_c.fpsm.slice_z, fit_m.fpsm.slice_z)
+    d = curve_distance(fit_m.fpsm, fit_c.fpsm)
+    assert d.max() < 2.5 * COARSE_MM * 1e-3  # coarse voxels (0.4 mm: 0.5 mm, the sweep below)
+    check = pipeline.site_stage(cbct_case, fit_c)
+    assert np.all(check.distance < 0.5 * COARSE_MM * 1e-3) and np.all(check.axis_into_cavity)
+
+
+def test_phantom_refuses_a_folder_it_does_not_own(tmp_path):
+    (tmp_path / "mine.txt").write_text("user data")
+    with pytest.raises(InputError, match="--out.*implantplan did not write"):
+        make_phantom_folder(default_case_path(), tmp_path, voxel_mm=2.0, noise_hu=20.0,
+                            seed=None, force=False)
+    assert (tmp_path / "mine.txt").read_text() == "user data"
+    with pytest.raises(InputError, match="--voxel-mm"):
+        make_phantom_folder(default_case_path(), tmp_path / "new", voxel_mm=0.05, noise_hu=20.0,
+                            seed=None, force=False)
+
+
+def test_a_bad_series_in_a_case_exits_2_naming_the_file(coarse, tmp_path, capsys):
+    out, _ = coarse
+    bad = tmp_path / "ct"
+    bad.mkdir()
+    for p in sorted((out / "ct").iterdir())[:5]:
+        (bad / p.name).write_bytes(p.read_bytes())
+    (bad / "readme.txt").write_text("not an image")
+    text = (out / "case.yaml").read_text().replace("path: ct", f"path: {bad}")
+    (tmp_path / "case.yaml").write_text(text)
+    code = main(["plan", str(tmp_path / "case.yaml"), "--out", str(tmp_path / "plan"),
+                 "--no-figures", "--quiet"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "mesh.path" in err and "readme.txt: not a DICOM file" in err
+
+
+@pytest.mark.sweep
+def test_the_04mm_phantom_plans_like_the_mesh_case(tmp_path, mesh_fit):
+    from implantplan.analyses.plan import plan_case
+
+    out = tmp_path / "phantom"
+    make_phantom_folder(default_case_path(), out, voxel_mm=0.4, noise_hu=20.0, seed=None,
+                        force=False)
+    case_m, fit_m = mesh_fit
+    case_c = load_case(out / "case.yaml")
+    fit_c = pipeline.fit_stage(case_c)
+    d = curve_distance(fit_m.fpsm, fit_c.fpsm)
+    assert d.max() < 0.5e-3, d  # the issue's bound (measured 0.48 mm at 0.4 mm voxels)
+    plans = [plan_case(c, tmp_path / n, runs=0, html_scene=False, quiet=True, figures=False)
+             for c, n in ((case_m, "mesh"), (case_c, "cbct"))]
+    for pm, pc in zip(plans[0]["sites"], plans[1]["sites"], strict=True):
+        assert pm["placement"]["valid"] and pc["placement"]["valid"]
+        Xm = np.array(pm["feeding_target"]["X_CT"])
+        Xc = np.array(pc["feeding_target"]["X_CT"])
+        assert np.linalg.norm(Xm[:3, 3] - Xc[:3, 3]) < 1e-3
+        cos = np.clip((np.trace(Xm[:3, :3].T @ Xc[:3, :3]) - 1) / 2, -1, 1)
+        assert np.degrees(np.arccos(cos)) < 1.0
+    assert plans[1]["passed"] and all(c["pass"] for c in plans[1]["checks"])
+    assert plans[1]["scan"]["kind"] == "cbct"
+    back = read_dicom_plan(tmp_path / "cbct" / "plan.dcm")
+    X_WC = fit_c.fpsm.X_WC
+    for b, s in zip(back, case_c.sites, strict=True):
+        np.testing.assert_allclose(b["entry"], apply(X_WC, s.position), atol=1e-6)
+    assert json.loads((tmp_path / "cbct" / "plan.json").read_text())["dicom"]["sr"] == "plan.dcm"
