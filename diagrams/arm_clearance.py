@@ -101,24 +101,36 @@ def feed_path(sc: moprp.Scenario, xyz, branch: int, *, X_OT=None, step: float = 
 
 def confirm_feed(checker: SceneGraphClearance, sc: moprp.Scenario, branch: int, *,
                  X_OT=None) -> dict:
-    """SceneGraph clearance along the selected branch's whole feed at the checker's base.
+    """SceneGraph clearance along the selected branch's whole feed at the checker's base, and
+    the joint headroom along that feed and along the feed of every head displacement the
+    scenario allows (:func:`systems.robot.moprp.head_displacements`).
 
     Returns:
         dict(distance (m, the smallest along the feed), pair [name, name], samples, ok (every
-        sample reached and distance >= the scenario's clearance), limit (= clearance),
-        distance_pre / distance_target (m, at the pre-feed and target configurations)).
+        sample reached, distance >= the scenario's clearance and every joint's headroom >= the
+        scenario's), limit (= clearance), distance_pre / distance_target (m, at the pre-feed
+        and target configurations), headroom (6,) (rad, per joint, the smallest over the feeds;
+        -inf where a displaced feed leaves the branch), headroom_limit (rad)).
     """
     q = feed_path(sc, checker.xyz, branch, X_OT=X_OT)
     reached = bool(np.all(np.isfinite(q)))
+    X_OT0 = np.eye(4) if X_OT is None else np.asarray(X_OT, dtype=float)
+    paths = [q] + [feed_path(sc, checker.xyz, branch, X_OT=D @ X_OT0)
+                   for D in moprp.head_displacements(sc)[1:]]
+    room = np.min([np.where(np.isfinite(p), kin.joint_headroom(np.nan_to_num(p), sc.limits),
+                            -np.inf).min(axis=0) for p in paths], axis=0)
+    head = {"headroom": room, "headroom_limit": sc.joint_headroom}
+    room_ok = bool(np.all(room >= sc.joint_headroom))
     c = checker(q[np.all(np.isfinite(q), axis=1)], max_distance=max(0.05, 2 * sc.clearance))
     if not reached:
         return {"distance": float("-inf"), "pair": ["", ""], "samples": int(q.shape[0]),
                 "ok": False, "limit": sc.clearance, "distance_pre": float("nan"),
-                "distance_target": float("nan")}
+                "distance_target": float("nan"), **head}
     _, dist, pair = c.worst()
     return {"distance": dist, "pair": list(pair), "samples": int(q.shape[0]),
-            "ok": bool(dist >= sc.clearance), "limit": sc.clearance,
-            "distance_pre": float(c.distance[0]), "distance_target": float(c.distance[-1])}
+            "ok": bool(dist >= sc.clearance) and room_ok, "limit": sc.clearance,
+            "distance_pre": float(c.distance[0]), "distance_target": float(c.distance[-1]),
+            **head}
 
 
 # --------------------------------------------------------------------------------------------
