@@ -50,7 +50,10 @@ def scene_graph_fields(feed_clearance: list[dict], k: int) -> dict:
     return {"scene_graph_clearance_m": f["distance_target"],
             "scene_graph_clearance_pre_m": f["distance_pre"],
             "feed_clearance": {"distance_m": f["distance"], "pair": f["pair"],
-                               "samples": f["samples"], "limit_m": f["limit"]},
+                               "samples": f["samples"], "limit_m": f["limit"],
+                               "patient_distance_m": f.get("patient_distance"),
+                               "patient_pair": f.get("patient_pair"),
+                               "reported_within_m": f.get("max_distance")},
             "joint_headroom": {"min_rad": f["headroom"], "limit_rad": f["headroom_limit"],
                                "over": "every sample of the feed and of the feed under each "
                                        "head displacement the scenario allows"}}

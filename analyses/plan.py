@@ -27,15 +27,15 @@ from pathlib import Path
 
 import numpy as np
 
+from implantplan.analyses import cards, pipeline
 from implantplan.analyses import checks as checks_
-from implantplan.analyses import pipeline
 from implantplan.analyses.case import Case, default_case_path, load_case
 from implantplan.analyses.figures.plan import make_figures
 from implantplan.analyses.progress import Progress
 from implantplan.analyses.provenance import provenance
 from implantplan.systems import seeds
 from implantplan.systems.errors import InputError
-from implantplan.systems.files import write_json
+from implantplan.systems.files import to_jsonable, write_json
 
 DEMO_OUT = "out/implantplan-demo"  # out/ is where every README command writes
 # Pass/fail limits of the checks (DESIGN.md section 4).
@@ -207,6 +207,7 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims, sites_checked) -> d
             "name": site.name,
             "hole": {"position": site.position, "axis": site.axis, "frame": "Center"},
             "implant_length": site.implant_length,
+            "placed_implant_length": site.placed_length,
             "rod_radius": site.rod_radius,
             "site_check": {"distance_to_tissue": float(sites_checked.distance[k]),
                            "tolerance": sites_checked.tolerance,
@@ -238,7 +239,7 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims, sites_checked) -> d
         checks += checks_.layout_checks(n, feed, ik_branches=cap.ik_branches[k],
                                         neighbourhood_index=cap.neighbourhood_index[k])
         checks += checks_.feeding_checks(n, sim["runs"] if sim is not None else [])
-    return {
+    plan = {
         "case": {"name": case.name, "source": str(case.source), "seed": case.seed,
                  "random_streams": "numpy SeedSequence(seed) spawned per stage ("
                                    + ", ".join(seeds.STAGES) + ") and site (systems.seeds)",
@@ -283,6 +284,8 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims, sites_checked) -> d
         "checks": checks,
         "passed": checks_.passed(checks),
     }
+    plan["cards"] = cards.surgeon_cards(to_jsonable(plan))
+    return plan
 
 
 # -- figures --------------------------------------------------------------------------------------

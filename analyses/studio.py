@@ -255,6 +255,7 @@ class Studio:
     def keep(self) -> Path:
         """Write the current layout into the plan folder's plan.json (atomically), with the
         layout's checks recomputed; returns the path."""
+        from implantplan.analyses import cards
         from implantplan.analyses import checks as checks_
 
         lay, sp = self.layout, self.sp
@@ -291,6 +292,7 @@ class Studio:
                                             neighbourhood_index=cap["neighbourhood_index"][k])
         plan["checks"] = checks
         plan["passed"] = checks_.passed(checks)
+        plan["cards"] = cards.surgeon_cards(to_jsonable(plan))
         plan.pop("schema_version", None)
         plan.pop("kind", None)
         path = write_json(sp.folder / "plan.json", plan, kind="plan")
@@ -476,8 +478,22 @@ class Studio:
                              "rate_deg_s": np.rad2deg(self.keyboard.rate),
                              "paused": self.keyboard.paused}
             out["teleop"]["sliders"] = dict(self.sliders.last)  # any thread may ask
+        out["card"] = self.card()
         out["recordings"] = [p.name for p in self.saved]
         return to_jsonable(out)
+
+    def card(self) -> dict | None:
+        """The selected site's surgeon's card (analyses.cards) as plan.json holds it (the
+        planned layout, or the one last kept), in the report's words and units."""
+        from implantplan.analyses import cards
+
+        found = [c for c in self.sp.plan.get("cards") or []
+                 if c["site"] == self.sp.names[self.site]]
+        if not found:
+            return None
+        c = found[0]
+        return {"title": cards.card_title(c), "verdict": c["verdict"],
+                "next_step": c["next_step"], "lines": dict(cards.card_lines(c))}
 
     def run(self, *, lock=None, stop=None, idle: float = 0.02) -> None:
         """Poll until Quit or ``stop`` (a threading.Event) is set; each turn holds ``lock``
@@ -522,7 +538,9 @@ def help_keys() -> list[str]:
 PAGE = """<!doctype html><html><head><meta charset="utf-8"><title>implantplan studio</title>
 <style>body{margin:0;display:flex;height:100vh;font:13px system-ui,sans-serif}
 iframe{flex:1;border:0}#p{width:340px;overflow:auto;padding:8px;background:#f4f4f6}
-td{padding:1px 4px;vertical-align:top}.bad{color:#c00;font-weight:bold}</style></head>
+td{padding:1px 4px;vertical-align:top}.bad{color:#c00;font-weight:bold}
+#card{background:#fff;border:1px solid #ccc;padding:4px}.v-refused b{color:#c00}
+.v-tight b{color:#a60}.v-ready b{color:#126b12}</style></head>
 <body><iframe src="MESHCAT" id="m"></iframe><div id="p">loading...</div><script>
 function fmt(v){if(v===null||v===undefined)return '-';
 if(Array.isArray(v))return v.map(fmt).join(', ');
@@ -532,8 +550,13 @@ return String(v);}
 function rows(o){return Object.entries(o).map(([k,v])=>'<tr><td>'+k+'</td><td'+
 ((k==='clear'||k==='confirmed'||k==='feasible')&&v===false||(k==='alarm'&&v)?' class=bad':'')+
 '>'+fmt(v)+'</td></tr>').join('');}
+function esc(t){return String(t).replace(/[&<>"']/g,c=>'&#'+c.charCodeAt(0)+';');}
+function card(c){return '<div id="card" class="v-'+esc(c.verdict)+'"><b>'+esc(c.title)+': '+
+esc(c.verdict)+'</b><br>'+esc(c.next_step)+'<table>'+Object.entries(c.lines).map(([k,v])=>
+'<tr><td>'+esc(k)+'</td><td>'+esc(v)+'</td></tr>').join('')+'</table></div>';}
 async function tick(){try{const s=await (await fetch('status.json')).json();
 let h='<b>mode '+s.mode+'</b>, site '+s.site+', margin '+fmt(s.margin_mm)+' mm';
+if(s.card)h+='<h4>surgeon\'s card (plan)</h4>'+card(s.card);
 if(s.setup)h+='<h4>setup</h4><table>'+rows(s.setup)+'</table>';
 if(s.teleop)h+='<h4>teleop</h4><table>'+rows(s.teleop)+'</table>';
 h+='<h4>messages</h4>'+s.messages.join('<br>');

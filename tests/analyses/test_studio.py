@@ -77,6 +77,20 @@ def test_layout_at_the_planned_base_is_the_plans(studio):
             s["capability"]["neighbourhood_index"])
 
 
+def test_the_status_panel_shows_the_selected_sites_card_from_the_plan(studio):
+    from implantplan.analyses import cards
+
+    for k, name in enumerate(studio.sp.names):
+        studio.site = k
+        shown = studio.status()["card"]
+        card = next(c for c in studio.sp.plan["cards"] if c["site"] == name)
+        assert shown["title"] == f"tooth {name} (FDI)" and shown["verdict"] == card["verdict"]
+        assert shown["next_step"] == card["next_step"]
+        assert shown["lines"] == dict(cards.card_lines(card))
+        assert "instrument to tissue" in shown["lines"] and "P(margin holds)" in shown["lines"]
+    assert "surgeon" in st.PAGE and "s.card" in st.PAGE  # the panel draws it
+
+
 def test_sliders_move_the_base_and_change_the_indices(studio):
     m = studio.meshcat
     before = studio.layout
