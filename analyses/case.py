@@ -216,7 +216,7 @@ def _instrument(value, where: str) -> InstrumentSection:
 
 
 OLD_D12_KEY = "implant_length_mm"
-_noted: set[str] = set()
+notes_printed: set[str] = set()  # the notes printed in this process (once each)
 
 
 def _sites(value, where: str) -> tuple:
@@ -234,8 +234,8 @@ def _renamed_d12(site, where: str):
     if "head_to_tip_mm" in site:
         raise InputError(f"{where}.{OLD_D12_KEY}", "expected one of implant_length_mm (the old "
                          "name) and head_to_tip_mm, not both")
-    if OLD_D12_KEY not in _noted:
-        _noted.add(OLD_D12_KEY)
+    if OLD_D12_KEY not in notes_printed:
+        notes_printed.add(OLD_D12_KEY)
         print(f"note: {where}.{OLD_D12_KEY} is read as head_to_tip_mm (seed 000's d12, the "
               "head centre to the implant tip, not the implant's length); rename the key",
               file=sys.stderr)

@@ -25,12 +25,13 @@ middle,
 in the controls from the start and read only by the sliders master;
 "Master keyboard/sliders" or key M switches, also during a run; P then puts the sliders back to
 zero). The fixture holds the tool's orientation within beta (0.5 deg) of the planned one, roll
-and tilt alike. The fixture's force is drawn as an arrow at the tool, the estimator's alarm
-turns the tool marker red. Leaving teleop mode (T) or "Save recording" (V) writes the run as a
-MasterDevice CSV (``t_s,x_m,y_m,z_m,rx_rad,ry_rad,rz_rad``) in the plan folder's
-``recordings/`` (with ``<name>.json`` naming the case), which ``implantplan simulate feeding
---csv FILE --out DIR`` replays. "FPSM slices on/off" (key G) shows or hides the FPSM's slices
-in either mode.
+and tilt alike. The fixture's force is drawn as an orange arrow at the tool while it acts
+(the tool held at the fixture's wall and pushed out: the damping on the outward command, 10 mm
+per N), the estimator's alarm turns the tool marker red. Leaving teleop mode (T) or "Save
+recording" (V) writes the run as a MasterDevice CSV (``t_s,x_m,y_m,z_m,rx_rad,ry_rad,rz_rad``)
+in the plan folder's ``recordings/`` (with ``<name>.json`` naming the case), which
+``implantplan simulate feeding --csv FILE --out DIR`` replays. "FPSM slices on/off" (key G)
+shows or hides the FPSM's slices in either mode.
 
 The event handling is :class:`Studio` (``poll()`` once per loop turn), driven through Meshcat's
 API in the tests.
@@ -378,13 +379,35 @@ class Studio:
         t.advance(self.teleop_step)
         st = t.state()
         p = st["p_WE"]
-        F = st["F_W_fixture"]
-        tip = p + np.clip(0.002 * F, -0.05, 0.05)  # 2 mm per N, at most 5 cm
-        self.meshcat.SetLine("/studio/force", np.stack([p, tip]).T, 5.0,
-                             Rgba(1.0, 0.5, 0.0, 1.0))
+        self._draw_force(p, st["F_W_fixture"])
         self.meshcat.SetObject("/studio/tool", Sphere(0.002),
                                Rgba(0.9, 0.1, 0.1, 1) if st["alarm"] else Rgba(0.1, 0.8, 0.2, 1))
         self.meshcat.SetTransform("/studio/tool", RigidTransform(p))
+
+    def _draw_force(self, p_WE, F_W) -> None:
+        """The fixture's force at the tool as an orange arrow (shaft and cone, 10 mm per N, at
+        most 6 cm; a WebGL line would be 1 px whatever its width), hidden while it does not act
+        (below :data:`FORCE_SHOWN_N`)."""
+        from pydrake.geometry import Cylinder, MeshcatCone, Rgba
+        from pydrake.math import RigidTransform, RotationMatrix
+
+        F = np.asarray(F_W, dtype=float)
+        size = float(np.linalg.norm(F))
+        shown = size >= FORCE_SHOWN_N
+        self.meshcat.SetProperty("/studio/force", "visible", shown)
+        if not shown:
+            return
+        length = min(FORCE_MM_PER_N * 1e-3 * size, 0.06)
+        head = min(0.006, 0.5 * length)
+        orange = Rgba(1.0, 0.5, 0.0, 1.0)
+        R = RotationMatrix.MakeFromOneVector(F / size, 2)  # z along the force
+        self.meshcat.SetObject("/studio/force/shaft", Cylinder(0.0012, length - head), orange)
+        self.meshcat.SetTransform("/studio/force/shaft",
+                                  RigidTransform(R, p_WE + R.col(2) * 0.5 * (length - head)))
+        self.meshcat.SetObject("/studio/force/head", MeshcatCone(head, 0.003, 0.003), orange)
+        # Meshcat's cone has its apex at the origin and opens along +z: flip it onto the tip
+        self.meshcat.SetTransform("/studio/force/head", RigidTransform(
+            R @ RotationMatrix.MakeXRotation(np.pi), p_WE + R.col(2) * length))
 
     # -- the loop -----------------------------------------------------------------------------
     def _new_clicks(self) -> dict[str, int]:
@@ -531,6 +554,10 @@ def help_keys() -> list[str]:
               for label, half, *_ in SLIDERS.values()]
     lines.append("the fixture holds roll and tilt within beta (0.5 deg by default) of the plan")
     return lines
+
+
+FORCE_SHOWN_N = 0.05  # N: the fixture's force arrow shows from this size on
+FORCE_MM_PER_N = 10.0  # the arrow's length per newton
 
 
 # -- the status page -------------------------------------------------------------------------------
