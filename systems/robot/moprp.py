@@ -70,6 +70,7 @@ R_OE = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 R_BE = R_OB.T @ R_OE
 X_OE = transform(R_OE, np.zeros(3))  # End in Oral (or in Tool, for a site's target)
 INDEX_NAMES = ("dexterity", "error_range", "joint_variation")
+HEAD_FEED_SAMPLES = 3  # poses along each displaced feed in the search (start, middle, end)
 
 # --------------------------------------------------------------------------------------------
 # Target, feed, IK
@@ -423,15 +424,20 @@ def evaluate_bases(
     alive &= ~j2_bad
 
     # joint headroom along the feed and under the head motions (DESIGN.md section 7): every
-    # joint keeps sc.joint_headroom from its limits at every feed sample of every displaced
-    # target (the same branch slot: the closed form keeps its branch index)
+    # joint keeps sc.joint_headroom from its limits at every feed sample and at the start,
+    # middle and end of the feed to every displaced target (the same branch slot: the closed
+    # form keeps its branch index), for the bases with a branch left; SceneGraph's confirmation
+    # checks the whole fine path of every displaced feed (diagrams.arm_clearance.confirm_feed)
+    room = feed_headroom(q[:, :, None], ok[:, :, None], sc.limits)  # (P, B, 6)
     D = head_displacements(sc)
-    X_OT0 = np.eye(4) if X_OT is None else np.asarray(X_OT, dtype=float)
-    Xh = feed_poses(xyz[:, None], sc.feed_length, K, D[1:] @ X_OT0)  # (P, H-1, K, 4, 4)
-    qh, okh = ik_solver(Xh, limits=sc.limits, X_FT=sc.X_FT)  # (P, H-1, K, B, 6)
-    qh = np.concatenate([q.swapaxes(1, 2)[:, None], qh], axis=1)
-    okh = np.concatenate([ok.swapaxes(1, 2)[:, None], okh], axis=1)
-    room = feed_headroom(np.moveaxis(qh, 3, 1), np.moveaxis(okh, 3, 1), sc.limits)  # (P, B, 6)
+    pa = np.flatnonzero(alive.any(axis=1))
+    if D.shape[0] > 1 and pa.size:
+        X_OT0 = np.eye(4) if X_OT is None else np.asarray(X_OT, dtype=float)
+        Xh = feed_poses(xyz[pa, None], sc.feed_length, min(K, HEAD_FEED_SAMPLES),
+                        D[1:] @ X_OT0)  # (Pa, H-1, Kh, 4, 4)
+        qh, okh = ik_solver(Xh, limits=sc.limits, X_FT=sc.X_FT)  # (Pa, H-1, Kh, B, 6)
+        room[pa] = np.minimum(room[pa], feed_headroom(np.moveaxis(qh, 3, 1),
+                                                      np.moveaxis(okh, 3, 1), sc.limits))
     room_min = room.min(axis=-1)
     short = alive & (room_min < sc.joint_headroom)
     reason = np.where(short, DROP_HEADROOM, reason)

@@ -40,13 +40,16 @@ def test_moprp_keeps_only_branches_with_the_headroom_asked_for():
     assert ev.feasible.sum() > 0 and ev.feasible.sum() < loose.feasible.sum()
     assert np.any(ev.reason == moprp.DROP_HEADROOM)
     assert np.all(ev.valid <= loose.valid)  # headroom only ever removes branches
-    # every kept base: its branch, re-solved along the feed and the displaced feeds, keeps the
-    # headroom on every joint (independent of evaluate_bases' own bookkeeping)
+    # every kept base: its branch, re-solved along the feed (every sample) and the displaced
+    # feeds (start, middle, end), keeps the headroom on every joint (independent of
+    # evaluate_bases' own bookkeeping; the confirmation checks the fine paths, see
+    # tests/analyses/test_headroom_plan.py)
     for p in np.flatnonzero(ev.feasible)[:20]:
         b = int(ev.branch[p])
         worst = np.inf
-        for D in moprp.head_displacements(sc):
-            Xf = moprp.feed_poses(X[p], sc.feed_length, sc.feed_samples, D)
+        for k, D in enumerate(moprp.head_displacements(sc)):
+            n = sc.feed_samples if k == 0 else moprp.HEAD_FEED_SAMPLES
+            Xf = moprp.feed_poses(X[p], sc.feed_length, n, D)
             r = kin.ik(Xf, limits=sc.limits, X_FT=sc.X_FT)
             assert np.all(r.valid[:, b])
             worst = min(worst, kin.joint_headroom(r.q[:, b]).min())
