@@ -97,8 +97,8 @@ def plan_one(case_file: str, out_dir: str, runs: int | None, figures: bool,
         rec.update(status=ERROR, reason=f"{type(exc).__name__}: {exc} "
                    f"({Path(where.filename).name}:{where.lineno})")  # fmt: skip
     else:
-        rec["checks"] = [{k: c[k] for k in ("name", "site", "value", "limit", "unit", "margin",
-                                             "pass")} for c in plan["checks"]]  # fmt: skip
+        keys = ("id", "name", "site", "value", "limit", "unit", "margin", "pass")
+        rec["checks"] = [{k: c[k] for k in keys} for c in plan["checks"]]
         failed = [_label(c) for c in plan["checks"] if not c["pass"]]
         rec.update(status=PASSED if plan["passed"] and not failed else CHECKS_FAILED,
                    reason=("failed: " + "; ".join(failed)) if failed else None)  # fmt: skip

@@ -1,8 +1,9 @@
 """The case file: one surgical case to plan (DESIGN.md section 1; YAML, schema_version 1).
 
 A case names the oral scan (mesh, units, how to close/open it), the Center frame in the mesh, the
-FPSM settings, the implant sites (position and axis in Center, implant length, tool radius), the
-patient posture, the robot scenario and the settings of each later stage, and a seed.
+FPSM settings, the implant sites (position and axis in Center, the tool's d12 and radius, the
+placed implant's length), the patient posture, the robot scenario and the settings of each later
+stage, and a seed.
 ``models/cases/default.yaml`` is the bundled example; every key is described there.
 
 Lengths are mm in the file (people write them) and metres in :class:`Case` (code uses SI). A
@@ -14,6 +15,7 @@ silently.
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
@@ -139,16 +141,18 @@ class Site:
     position: np.ndarray = v.spec(partial(v.vector, n=3, limit=SITE_MM), key="position_mm",
                                   scale=MM)
     axis: np.ndarray = v.spec(v.direction)
-    implant_length: float = v.spec(partial(v.number, positive=True, high=100.0), 31.0,
-                                   key="implant_length_mm", scale=MM)
+    # seed 000's d12: the actuator head's centre to the implant tip (not the implant's length;
+    # the key was ``implant_length_mm``, still read with a note)
+    implant_length: float = v.spec(partial(v.number, low=1.0, high=100.0), 31.0,
+                                   key="head_to_tip_mm", scale=MM)
     rod_radius: float = v.spec(partial(v.number, nonneg=True, high=20.0), 6.0,
                                key="rod_radius_mm", scale=MM)
-    # the planned implant placed at the site (plan.dcm and its STL): diameter and length
-    # (implant_length_mm is the instrument's d12, the path of its tip, seed 000)
+    # the implant placed in the bone, from the entry point (the site) to its apex: its length
+    # and diameter (the card, the figures, plan.dcm and its STL)
+    placed_length: float = v.spec(partial(v.number, low=4.0, high=25.0), 10.0,
+                                  key="placed_implant_length_mm", scale=MM)
     implant_diameter: float = v.spec(partial(v.number, low=2.0, high=8.0), 4.0,
                                      key="implant_diameter_mm", scale=MM)
-    planned_length: float = v.spec(partial(v.number, low=4.0, high=25.0), 10.0,
-                                   key="planned_length_mm", scale=MM)
 
 
 @dataclass(frozen=True)
@@ -185,6 +189,10 @@ class RobotSection:
     scenario: str | None = v.spec(v.text, None)
     pop: int = v.spec(partial(v.integer, low=4, high=1000), 100)
     gen: int = v.spec(partial(v.integer, low=1, high=500), 60)
+    # the joint-limit headroom (rad) along every feed and under the head motions; None: the
+    # scenario's ``joint_headroom_deg`` (10 deg in the bundled ones)
+    joint_headroom: float | None = v.spec(partial(v.number, low=0.0, high=90.0), None,
+                                          key="joint_headroom_deg", scale=np.pi / 180.0)
 
 
 @dataclass(frozen=True)
@@ -207,7 +215,7 @@ class SimulationSection:
 @dataclass(frozen=True)
 class InstrumentSection:
     """``instrument:`` the instrument every safety layer checks (systems.instrument): ``paper``
-    (seed 000's thin tool, with each site's ``rod_radius_mm`` and ``implant_length_mm``),
+    (seed 000's thin tool, with each site's ``rod_radius_mm`` and ``head_to_tip_mm``),
     ``actuator`` (the shipped actuator URDF's solids: its head is a cylinder r 8 mm x 14 mm), or
     ``{urdf: PATH}`` (an actuator URDF of the case's own, relative to the case file). Written as
     a word or as a mapping ``{kind: ..., urdf: ...}``."""
@@ -240,10 +248,33 @@ def _instrument(value, where: str) -> InstrumentSection:
     return section
 
 
+OLD_D12_KEY = "implant_length_mm"
+notes_printed: set[str] = set()  # the notes printed in this process (once each)
+
+
 def _sites(value, where: str) -> tuple:
     if not isinstance(value, list) or not value:
         raise InputError(where, "expected a list of at least one implant site")
+    value = [_renamed_d12(s, f"{where}[{k}]") for k, s in enumerate(value)]
     return v.sections(Site)(value, where)
+
+
+def _renamed_d12(site, where: str):
+    """A site written with the old key for d12 (``implant_length_mm``) reads as
+    ``head_to_tip_mm``, with a note printed once per run; both keys at once is an error."""
+    if not isinstance(site, dict) or OLD_D12_KEY not in site:
+        return site
+    if "head_to_tip_mm" in site:
+        raise InputError(f"{where}.{OLD_D12_KEY}", "expected one of implant_length_mm (the old "
+                         "name) and head_to_tip_mm, not both")
+    if OLD_D12_KEY not in notes_printed:
+        notes_printed.add(OLD_D12_KEY)
+        print(f"note: {where}.{OLD_D12_KEY} is read as head_to_tip_mm (seed 000's d12, the "
+              "head centre to the implant tip, not the implant's length); rename the key",
+              file=sys.stderr)
+    site = dict(site)
+    site["head_to_tip_mm"] = site.pop(OLD_D12_KEY)
+    return site
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -21,7 +21,8 @@ MIN_CAPABILITY = 0.5  # mean reachability index around a feeding target
 MAX_VF_VIOLATION = 1e-3  # m
 
 # The checks that depend on the robot's base: recomputed when the studio keeps another layout.
-LAYOUT_CHECK_IDS = ("robot.arm_clearance_scene_graph", "robot.ik_branches",
+LAYOUT_CHECK_IDS = ("robot.arm_clearance_scene_graph", "robot.joint_headroom",
+                    "robot.ik_branches",
                     "capability.neighbourhood_index")
 
 
@@ -49,7 +50,13 @@ def scene_graph_fields(feed_clearance: list[dict], k: int) -> dict:
     return {"scene_graph_clearance_m": f["distance_target"],
             "scene_graph_clearance_pre_m": f["distance_pre"],
             "feed_clearance": {"distance_m": f["distance"], "pair": f["pair"],
-                               "samples": f["samples"], "limit_m": f["limit"]}}
+                               "samples": f["samples"], "limit_m": f["limit"],
+                               "patient_distance_m": f.get("patient_distance"),
+                               "patient_pair": f.get("patient_pair"),
+                               "reported_within_m": f.get("max_distance")},
+            "joint_headroom": {"min_rad": f["headroom"], "limit_rad": f["headroom_limit"],
+                               "over": "every sample of the feed and of the feed under each "
+                                       "head displacement the scenario allows"}}
 
 
 def fpsm_checks(diagnostics: dict) -> list[dict]:
@@ -101,6 +108,11 @@ def layout_checks(site: str, feed: dict | None, *, ik_branches: int,
                          "arm clearance along the feed (SceneGraph)", feed["distance"],
                          feed["limit"], unit="m", upper=False, site=site)
                    | {"pair": " / ".join(feed["pair"])})
+        room = np.asarray(feed["headroom"], dtype=float)
+        j = int(np.argmin(room))
+        out.append(check("robot.joint_headroom", "smallest joint headroom along the feed and "
+                         "under the head motions", float(room[j]), feed["headroom_limit"],
+                         unit="rad", upper=False, site=site) | {"joint": j + 1})
     out.append(check("robot.ik_branches", "IK branches at the feeding target", ik_branches, 0,
                      unit="branches", upper=False, site=site))
     out.append(check("capability.neighbourhood_index", "capability index around the target",

@@ -294,6 +294,8 @@ def robot_stage(case: Case, placements: list[Placement], *, progress=None) -> Ro
     sc = moprp.load_scenario(case.robot.scenario, X_FT=actuator.X_FT())
     sc = dataclasses.replace(sc, pop=case.robot.pop, gen=case.robot.gen,
                              seed=seeds.seed(case.seed, seeds.ROBOT))
+    if case.robot.joint_headroom is not None:
+        sc = dataclasses.replace(sc, joint_headroom=case.robot.joint_headroom)
     X_OC = center_in_oral(case.patient.posture, placements)
     targets = np.array([X_OC @ p.X_CT for p in placements])
     model = moprp.collision_model(sc)
@@ -338,7 +340,8 @@ def robot_stage(case: Case, placements: list[Placement], *, progress=None) -> Ro
     else:
         raise PlanningFailure(
             f"none of the {Xf.shape[0]} front bases keeps every site's feed clear in SceneGraph "
-            f"by the clearance {1000 * sc.clearance:.1f} mm")
+            f"by the clearance {1000 * sc.clearance:.1f} mm with every joint "
+            f"{np.rad2deg(sc.joint_headroom):g} deg from its limits")
     if progress is not None and dropped:
         progress.say(f"SceneGraph: {dropped} front bases dropped before the selection")
 

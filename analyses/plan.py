@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from implantplan.analyses import budget, out_folder, pipeline
+from implantplan.analyses import budget, cards, out_folder, pipeline
 from implantplan.analyses import checks as checks_
 from implantplan.analyses.case import MAX_RUNS, Case, default_case_path, load_case
 from implantplan.analyses.figures.plan import make_figures
@@ -35,7 +35,7 @@ from implantplan.systems import validate as v
 from implantplan.systems.anatomy.cbct import scan_files
 from implantplan.systems.anatomy.dicom_plan import PlannedImplant, StudyIds, write_dicom_plan
 from implantplan.systems.errors import InputError
-from implantplan.systems.files import write_json
+from implantplan.systems.files import to_jsonable, write_json
 from implantplan.systems.frames import apply
 
 DEMO_OUT = "out/implantplan-demo"  # out/ is where every README command writes
@@ -239,7 +239,7 @@ def write_plan_dicom(case: Case, fit, out: Path) -> dict:
     X_WC = fit.fpsm.X_WC
     implants = [PlannedImplant(site=s.name, entry=apply(X_WC, s.position),
                                axis=X_WC[:3, :3] @ s.axis, diameter=s.implant_diameter,
-                               length=s.planned_length) for s in case.sites]
+                               length=s.placed_length) for s in case.sites]
     info = fit.cbct.info if fit.cbct is not None else {}
     ids = StudyIds(
         patient_id=info.get("patient_id") or case.patient.id or case.name,
@@ -283,6 +283,7 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims, sites_checked) -> d
             "name": site.name,
             "hole": {"position": site.position, "axis": site.axis, "frame": "Center"},
             "implant_length": site.implant_length,
+            "placed_implant_length": site.placed_length,
             "rod_radius": site.rod_radius,
             "site_check": {"distance_to_tissue": float(sites_checked.distance[k]),
                            "tolerance": sites_checked.tolerance,
@@ -314,7 +315,7 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims, sites_checked) -> d
         checks += checks_.layout_checks(n, feed, ik_branches=cap.ik_branches[k],
                                         neighbourhood_index=cap.neighbourhood_index[k])
         checks += checks_.feeding_checks(n, sim["runs"] if sim is not None else [])
-    return {
+    plan = {
         "case": {"name": case.name, "source": str(case.source), "seed": case.seed,
                  "random_streams": "numpy SeedSequence(seed) spawned per stage ("
                                    + ", ".join(seeds.STAGES) + ") and site (systems.seeds)",
@@ -359,6 +360,8 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims, sites_checked) -> d
         "checks": checks,
         "passed": checks_.passed(checks),
     }
+    plan["cards"] = cards.surgeon_cards(to_jsonable(plan))
+    return plan
 
 
 # -- figures --------------------------------------------------------------------------------------

@@ -1,6 +1,7 @@
 """``report.html``: one self-contained page per plan (the figures are files beside it).
 
-Sections follow the pipeline: checks first (pass/fail with margins), then the FPSM, each site's
+It opens with the surgeon's cards (analyses.cards: one per implant, the plan in words). Sections
+then follow the pipeline: checks first (pass/fail with margins), then the FPSM, each site's
 placement and virtual fixture, the robot base, the capability check, the feeding simulations and
 the 3D scene (the Meshcat static HTML of the layout in an iframe). Tables show mm and degrees;
 the plan itself stays in SI units.
@@ -25,6 +26,15 @@ th { background: #f3f3f3; } td.l, th.l { text-align: left; }
 .figs img { max-width: 100%; border: 1px solid #ddd; margin: 4px 0; }
 iframe { width: 100%; height: 560px; border: 1px solid #ccc; }
 .muted { color: #666; font-size: 0.9em; }
+.cards { display: flex; flex-wrap: wrap; gap: 12px; }
+.card { flex: 1 1 480px; border: 1px solid #bbb; border-radius: 6px; padding: 6px 10px;
+        font-size: 0.86em; }
+.card h2 { margin: 0.1em 0; font-size: 1.25em; border: 0; }
+.card table { margin: 0.3em 0; width: 100%; font-size: 1em; }
+.card th { width: 9.5em; } .card td, .card th { padding: 2px 5px; }
+.card .next { margin: 0.2em 0; font-weight: 600; }
+.v-ready .verdict { color: #126b12; } .v-tight .verdict { color: #a65f00; }
+.v-refused .verdict { color: #b00020; }
 .print-only { display: none; }
 @media print {
   body { margin: 0; max-width: none; font-size: 10pt; }
@@ -92,6 +102,7 @@ def render(plan: dict, figs: dict) -> str:
         f"<span class='{'pass' if ok else 'fail'}'>{'PASS' if ok else 'FAIL'}</span></p>",
         *[f"<p class='fail'>Accepted by the user ({html.escape(a['flag'])}): "
           f"{html.escape(a['what'])}</p>" for a in plan.get("acknowledged", [])],
+        *_cards(plan.get("cards") or []),
         "<h2>Checks</h2>",
         _table(["check", "id", "site", "value", "limit", "bound", "margin", "result"], [
             [c["name"] + (f" ({c['pair']})" if c.get("pair") else ""), c.get("id", ""),
@@ -242,6 +253,26 @@ def render(plan: dict, figs: dict) -> str:
     parts += _provenance(plan.get("provenance"))
     parts.append("</body></html>")
     return "\n".join(parts)
+
+
+def _cards(cards: list[dict]) -> list[str]:
+    """The surgeon's cards (analyses.cards), one per implant, side by side on the first screen."""
+    from implantplan.analyses.cards import card_lines, card_title
+
+    if not cards:
+        return []
+    out = ["<div class='cards'>"]
+    for c in cards:
+        rows = "".join(f"<tr><th class='l'>{html.escape(k)}</th><td class='l'>{html.escape(v)}"
+                       "</td></tr>" for k, v in card_lines(c))
+        out.append(
+            f"<section class='card v-{html.escape(c['verdict'])}' "
+            f"data-site='{html.escape(c['site'])}'>"
+            f"<h2>{html.escape(card_title(c))}: <span class='verdict'>"
+            f"{html.escape(c['verdict'])}</span></h2>"
+            f"<p class='next'>{html.escape(c['next_step'])}</p><table>{rows}</table></section>")
+    out.append("</div>")
+    return out
 
 
 def _safety_spec(spec: dict | None) -> list[str]:

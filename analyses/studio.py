@@ -25,12 +25,13 @@ middle,
 in the controls from the start and read only by the sliders master;
 "Master keyboard/sliders" or key M switches, also during a run; P then puts the sliders back to
 zero). The fixture holds the tool's orientation within beta (0.5 deg) of the planned one, roll
-and tilt alike. The fixture's force is drawn as an arrow at the tool, the estimator's alarm
-turns the tool marker red. Leaving teleop mode (T) or "Save recording" (V) writes the run as a
-MasterDevice CSV (``t_s,x_m,y_m,z_m,rx_rad,ry_rad,rz_rad``) in the plan folder's
-``recordings/`` (with ``<name>.json`` naming the case), which ``implantplan simulate feeding
---csv FILE --out DIR`` replays. "FPSM slices on/off" (key G) shows or hides the FPSM's slices
-in either mode.
+and tilt alike. The fixture's force is drawn as an orange arrow at the tool while it acts
+(the tool held at the fixture's wall and pushed out: the damping on the outward command, 10 mm
+per N), the estimator's alarm turns the tool marker red. Leaving teleop mode (T) or "Save
+recording" (V) writes the run as a MasterDevice CSV (``t_s,x_m,y_m,z_m,rx_rad,ry_rad,rz_rad``)
+in the plan folder's ``recordings/`` (with ``<name>.json`` naming the case), which
+``implantplan simulate feeding --csv FILE --out DIR`` replays. "FPSM slices on/off" (key G)
+shows or hides the FPSM's slices in either mode.
 
 The event handling is :class:`Studio` (``poll()`` once per loop turn), driven through Meshcat's
 API in the tests.
@@ -255,6 +256,7 @@ class Studio:
     def keep(self) -> Path:
         """Write the current layout into the plan folder's plan.json (atomically), with the
         layout's checks recomputed; returns the path."""
+        from implantplan.analyses import cards
         from implantplan.analyses import checks as checks_
 
         lay, sp = self.layout, self.sp
@@ -291,6 +293,7 @@ class Studio:
                                             neighbourhood_index=cap["neighbourhood_index"][k])
         plan["checks"] = checks
         plan["passed"] = checks_.passed(checks)
+        plan["cards"] = cards.surgeon_cards(to_jsonable(plan))
         plan.pop("schema_version", None)
         plan.pop("kind", None)
         path = write_json(sp.folder / "plan.json", plan, kind="plan")
@@ -376,13 +379,35 @@ class Studio:
         t.advance(self.teleop_step)
         st = t.state()
         p = st["p_WE"]
-        F = st["F_W_fixture"]
-        tip = p + np.clip(0.002 * F, -0.05, 0.05)  # 2 mm per N, at most 5 cm
-        self.meshcat.SetLine("/studio/force", np.stack([p, tip]).T, 5.0,
-                             Rgba(1.0, 0.5, 0.0, 1.0))
+        self._draw_force(p, st["F_W_fixture"])
         self.meshcat.SetObject("/studio/tool", Sphere(0.002),
                                Rgba(0.9, 0.1, 0.1, 1) if st["alarm"] else Rgba(0.1, 0.8, 0.2, 1))
         self.meshcat.SetTransform("/studio/tool", RigidTransform(p))
+
+    def _draw_force(self, p_WE, F_W) -> None:
+        """The fixture's force at the tool as an orange arrow (shaft and cone, 10 mm per N, at
+        most 6 cm; a WebGL line would be 1 px whatever its width), hidden while it does not act
+        (below :data:`FORCE_SHOWN_N`)."""
+        from pydrake.geometry import Cylinder, MeshcatCone, Rgba
+        from pydrake.math import RigidTransform, RotationMatrix
+
+        F = np.asarray(F_W, dtype=float)
+        size = float(np.linalg.norm(F))
+        shown = size >= FORCE_SHOWN_N
+        self.meshcat.SetProperty("/studio/force", "visible", shown)
+        if not shown:
+            return
+        length = min(FORCE_MM_PER_N * 1e-3 * size, 0.06)
+        head = min(0.006, 0.5 * length)
+        orange = Rgba(1.0, 0.5, 0.0, 1.0)
+        R = RotationMatrix.MakeFromOneVector(F / size, 2)  # z along the force
+        self.meshcat.SetObject("/studio/force/shaft", Cylinder(0.0012, length - head), orange)
+        self.meshcat.SetTransform("/studio/force/shaft",
+                                  RigidTransform(R, p_WE + R.col(2) * 0.5 * (length - head)))
+        self.meshcat.SetObject("/studio/force/head", MeshcatCone(head, 0.003, 0.003), orange)
+        # Meshcat's cone has its apex at the origin and opens along +z: flip it onto the tip
+        self.meshcat.SetTransform("/studio/force/head", RigidTransform(
+            R @ RotationMatrix.MakeXRotation(np.pi), p_WE + R.col(2) * length))
 
     # -- the loop -----------------------------------------------------------------------------
     def _new_clicks(self) -> dict[str, int]:
@@ -476,8 +501,22 @@ class Studio:
                              "rate_deg_s": np.rad2deg(self.keyboard.rate),
                              "paused": self.keyboard.paused}
             out["teleop"]["sliders"] = dict(self.sliders.last)  # any thread may ask
+        out["card"] = self.card()
         out["recordings"] = [p.name for p in self.saved]
         return to_jsonable(out)
+
+    def card(self) -> dict | None:
+        """The selected site's surgeon's card (analyses.cards) as plan.json holds it (the
+        planned layout, or the one last kept), in the report's words and units."""
+        from implantplan.analyses import cards
+
+        found = [c for c in self.sp.plan.get("cards") or []
+                 if c["site"] == self.sp.names[self.site]]
+        if not found:
+            return None
+        c = found[0]
+        return {"title": cards.card_title(c), "verdict": c["verdict"],
+                "next_step": c["next_step"], "lines": dict(cards.card_lines(c))}
 
     def run(self, *, lock=None, stop=None, idle: float = 0.02) -> None:
         """Poll until Quit or ``stop`` (a threading.Event) is set; each turn holds ``lock``
@@ -517,12 +556,18 @@ def help_keys() -> list[str]:
     return lines
 
 
+FORCE_SHOWN_N = 0.05  # N: the fixture's force arrow shows from this size on
+FORCE_MM_PER_N = 10.0  # the arrow's length per newton
+
+
 # -- the status page -------------------------------------------------------------------------------
 
 PAGE = """<!doctype html><html><head><meta charset="utf-8"><title>implantplan studio</title>
 <style>body{margin:0;display:flex;height:100vh;font:13px system-ui,sans-serif}
 iframe{flex:1;border:0}#p{width:340px;overflow:auto;padding:8px;background:#f4f4f6}
-td{padding:1px 4px;vertical-align:top}.bad{color:#c00;font-weight:bold}</style></head>
+td{padding:1px 4px;vertical-align:top}.bad{color:#c00;font-weight:bold}
+#card{background:#fff;border:1px solid #ccc;padding:4px}.v-refused b{color:#c00}
+.v-tight b{color:#a60}.v-ready b{color:#126b12}</style></head>
 <body><iframe src="MESHCAT" id="m"></iframe><div id="p">loading...</div><script>
 function fmt(v){if(v===null||v===undefined)return '-';
 if(Array.isArray(v))return v.map(fmt).join(', ');
@@ -532,8 +577,13 @@ return String(v);}
 function rows(o){return Object.entries(o).map(([k,v])=>'<tr><td>'+k+'</td><td'+
 ((k==='clear'||k==='confirmed'||k==='feasible')&&v===false||(k==='alarm'&&v)?' class=bad':'')+
 '>'+fmt(v)+'</td></tr>').join('');}
+function esc(t){return String(t).replace(/[&<>"']/g,c=>'&#'+c.charCodeAt(0)+';');}
+function card(c){return '<div id="card" class="v-'+esc(c.verdict)+'"><b>'+esc(c.title)+': '+
+esc(c.verdict)+'</b><br>'+esc(c.next_step)+'<table>'+Object.entries(c.lines).map(([k,v])=>
+'<tr><td>'+esc(k)+'</td><td>'+esc(v)+'</td></tr>').join('')+'</table></div>';}
 async function tick(){try{const s=await (await fetch('status.json')).json();
 let h='<b>mode '+s.mode+'</b>, site '+s.site+', margin '+fmt(s.margin_mm)+' mm';
+if(s.card)h+='<h4>surgeon\'s card (plan)</h4>'+card(s.card);
 if(s.setup)h+='<h4>setup</h4><table>'+rows(s.setup)+'</table>';
 if(s.teleop)h+='<h4>teleop</h4><table>'+rows(s.teleop)+'</table>';
 h+='<h4>messages</h4>'+s.messages.join('<br>');

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from implantplan.diagrams.plant import build_plant
+from implantplan.diagrams.plant import PATIENT, build_plant
 from implantplan.systems.errors import InputError
 from implantplan.systems.robot import kinematics as kin
 from implantplan.systems.robot import moprp
@@ -27,10 +27,15 @@ class Clearance:
     Attributes:
         distance: (N,) per configuration (m; +inf when no pair is within ``max_distance``).
         pair: per configuration the two geometry names of its closest pair ("" when none).
+        patient: (N,) the same over the pairs with a patient or chair geometry (the
+            scenario's obstacles), +inf when none is within ``max_distance``.
+        patient_pair: per configuration its closest such pair.
     """
 
     distance: np.ndarray
     pair: tuple[tuple[str, str], ...]
+    patient: np.ndarray | None = None
+    patient_pair: tuple[tuple[str, str], ...] = ()
 
     def worst(self) -> tuple[int, float, tuple[str, str]]:
         """(index, distance, pair) of the configuration with the smallest distance."""
@@ -64,18 +69,24 @@ class SceneGraphClearance:
         (pairs farther than ``max_distance`` are not reported: +inf when none is closer)."""
         q = np.asarray(q, dtype=float).reshape(-1, 6)
         d = np.full(q.shape[0], np.inf)
-        pairs = []
+        d_pat = np.full(q.shape[0], np.inf)
+        pairs, pat_pairs = [], []
         for k, qk in enumerate(q):
             self.plant.SetPositions(self._plant_context, self.handles.arm, qk)
             best, pair = np.inf, ("", "")
+            best_p, pair_p = np.inf, ("", "")
             for r in self._query.Eval(self._sg_context).ComputeSignedDistancePairwiseClosestPoints(
                     max_distance=max_distance):
+                names = (self._inspector.GetName(r.id_A), self._inspector.GetName(r.id_B))
                 if r.distance < best:
-                    best = r.distance
-                    pair = (self._inspector.GetName(r.id_A), self._inspector.GetName(r.id_B))
-            d[k] = best
+                    best, pair = r.distance, names
+                if r.distance < best_p and any(n.startswith(PATIENT + "::") for n in names):
+                    best_p, pair_p = r.distance, names
+            d[k], d_pat[k] = best, best_p
             pairs.append(pair)
-        return Clearance(distance=d, pair=tuple(pairs))
+            pat_pairs.append(pair_p)
+        return Clearance(distance=d, pair=tuple(pairs), patient=d_pat,
+                         patient_pair=tuple(pat_pairs))
 
 
 def feed_path(sc: moprp.Scenario, xyz, branch: int, *, X_OT=None, step: float = 0.001,
@@ -99,26 +110,44 @@ def feed_path(sc: moprp.Scenario, xyz, branch: int, *, X_OT=None, step: float = 
     return q
 
 
+PATIENT_REACH = 0.1  # m: SceneGraph reports the pairs closer than this along a confirmed feed
+
+
 def confirm_feed(checker: SceneGraphClearance, sc: moprp.Scenario, branch: int, *,
                  X_OT=None) -> dict:
-    """SceneGraph clearance along the selected branch's whole feed at the checker's base.
+    """SceneGraph clearance along the selected branch's whole feed at the checker's base, and
+    the joint headroom along that feed and along the feed of every head displacement the
+    scenario allows (:func:`systems.robot.moprp.head_displacements`).
 
     Returns:
         dict(distance (m, the smallest along the feed), pair [name, name], samples, ok (every
-        sample reached and distance >= the scenario's clearance), limit (= clearance),
-        distance_pre / distance_target (m, at the pre-feed and target configurations)).
+        sample reached, distance >= the scenario's clearance and every joint's headroom >= the
+        scenario's), limit (= clearance), distance_pre / distance_target (m, at the pre-feed
+        and target configurations), headroom (6,) (rad, per joint, the smallest over the feeds;
+        -inf where a displaced feed leaves the branch), headroom_limit (rad)).
     """
     q = feed_path(sc, checker.xyz, branch, X_OT=X_OT)
     reached = bool(np.all(np.isfinite(q)))
-    c = checker(q[np.all(np.isfinite(q), axis=1)], max_distance=max(0.05, 2 * sc.clearance))
+    X_OT0 = np.eye(4) if X_OT is None else np.asarray(X_OT, dtype=float)
+    paths = [q] + [feed_path(sc, checker.xyz, branch, X_OT=D @ X_OT0)
+                   for D in moprp.head_displacements(sc)[1:]]
+    room = np.min([np.where(np.isfinite(p), kin.joint_headroom(np.nan_to_num(p), sc.limits),
+                            -np.inf).min(axis=0) for p in paths], axis=0)
+    head = {"headroom": room, "headroom_limit": float(sc.joint_headroom)}
+    room_ok = bool(np.all(room >= sc.joint_headroom))
+    c = checker(q[np.all(np.isfinite(q), axis=1)],
+                max_distance=max(PATIENT_REACH, 2 * sc.clearance))
     if not reached:
         return {"distance": float("-inf"), "pair": ["", ""], "samples": int(q.shape[0]),
                 "ok": False, "limit": sc.clearance, "distance_pre": float("nan"),
-                "distance_target": float("nan")}
+                "distance_target": float("nan"), **head}
     _, dist, pair = c.worst()
+    kp = int(np.argmin(c.patient))
     return {"distance": dist, "pair": list(pair), "samples": int(q.shape[0]),
-            "ok": bool(dist >= sc.clearance), "limit": sc.clearance,
-            "distance_pre": float(c.distance[0]), "distance_target": float(c.distance[-1])}
+            "ok": bool(dist >= sc.clearance) and room_ok, "limit": sc.clearance,
+            "distance_pre": float(c.distance[0]), "distance_target": float(c.distance[-1]),
+            "patient_distance": float(c.patient[kp]), "patient_pair": list(c.patient_pair[kp]),
+            "max_distance": PATIENT_REACH, **head}
 
 
 # --------------------------------------------------------------------------------------------

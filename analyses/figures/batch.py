@@ -15,13 +15,32 @@ PASS, FAIL, ABSENT = 1.0, 0.0, 0.5
 
 
 def _label(c: dict) -> str:
-    return c["name"] + (f" [{c['site']}]" if c.get("site") else "")
+    """A column's label: the check's stable id (short; its name where a record has none) and
+    the site."""
+    return (c.get("id") or c["name"]) + (f" [{c['site']}]" if c.get("site") else "")
 
 
 def plot_cohort_checks(records: list[dict], path) -> None:
-    """PNG: a row per case, a column per check (name and site); green pass, red fail, grey
-    absent (not planned, or a check that case has not); each cell shows the margin (mm for
-    lengths, deg for angles, as is otherwise). A case that was not planned shows its status."""
+    """PNG of :func:`cohort_checks_figure`, written atomically with every label inside it
+    (``bbox_inches="tight"``)."""
+    import matplotlib.pyplot as plt
+
+    fig = cohort_checks_figure(records)
+
+    def writer(tmp):
+        fig.savefig(tmp, dpi=90, format="png", bbox_inches="tight", pad_inches=0.15)
+
+    try:
+        write_atomic(path, writer)
+    finally:
+        plt.close(fig)
+
+
+def cohort_checks_figure(records: list[dict]):
+    """A row per case, a column per check (id and site); green pass, red fail, grey absent
+    (not planned, or a check that case has not); each cell shows the margin (mm for lengths,
+    deg for angles, as is otherwise). A case that was not planned shows its status. The
+    figure's height leaves room for the longest rotated check label."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -44,8 +63,9 @@ def plot_cohort_checks(records: list[dict], path) -> None:
             unit, f = DISPLAY.get(c["unit"], (c["unit"], 1.0))
             text[i][j] = f"{c['margin'] * f:.3g}"
     fig_w = min(40.0, max(8.0, 3.0 + 0.55 * grid.shape[1]))
-    # the rotated check names take about 2.5 in below the grid whatever the number of cases
-    fig_h = max(6.0, 3.6 + 0.35 * len(records))
+    # the rotated labels (7 pt, about 0.55 em a character, at 60 deg) need this much height
+    longest = max((len(f"{c} (deg)") for c in columns), default=0)
+    fig_h = 2.0 + 0.35 * len(records) + longest * 7 * 0.55 / 72 * np.sin(np.deg2rad(60))
     fig, ax = plt.subplots(figsize=(fig_w, fig_h), layout="constrained")
     cmap = mcolors.ListedColormap(["#d9534f", "#dddddd", "#5cb85c"])
     ax.imshow(grid, cmap=cmap, vmin=0, vmax=1, aspect="auto")
@@ -66,14 +86,7 @@ def plot_cohort_checks(records: list[dict], path) -> None:
     n_pass = sum(r["status"] == "passed" for r in records)
     ax.set_title(f"checks of {len(records)} cases: {n_pass} passed; cell = margin "
                  "(>= 0 passes; green pass, red fail, grey absent)", fontsize=9)  # fmt: skip
-
-    def writer(tmp):
-        fig.savefig(tmp, dpi=90, format="png")
-
-    try:
-        write_atomic(path, writer)
-    finally:
-        plt.close(fig)
+    return fig
 
 
 def summary_html(rows: list[dict], png: str) -> str:

@@ -67,7 +67,8 @@ def _vf_outline(vf, extra: float = 0.0) -> list[np.ndarray]:
     return out
 
 
-def plot_placement(fpsm: Fpsm, p: Placement, out_dir) -> list[Path]:
+def plot_placement(fpsm: Fpsm, p: Placement, out_dir, *,
+                   placed_length: float | None = None) -> list[Path]:
     """Contour (global + magnified), convergence and 2D/3D views; returns the files written."""
     import matplotlib
 
@@ -127,6 +128,10 @@ def plot_placement(fpsm: Fpsm, p: Placement, out_dir) -> list[Path]:
     tool = p.X_CT[:3, 3]
     implant = np.array([tool, tool - p.implant_length * p.X_CT[:3, 2]]) * mm
     hole = p.X_CH[:3, 3] * mm
+    # the planned implant in its hole: from the entry point (the site) into the bone
+    placed = None if placed_length is None else \
+        np.array([p.X_CH[:3, 3], p.X_CH[:3, 3] - placed_length * p.X_CH[:3, 2]]) * mm
+    gap = float(np.linalg.norm(implant[1] - hole))
     vf_lines = [ln * mm for ln in _vf_outline(p.vf)] if p.vf is not None else []
     mesh = mesh_in_center(fpsm)
 
@@ -146,8 +151,13 @@ def plot_placement(fpsm: Fpsm, p: Placement, out_dir) -> list[Path]:
                     label="virtual fixture" if n_l == 0 else None)
         ax.plot(rod[:, a], rod[:, b], color="tab:red", lw=2.5, label="rod (line1)")
         ax.plot(tip[:, a], tip[:, b], "--", color="tab:orange", lw=1.2, label="tip path (line2)")
-        ax.plot(implant[:, a], implant[:, b], color="k", lw=3, label="implant")
-        ax.plot(hole[a], hole[b], "ko", ms=5, label="hole")
+        ax.plot(implant[:, a], implant[:, b], color="k", lw=3,
+                label=f"tool at the feeding target: head to tip (d12 "
+                      f"{p.implant_length * mm:.0f} mm), tip {gap:.1f} mm from the hole")
+        if placed is not None:
+            ax.plot(placed[:, a], placed[:, b], color="tab:purple", lw=4,
+                    label=f"implant placed (entry to apex, {placed_length * mm:.0f} mm)")
+        ax.plot(hole[a], hole[b], "ko", ms=5, label="hole (entry point)")
         ax.set_xlabel(f"{name[0]} (mm)")
         ax.set_ylabel(f"{name[1]} (mm)")
         ax.set_title(f"{name} view (Center)")
@@ -166,6 +176,8 @@ def plot_placement(fpsm: Fpsm, p: Placement, out_dir) -> list[Path]:
     ax.plot(*rod.T, color="tab:red", lw=2.5)
     ax.plot(*tip.T, "--", color="tab:orange", lw=1.2)
     ax.plot(*implant.T, color="k", lw=3)
+    if placed is not None:
+        ax.plot(*placed.T, color="tab:purple", lw=4)
     ax.scatter(*hole, color="k", s=15)
     ax.set_xlabel("X (mm)")
     ax.set_ylabel("Y (mm)")
@@ -174,7 +186,10 @@ def plot_placement(fpsm: Fpsm, p: Placement, out_dir) -> list[Path]:
     ax.view_init(elev=25, azim=-60)
     fig.suptitle(
         f"d_T = {p.d_T * mm:.3f} mm, theta_T = {np.rad2deg(p.theta_T):.3f} deg, "
-        f"{'valid' if p.valid else 'INVALID: ' + p.reason}",
+        f"{'valid' if p.valid else 'INVALID: ' + p.reason}\n"
+        "the tool drawn at its feeding target (before the feed); the feed carries it along "
+        "line2 until the tip reaches the hole" + (", where the implant is placed"
+                                                  if placed is not None else ""),
         fontsize=10,
     )
     save(fig, out_dir / "views.png", dpi=110)

@@ -33,7 +33,8 @@ def make_figures(case, fit, placements, robot, cap, sims, fig_dir: Path, *, html
             occlusal_normal=o["occlusal_normal"])]) + figs["fpsm"]
     figs["sites"] = {}
     for site, p in zip(case.sites, placements, strict=True):
-        figs["sites"][site.name] = rel(plot_placement(fit.fpsm, p, fig_dir / f"site_{site.name}"))
+        figs["sites"][site.name] = rel(plot_placement(fit.fpsm, p, fig_dir / f"site_{site.name}",
+                                                      placed_length=site.placed_length))
     sel = {"base_xyz": robot.base_xyz, "branch": int(robot.branch[0]), "q": robot.q[0],
            "q_pre": robot.q_pre[0],
            "indices": dict(zip(moprp.INDEX_NAMES, robot.indices.tolist(), strict=True))}

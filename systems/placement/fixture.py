@@ -409,14 +409,17 @@ def _body_law(p, R, V, origin, D, e1, ps, pr, cap, ps_lat, pr_lat, s_entry, R_re
     if crossing:
         viol = max(viol, d_now[2])
     for i in range(3):
-        if d_now[i] > 0.0:  # the spring-damper on the violation, with the commanded velocity
+        # the spring-damper on the violation, with the commanded velocity, outside or on the
+        # wall (within tol): the law keeps the commanded pose inside, so a tool held at the
+        # fixture's limit sits on the wall to rounding, and pushing out is what it resists
+        if d_now[i] > -tol:
             ni = n[i]
             r = lever if i == 2 else np.zeros(3)
             vp0 = V[3] + V[1] * r[2] - V[2] * r[1]
             vp1 = V[4] + V[2] * r[0] - V[0] * r[2]
             vp2 = V[5] + V[0] * r[1] - V[1] * r[0]
             vn = ni[0] * vp0 + ni[1] * vp1 + ni[2] * vp2
-            F -= (k * d_now[i] + b * max(vn, 0.0)) * ni
+            F -= (k * max(d_now[i], 0.0) + b * max(vn, 0.0)) * ni
     # 3. the translational part
     if dt <= 0.0:  # no period: stop outward motion at or over the walls, about the pose now
         for i in range(3):

@@ -119,6 +119,14 @@ def joint_limits(limits: str | np.ndarray = "175") -> np.ndarray:
     return arr
 
 
+def joint_headroom(q, limits: str | np.ndarray = "175") -> np.ndarray:
+    """Distance (rad) of each joint of ``q`` (..., 6) to its nearer limit, min(q - lower,
+    upper - q) per joint (..., 6): negative outside the limits, NaN where ``q`` is NaN."""
+    lo, hi = joint_limits(limits)
+    q = np.asarray(q, dtype=float)
+    return np.minimum(q - lo, hi - q)
+
+
 def _check_q(q) -> np.ndarray:
     q = np.asarray(q, dtype=float)
     if q.ndim == 0 or q.shape[-1] != 6:

@@ -70,6 +70,7 @@ R_OE = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 R_BE = R_OB.T @ R_OE
 X_OE = transform(R_OE, np.zeros(3))  # End in Oral (or in Tool, for a site's target)
 INDEX_NAMES = ("dexterity", "error_range", "joint_variation")
+HEAD_FEED_SAMPLES = 3  # poses along each displaced feed in the search (start, middle, end)
 
 # --------------------------------------------------------------------------------------------
 # Target, feed, IK
@@ -104,6 +105,31 @@ def feed_poses(xyz, feed_length: float, samples: int, X_OT=None) -> np.ndarray:
     out = np.broadcast_to(X[..., None, :, :], X.shape[:-2] + (samples, 4, 4)).copy()
     out[..., :3, 3] += s[:, None] * z_B
     return out
+
+
+def head_displacements(sc: Scenario) -> np.ndarray:
+    """(H, 4, 4) displacements D_O of the head in Oral the feed must follow with its joint
+    headroom: the identity, then a translation of ``sc.head_translation`` along +-each Oral
+    axis and a rotation of ``sc.head_rotation`` about +-each Oral axis through the Oral origin
+    (the mouth); the displaced feeding target is D_O X_OT. Zero sizes drop their six."""
+    D = [np.eye(4)]
+    for k in range(3):
+        for sign in (1.0, -1.0):
+            if sc.head_translation > 0:
+                D.append(transform(np.eye(3), sign * sc.head_translation * np.eye(3)[k]))
+            if sc.head_rotation > 0:
+                D.append(transform(rpy_to_rotation(sign * sc.head_rotation * np.eye(3)[k]),
+                                   np.zeros(3)))
+    return np.array(D)
+
+
+def feed_headroom(q, ok, limits) -> np.ndarray:
+    """The smallest joint headroom (rad, :func:`kinematics.joint_headroom`) per joint over the
+    feed samples and head displacements: ``q`` (..., H, K, 6) and ``ok`` (..., H, K) ->
+    (..., 6); -inf for every joint where some pose has no solution on the branch."""
+    h = kin.joint_headroom(np.where(ok[..., None], q, 0.0), limits)
+    h = np.where(ok[..., None], h, -np.inf)
+    return h.min(axis=(-3, -2))
 
 
 # --------------------------------------------------------------------------------------------
@@ -290,6 +316,8 @@ class BaseEvaluation:
         branch: (P,) selected branch index 0..7, -1 when infeasible.
         q, q_pre: (P, 6) selected configuration at the target / at the pre-feed pose (NaN if none).
         valid: (P, 8) which branches survived.
+        headroom: (P, 6) smallest joint headroom (rad) of the selected branch along the feed
+            and under the head motions (NaN if none).
         reason: (P, 8) int, why each branch was dropped (see ``DROP_REASONS``).
         candidate_indices: (P, 8, 3) indices of every surviving branch (inf elsewhere).
         angular_error_range: (P, 8) eps sigma_max(J_w) per surviving branch (NaN elsewhere).
@@ -304,6 +332,7 @@ class BaseEvaluation:
     reason: np.ndarray
     candidate_indices: np.ndarray
     angular_error_range: np.ndarray
+    headroom: np.ndarray
 
     @property
     def feasible(self) -> np.ndarray:
@@ -315,7 +344,7 @@ class BaseEvaluation:
 
 
 (DROP_OK, DROP_IK, DROP_CONTINUITY, DROP_JOINT2, DROP_SELF, DROP_ENV, DROP_CABINET,
- DROP_CART) = range(8)
+ DROP_CART, DROP_HEADROOM) = range(9)
 DROP_REASONS = {
     DROP_OK: "ok",
     DROP_IK: "no IK solution within the joint limits somewhere along the feed",
@@ -325,6 +354,8 @@ DROP_REASONS = {
     DROP_ENV: "arm hits the patient or chair",
     DROP_CABINET: "arm hits the cabinet",
     DROP_CART: "the cart itself overlaps the patient or chair at this base position",
+    DROP_HEADROOM: "a joint comes closer to its limit than the headroom along the feed or "
+                   "under the head motions",
 }
 
 
@@ -392,6 +423,27 @@ def evaluate_bases(
     viol = viol + np.where(alive, j2_excess, 0.0)
     alive &= ~j2_bad
 
+    # joint headroom along the feed and under the head motions (DESIGN.md section 7): every
+    # joint keeps sc.joint_headroom from its limits at every feed sample and at the start,
+    # middle and end of the feed to every displaced target (the same branch slot: the closed
+    # form keeps its branch index), for the bases with a branch left; SceneGraph's confirmation
+    # checks the whole fine path of every displaced feed (diagrams.arm_clearance.confirm_feed)
+    room = feed_headroom(q[:, :, None], ok[:, :, None], sc.limits)  # (P, B, 6)
+    D = head_displacements(sc)
+    pa = np.flatnonzero(alive.any(axis=1))
+    if D.shape[0] > 1 and pa.size:
+        X_OT0 = np.eye(4) if X_OT is None else np.asarray(X_OT, dtype=float)
+        Xh = feed_poses(xyz[pa, None], sc.feed_length, min(K, HEAD_FEED_SAMPLES),
+                        D[1:] @ X_OT0)  # (Pa, H-1, Kh, 4, 4)
+        qh, okh = ik_solver(Xh, limits=sc.limits, X_FT=sc.X_FT)  # (Pa, H-1, Kh, B, 6)
+        room[pa] = np.minimum(room[pa], feed_headroom(np.moveaxis(qh, 3, 1),
+                                                      np.moveaxis(okh, 3, 1), sc.limits))
+    room_min = room.min(axis=-1)
+    short = alive & (room_min < sc.joint_headroom)
+    reason = np.where(short, DROP_HEADROOM, reason)
+    viol = viol + np.where(short, np.minimum(sc.joint_headroom - room_min, 1.0) + 1e-3, 0.0)
+    alive &= ~short
+
     # collisions at the pre-feed and target configurations of the surviving branches
     pb, bb = np.nonzero(alive)
     if pb.size:
@@ -428,9 +480,11 @@ def evaluate_bases(
     q_sel = np.where(feasible[:, None], q[rows, c, -1], np.nan)
     q_pre = np.where(feasible[:, None], q[rows, c, 0], np.nan)
     violation = np.where(feasible, 0.0, np.maximum(viol.min(axis=1), 1e-6))
+    headroom = np.where(feasible[:, None], room[rows, c], np.nan)
     return BaseEvaluation(
         objectives=objectives, violation=violation, branch=choice, q=q_sel, q_pre=q_pre,
         valid=alive, reason=reason, candidate_indices=cand, angular_error_range=ang,
+        headroom=headroom,
     )
 
 

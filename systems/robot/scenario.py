@@ -76,6 +76,11 @@ class Scenario:
         clearance: minimum capsule clearance (m) counted as collision-free.
         max_joint_step: largest joint step between feed samples still counted continuous (rad).
         limits: "175" or "360" (AUBO variants).
+        joint_headroom: the smallest distance (rad) every joint keeps from its limit along the
+            feed and under the head motions (DESIGN.md section 7; default 10 deg).
+        head_translation, head_rotation: the envelope of the head motions the feed must follow
+            (m, rad): breathing (<= 2 mm), a swallow (<= 5 mm) and a minute of drift (<= 5 mm,
+            1 deg); a startle is not followed (the head guard stops and backs out).
         pop, gen, seed, patience, hv_tol: NSGA-II settings.
         percentile_samples: random feasible bases for the percentile ranks.
     """
@@ -97,6 +102,9 @@ class Scenario:
     clearance: float
     max_joint_step: float
     limits: str
+    joint_headroom: float
+    head_translation: float
+    head_rotation: float
     pop: int
     gen: int
     seed: int
@@ -217,6 +225,16 @@ class GaSpec:
     hv_tol: float = v.spec(v.nonneg, 1e-3)
 
 
+@dataclass(frozen=True)
+class HeadEnvelopeSpec:
+    """``head_motion:`` the head motions a feed must follow with the joint headroom kept: a
+    translation up to ``translation_mm`` along each Oral axis and a rotation up to
+    ``rotation_deg`` about each, about the Oral origin (the mouth)."""
+
+    translation_mm: float = v.spec(partial(v.number, low=0.0, high=50.0), 5.0)
+    rotation_deg: float = v.spec(partial(v.number, low=0.0, high=20.0), 1.0)
+
+
 @dataclass(frozen=True, kw_only=True)
 class ScenarioFile:
     """The scenario file as written; :func:`scenario_from_dict` turns it into a
@@ -236,6 +254,8 @@ class ScenarioFile:
     clearance_m: float = v.spec(v.nonneg, 0.005)
     max_joint_step_deg: float = v.spec(v.positive, 20.0)
     joint_limits_deg: str = v.spec(lambda x, w: v.choice(str(x), w, ("175", "360")), "175")
+    joint_headroom_deg: float = v.spec(partial(v.number, low=0.0, high=90.0), 10.0)
+    head_motion: HeadEnvelopeSpec = v.spec(v.section(HeadEnvelopeSpec), {})
     ga: GaSpec = v.spec(v.section(GaSpec), {})
     percentile_samples: int = v.spec(partial(v.integer, low=1), 2000)
     seed: int = v.spec(partial(v.integer, low=0), 0)
@@ -273,6 +293,9 @@ def scenario_from_dict(data: dict, *, X_FT=None, source: str = "scenario") -> Sc
         clearance=f.clearance_m,
         max_joint_step=np.deg2rad(f.max_joint_step_deg),
         limits=f.joint_limits_deg,
+        joint_headroom=np.deg2rad(f.joint_headroom_deg),
+        head_translation=f.head_motion.translation_mm * 1e-3,
+        head_rotation=np.deg2rad(f.head_motion.rotation_deg),
         pop=f.ga.pop,
         gen=f.ga.gen,
         seed=f.seed,

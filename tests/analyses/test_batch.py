@@ -164,3 +164,35 @@ def test_make_cohort_same_seed_same_files(tmp_path):
     c1 = yaml.safe_load((tmp_path / "a" / "default-01.yaml").read_text())
     assert c0["sites"][0]["position_mm"] != c1["sites"][0]["position_mm"]
     assert c0["center"] == c1["center"]  # the planning frame stays; the anatomy moves in it
+
+
+def test_the_summary_figure_keeps_every_check_label_inside_it(tmp_path):
+    """Many checks with long ids at several sites: every x and y label lies inside the saved
+    figure (they were cut off at the bottom)."""
+    import matplotlib.pyplot as plt
+
+    from implantplan.analyses.figures.batch import cohort_checks_figure, plot_cohort_checks
+
+    checks = [{"id": f"placement.tool_clearance_exact_{k:02d}", "name": "x" * 80, "site": s,
+               "value": 1.0, "limit": 0.5, "unit": "m", "margin": 0.5, "pass": k % 3 > 0}
+              for k in range(16) for s in ("36", "46")]
+    records = [{"case": f"case{i}", "status": "passed", "reason": None, "checks": checks}
+               for i in range(3)]
+    fig = cohort_checks_figure(records)
+    try:
+        fig.canvas.draw()
+        box = fig.bbox
+        ax = fig.axes[0]
+        labels = ax.get_xticklabels() + ax.get_yticklabels()
+        assert len(labels) == len(checks) + len(records)
+        for t in labels:
+            e = t.get_window_extent()
+            assert e.x0 >= box.x0 - 0.5 and e.y0 >= box.y0 - 0.5, t.get_text()
+            assert e.x1 <= box.x1 + 0.5 and e.y1 <= box.y1 + 0.5, t.get_text()
+        # the column labels name the check by its id and site, not its long name
+        assert ax.get_xticklabels()[0].get_text() == \
+            "placement.tool_clearance_exact_00 [36] (mm)"
+    finally:
+        plt.close(fig)
+    plot_cohort_checks(records, tmp_path / "summary.png")
+    assert (tmp_path / "summary.png").stat().st_size > 10_000

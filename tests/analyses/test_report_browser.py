@@ -6,6 +6,7 @@ import functools
 import threading
 from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 
+import numpy as np
 import pytest
 
 from tests.analyses.browser import Browser, find_chromium
@@ -71,6 +72,40 @@ def test_report_loads_without_errors(served, tmp_path):
 
         pdf = base64.b64decode(browser.call("Page.printToPDF", printBackground=False)["data"])
         assert pdf[:5] == b"%PDF-" and pdf.count(b"/Type /Page") - pdf.count(b"/Type /Pages") > 3
+        assert browser.errors == []
+    finally:
+        browser.close()
+
+
+def test_the_first_screen_shows_every_implants_card(served, demo_plan, tmp_path):
+    """At 1400 x 900 CSS px the report's first screen holds every card whole (issue 24)."""
+    import json
+
+    plan = json.loads((demo_plan / "plan.json").read_text())
+    browser = Browser(CHROMIUM)
+    try:
+        browser.call("Emulation.setDeviceMetricsOverride", width=1400, height=900,
+                     deviceScaleFactor=1, mobile=False)
+        browser.open(f"{served}/report.html", settle=1.0)
+        boxes = json.loads(browser.evaluate(
+            "JSON.stringify(Array.from(document.querySelectorAll('section.card')).map(c => {"
+            "const r = c.getBoundingClientRect(); return {site: c.dataset.site, top: r.top, "
+            "bottom: r.bottom, left: r.left, right: r.right, "
+            "text: c.innerText}; }))"))
+        assert [b["site"] for b in boxes] == [c["site"] for c in plan["cards"]]
+        for b, card in zip(boxes, plan["cards"], strict=True):
+            assert 0 <= b["top"] and b["bottom"] <= 900, b  # whole, on the first screen
+            assert 0 <= b["left"] and b["right"] <= 1400, b
+            assert f"tooth {card['tooth_fdi']} (FDI)" in b["text"]
+            assert card["next_step"] in b["text"]
+        shot = browser.screenshot(tmp_path / "first_screen.png")
+        from PIL import Image
+
+        with Image.open(shot) as im:
+            assert im.size == (1400, 900)
+            # the cards are drawn: the verdict colours appear in the card's band
+            band = np.asarray(im.convert("RGB"))[int(boxes[0]["top"]):int(boxes[0]["bottom"])]
+            assert band.std() > 10
         assert browser.errors == []
     finally:
         browser.close()

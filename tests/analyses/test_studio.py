@@ -77,6 +77,20 @@ def test_layout_at_the_planned_base_is_the_plans(studio):
             s["capability"]["neighbourhood_index"])
 
 
+def test_the_status_panel_shows_the_selected_sites_card_from_the_plan(studio):
+    from implantplan.analyses import cards
+
+    for k, name in enumerate(studio.sp.names):
+        studio.site = k
+        shown = studio.status()["card"]
+        card = next(c for c in studio.sp.plan["cards"] if c["site"] == name)
+        assert shown["title"] == f"tooth {name} (FDI)" and shown["verdict"] == card["verdict"]
+        assert shown["next_step"] == card["next_step"]
+        assert shown["lines"] == dict(cards.card_lines(card))
+        assert "instrument to tissue" in shown["lines"] and "P(margin holds)" in shown["lines"]
+    assert "surgeon" in st.PAGE and "s.card" in st.PAGE  # the panel draws it
+
+
 def test_sliders_move_the_base_and_change_the_indices(studio):
     m = studio.meshcat
     before = studio.layout
@@ -158,6 +172,35 @@ def test_keyboard_teleop_feeds_to_the_fixture_stop_and_the_recording_replays(stu
     assert main(["simulate", "feeding", "--csv", str(old), "--out", str(tmp_path / "o4")]) == 0
     rep4 = json.loads((tmp_path / "o4" / "feeding.json").read_text())
     assert np.asarray(rep4["end_X_WE"]) == pytest.approx(np.asarray(rep["end_X_WE"]), abs=1e-12)
+
+
+def test_the_fixtures_force_shows_as_an_arrow_when_the_tool_is_pushed_against_its_wall(studio):
+    """Feeding along the axis the fixture does not act (no arrow); held against its lateral
+    wall and pushed, it resists with its damping and the orange arrow shows, pointing in."""
+    m = studio.meshcat
+    click(m, st.TELEOP)
+    studio.poll()
+    for i in range(60):  # 3 s along the axis
+        if i % 5 == 0:
+            click(m, st.KEYS["feed_in"][0])
+        studio.poll()
+    quiet = np.linalg.norm(studio.status()["teleop"]["fixture_force_N"])
+    assert quiet < st.FORCE_SHOWN_N
+    start = studio.teleop.state()["p_WE"]
+    assert m._GetPackedProperty("/studio/force", "visible")[-1:] == b"\xc2"  # false
+    forces = []
+    for i in range(60):  # 3 s pushing sideways: it reaches the wall (0.5 mm) and pushes on
+        if i % 5 == 0:
+            click(m, st.KEYS["lateral_x+"][0])
+        studio.poll()
+        forces.append(studio.status()["teleop"]["fixture_force_N"])
+    F = np.array(forces[-1])
+    assert np.linalg.norm(F) > 4 * st.FORCE_SHOWN_N, forces[-5:]  # b * 5 mm/s = 0.5 N
+    assert m._GetPackedProperty("/studio/force", "visible")[-1:] == b"\xc3"  # true
+    assert m.HasPath("/studio/force/shaft") and m.HasPath("/studio/force/head")
+    # it pushes back: against the sideways motion the key made
+    moved = studio.teleop.state()["p_WE"] - start
+    assert np.linalg.norm(moved) > 0.2e-3 and F @ moved < 0
 
 
 def test_csv_replay_without_its_case_is_an_input_error(tmp_path, capsys):

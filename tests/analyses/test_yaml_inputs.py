@@ -228,3 +228,25 @@ def test_the_bundled_files_read(tmp_path):
     for kind, load in LOADERS.items():
         load(_write(tmp_path, f"dental_{kind}.yaml",
                     (CAPMAP_CASES / f"dental_{kind}.yaml").read_text()))
+
+
+def test_the_old_name_of_d12_is_still_read_with_a_note_once(monkeypatch, capsys):
+    import yaml
+
+    from implantplan.analyses import case as case_module
+    from implantplan.analyses.case import case_from_dict, default_case_path, load_case
+
+    monkeypatch.setattr(case_module, "notes_printed", set())
+    data = yaml.safe_load(default_case_path().read_text())
+    for s in data["sites"]:
+        s["implant_length_mm"] = s.pop("head_to_tip_mm") + 1.0
+    old = case_from_dict(data, source=default_case_path())
+    assert [s.implant_length for s in old.sites] == pytest.approx([0.032, 0.032])
+    new = load_case(default_case_path())
+    assert [s.implant_length for s in new.sites] == pytest.approx([0.031, 0.031])
+    err = capsys.readouterr().err
+    assert err.count("note: sites[0].implant_length_mm is read as head_to_tip_mm") == 1
+    assert "sites[1]" not in err  # once per run, not per site
+    data["sites"][0]["head_to_tip_mm"] = 31.0
+    with pytest.raises(InputError, match=r"sites\[0\]\.implant_length_mm: .*not both"):
+        case_from_dict(data, source=default_case_path())

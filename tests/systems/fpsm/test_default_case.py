@@ -221,7 +221,7 @@ def default_plan():
             np.asarray(site["position_mm"]) * MM,
             site["axis"],
             rod_radius=site["rod_radius_mm"] * MM,
-            implant_length=site["implant_length_mm"] * MM,
+            implant_length=site["head_to_tip_mm"] * MM,
             objective=case["placement"]["objective"],
             seed=case["seed"],
         )
@@ -240,11 +240,11 @@ def test_default_case_sites_have_a_safe_placement_for_the_papers_tool(default_pl
         assert (p[0] > 0) == (site["name"] == "36")  # Center +X is the patient's left
         # on the scanned tissue (the case's site_check), just outside the conservative FPSM wall
         assert -2e-3 < float(fpsm.d_safe(p)) <= 0
-        assert (site["rod_radius_mm"], site["implant_length_mm"]) == (6.0, 31.0)  # Sec. 5.2
+        assert (site["rod_radius_mm"], site["head_to_tip_mm"]) == (6.0, 31.0)  # Sec. 5.2
         assert placement.valid, placement.reason
         assert placement.f_safe_line1 > 3e-3 and placement.f_safe_line2 > 3e-3
         # the tool stays above the implant (d_T >= d12) and the grid finds no better placement
-        assert placement.d_T >= site["implant_length_mm"] * MM
+        assert placement.d_T >= site["head_to_tip_mm"] * MM
         assert placement.grid["F_pso_minus_grid"] < 1e-6
         assert placement.grid["distance_d_T"] < 1e-3
 

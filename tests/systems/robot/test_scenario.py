@@ -62,6 +62,9 @@ def reference(raw: dict, name: str) -> Scenario:
         clearance=float(raw.get("clearance_m", 0.005)),
         max_joint_step=np.deg2rad(float(raw.get("max_joint_step_deg", 20.0))),
         limits=str(raw.get("joint_limits_deg", "175")),
+        joint_headroom=np.deg2rad(float(raw.get("joint_headroom_deg", 10.0))),
+        head_translation=float(raw.get("head_motion", {}).get("translation_mm", 5.0)) * 1e-3,
+        head_rotation=np.deg2rad(float(raw.get("head_motion", {}).get("rotation_deg", 1.0))),
         pop=int(ga.get("pop", 500)), gen=int(ga.get("gen", 500)), seed=int(raw.get("seed", 0)),
         patience=ga.get("patience", 20), hv_tol=float(ga.get("hv_tol", 1e-3)),
         percentile_samples=int(raw.get("percentile_samples", 2000)))

@@ -224,3 +224,26 @@ def test_one_period_of_the_corrected_twist_never_leaves_more_than_it_started(off
     R1 = (np.eye(3) + dt * np.cross(np.eye(3), w)) @ R
     before, after = BODY.body_violation(transform(R, p)), BODY.body_violation(transform(R1, p1))
     assert after[0][0] <= before[0][0] + 1e-5
+
+
+def test_a_tool_held_at_the_wall_pushing_out_feels_the_damping():
+    # The law keeps the commanded pose inside, so a tool held at the fixture's limit sits on the
+    # wall only to rounding (here 1 pm inside): pushing out at 20 mm/s it feels b * 0.02 = 2 N
+    # at the TCP and 2 N at the rod's crossing of the entry plane (both on the wall), inward;
+    # 1 mm inside, nothing.
+    V = [0.0, 0.0, 0.0, 0.0, 0.02, 0.0]
+    system, context, _ = make([0.006 - 1e-12, 0.0, 0.02], V)
+    np.testing.assert_allclose(system.GetOutputPort("F_W_fixture").Eval(context),
+                               [0.0, -4.0, 0.0], atol=1e-9)
+    system, context, _ = make([0.005, 0.0, 0.02], V)
+    np.testing.assert_allclose(system.GetOutputPort("F_W_fixture").Eval(context), 0.0)
+    # held there and pushing for 20 periods: it stays on the wall and keeps feeling 4 N
+    system, context, _ = make([0.005, 0.0, 0.02], V)
+    for _ in range(20):
+        context.SetDiscreteState(0, system.EvalUniquePeriodicDiscreteUpdate(context)
+                                 .get_vector(0).get_value())
+        system.GetInputPort("X_WE").FixValue(context, AbstractValue.Make(
+            system.GetOutputPort("X_WE_desired").Eval(context)))
+    assert system.GetOutputPort("violation").Eval(context)[0] < 1e-12
+    np.testing.assert_allclose(system.GetOutputPort("F_W_fixture").Eval(context),
+                               [0.0, -4.0, 0.0], atol=1e-9)

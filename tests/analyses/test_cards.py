@@ -1,0 +1,113 @@
+"""The surgeon's cards (analyses.cards): plan.json's ``cards`` agree with the plan's own
+sources (recomputed here from the raw plan), report.html shows each card with plan.json's
+numbers, and the verdict follows the checks and the margins."""
+
+import copy
+import html
+import json
+import re
+
+import numpy as np
+import pytest
+
+from implantplan.analyses import cards
+from implantplan.analyses.report import render
+
+
+@pytest.fixture(scope="module")
+def plan(demo_plan):
+    return json.loads((demo_plan / "plan.json").read_text())
+
+
+def test_every_site_has_a_card_in_plan_json_matching_its_sources(plan):
+    assert [c["site"] for c in plan["cards"]] == [s["name"] for s in plan["sites"]]
+    X = np.array(plan["fpsm"]["X_mesh_Center"])
+    for card, s in zip(plan["cards"], plan["sites"], strict=True):
+        assert card["tooth_fdi"] == int(s["name"])  # the default sites are FDI 36 and 46
+        entry = X[:3, :3] @ np.array(s["hole"]["position"]) + X[:3, 3]
+        axis = X[:3, :3] @ np.array(s["hole"]["axis"])
+        np.testing.assert_allclose(card["entry"], entry, atol=1e-12)
+        np.testing.assert_allclose(card["apex"], entry - s["placed_implant_length"] * axis,
+                                   atol=1e-12)
+        assert card["depth"] == s["placed_implant_length"] == pytest.approx(0.010)
+        # the apex lies deeper in the jaw than the entry: against the axis into the cavity
+        assert (np.array(card["apex"]) - entry) @ axis == pytest.approx(-card["depth"])
+        assert np.rad2deg(card["axis_angles"]["tilt"]) == pytest.approx(15.0, abs=1e-3)
+        exact = [c for c in plan["checks"]
+                 if c["id"] == "placement.tool_clearance_exact" and c["site"] == s["name"]][0]
+        tissue = card["instrument_to_tissue"]
+        assert tissue["value"] == s["placement"]["verification"]["clearance_exact_min"]
+        assert tissue["value"] == exact["value"] and tissue["margin"] == exact["margin"]
+        assert card["instrument"] == plan["case"]["instrument"]["kind"] == "paper"
+        feed = s["ik"]["feed_clearance"]
+        arm = card["arm_to_patient"]
+        assert arm["value"] == feed["patient_distance_m"] >= feed["distance_m"]
+        assert "patient::" in arm["pair"]
+        assert card["p_clear_under_registration"] == s["registration"]["probability_clear"]
+        assert card["feed_duration"] == max(r["sim_seconds"] for r in s["simulation"]["runs"])
+        assert card["joint_headroom"] == s["ik"]["joint_headroom"]["min_rad"]
+        assert card["reach"]["ik_branches_within_limits"] == \
+            s["capability"]["ik_branches_within_limits"]
+        assert card["verdict"] in ("ready", "tight") and card["next_step"]
+        assert card["next_step"].startswith(card["verdict"] + ":")
+
+
+def _card_sections(page: str) -> dict[str, str]:
+    return {html.unescape(m.group(1)): html.unescape(re.sub(r"<[^>]+>", " ", m.group(2)))
+            for m in re.finditer(r"<section class='card [^']*' data-site='([^']*)'>(.*?)"
+                                 r"</section>", page, re.S)}
+
+
+def test_the_report_opens_with_each_card_showing_plan_json_values(plan, demo_plan):
+    page = (demo_plan / "report.html").read_text()
+    assert page.index("class='card") < page.index("<h2>Checks</h2>")
+    shown = _card_sections(page)
+    assert list(shown) == [c["site"] for c in plan["cards"]]
+    for card in plan["cards"]:
+        text = " ".join(shown[card["site"]].split())
+        assert f"tooth {card['tooth_fdi']} (FDI): {card['verdict']}" in text
+        assert card["next_step"] in text
+        for key in ("entry", "apex"):
+            assert "(" + ", ".join(f"{1e3 * x:.1f}" for x in card[key]) + ") mm" in text
+        assert f"{1e3 * card['instrument_to_tissue']['value']:.2f} mm exact (FCL)" in text
+        assert f"instrument: {card['instrument']}" in text
+        assert f"{1e3 * card['arm_to_patient']['value']:.1f} mm" in text
+        assert f"{100 * card['p_clear_under_registration']:.1f} %" in text
+        assert f"{card['feed_duration']:.1f} s" in text
+        assert f"{1e3 * card['depth']:.1f} mm" in text
+        for j, r in enumerate(card["joint_headroom"]):
+            assert f"J{j + 1} {np.rad2deg(r):.0f}" in text
+
+
+def test_a_failed_check_refuses_the_site_naming_it(plan):
+    broken = copy.deepcopy(plan)
+    chk = next(c for c in broken["checks"] if c["id"] == "placement.tool_clearance_exact"
+               and c["site"] == "46")
+    chk["pass"] = False
+    out = cards.surgeon_cards(broken)
+    assert out[1]["verdict"] == "refused" and chk["name"] in out[1]["next_step"]
+    assert out[0]["verdict"] != "refused"  # the other site's checks all pass
+    page = render(broken | {"cards": out}, {})
+    assert "refused: " + html.escape(chk["name"], quote=True) in page
+
+
+def test_thin_margins_make_a_passing_site_tight_with_what_to_check(plan):
+    thin = copy.deepcopy(plan)
+    thin["sites"][0]["registration"]["probability_clear"] = 0.95
+    out = cards.surgeon_cards(thin)[0]
+    assert out["verdict"] == "tight" and "registration" in out["next_step"]
+    ready = copy.deepcopy(plan)
+    for s in ready["sites"]:
+        s["ik"]["joint_headroom"]["min_rad"] = [1.0] * 6
+    for c in ready["checks"]:
+        if c["id"] == "robot.joint_headroom":
+            c["value"], c["margin"] = 1.0, 1.0 - c["limit"]
+    # the default plan's other margins are wide: with room on every joint each site is ready
+    for c in cards.surgeon_cards(ready):
+        assert c["verdict"] == "ready" and c["reasons"] == [], c["reasons"]
+        assert c["next_step"] == "ready: " + cards.READY_STEP
+
+
+def test_tooth_numbers_are_fdi_only():
+    assert [cards.tooth_fdi(n) for n in ("36", "46", "11", "85", "19", "90", "site1")] == \
+        [36, 46, 11, 85, None, None, None]
