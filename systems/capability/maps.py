@@ -5,24 +5,30 @@ each voxel gets ``K`` approach directions on the unit sphere (golden spiral). Th
 index of a voxel is the fraction of its directions that are reachable (Sec. 3: "number of
 reachable orientations in that voxel with respect to all the discretized orientations"), in [0, 1].
 
-What "reachable" means (``MapParams.cell``) -- a map is a safety verdict, so it must never say
-reachable where exact IK (:func:`systems.robot.kinematics.ik`, all 8 branches, the joint limits) at
-the
-pose itself says no (it may reject some reachable poses):
+Answers (``MapParams.cell``) -- a map is a safety verdict, so what it says must be what exact IK
+(:func:`systems.robot.kinematics.ik`, all 8 branches, the joint limits) at the pose itself says.
+A query's cell (the voxel holding the position x the direction bin of its z axis x, for a
+sampled roll, the roll bin) is **certified yes**, **certified no** or **undecided**, and
+:meth:`CapabilityMap.answer` resolves undecided cells with closed-form IK at the pose (~2 us),
+saying which it was (:data:`SOURCES`):
 
-* ``"centre"`` (the paper's map, kept to measure it): IK at the voxel centre with +z along the
-  bin's direction, some roll. It is *not* safe: a query maps every pose in the voxel and in the
-  bin's region of the sphere to that one sample. Measured (``analyses/bench_capmap.py``, 5 cm x
-  100, 20,000 uniform poses): 221 false-safe (1.1 %); of those 6 are the roll (only the pose's own
-  roll hits the q6 gap), the rest the pose lying elsewhere in the voxel or its direction off the
-  bin's, almost all at the workspace boundary (the elbow's reach, the shoulder cylinder), a few
-  at joint limits, one kind a sampled map can never see: the 10 deg band of q5 about +-180 deg
-  (and of q1, q3) is a hole smaller than the sample spacing.
-* ``"certified"`` (the default): the cell is certified over all 8 voxel corners x the direction
-  and its neighbours x every roll, one IK branch throughout, with joint-limit room for the joints'
-  motion across the cell (:func:`certified_cells`). Measured: 0 false-safe on 20,000 uniform and
-  20,000 boundary poses (5 cm x 100), at the cost of rejecting about two thirds of the reachable
-  poses (the map is an inner approximation).
+* ``"certified"`` (the default): the paper's IK samples at the voxel centres (below) and, from
+  the same samples, a certificate per (voxel, direction, roll bin): one IK branch reaches the
+  whole cell with room to its joint limits and singular values over first-order bounds on the
+  IK (:mod:`systems.capability.certificate`). Measured (``analyses/bench_capmap.py
+  --certificate-only``): 0 false yes; about two thirds of the IK-reachable poses of the oral
+  region fall in certified cells, the rest are resolved by IK; the build takes about 1.5x the
+  centre map's. Certified no: outside the grid or the reach sphere (rigorous).
+* ``"centre"`` (the paper's map alone): IK at the voxel centre with +z along the bin's direction,
+  some roll. Its bits are *not* a verdict: a lookup maps every pose in the voxel and in the bin's
+  region of the sphere to that one sample. Measured (5 cm x 100, 20,000 uniform poses): 221
+  false-safe (1.1 %), almost all at the workspace boundary (the elbow's reach, the shoulder
+  cylinder), a few at joint limits, one kind a sampled map can never see: the 10 deg band of q5
+  about +-180 deg (and of q1, q3) is a hole smaller than the sample spacing. Its answers are all
+  resolved by IK.
+
+The reachability index (the paper's: the share of a voxel's directions reachable at its centre,
+some roll) comes from the centre samples in both kinds, so it is the same number.
 
 Roll about the approach axis (the rotation of the mapped frame about its own z):
 
@@ -40,12 +46,14 @@ Roll about the approach axis (the rotation of the mapped frame about its own z):
   axis perpendicular to the rod): roll is **not** free (it moves q1..q5), so ``rolls`` values are
   sampled evenly in [0, 2*pi); ``reachable`` = any sample reachable, ``all_rolls`` = all samples.
 
-Queries (:meth:`CapabilityMap.query`) take a batch of poses in base_link and return, per pose,
-whether the voxel holding its position has the direction nearest to the pose's z axis reachable,
-and that voxel's index; a compiled kernel does >2 M queries/s. Nearest direction uses a lookup
-table over (polar angle, azimuth) cells (cell centre -> nearest spiral direction), at least 128 x
-256 cells: a cell's half-diagonal is <= 0.71 pi / 128 = 0.017 rad, ~20x below the direction
-spacing even at K = 200, so only poses that close to a Voronoi border can get the neighbour.
+Queries (:meth:`CapabilityMap.answer`, :meth:`CapabilityMap.query`) take a batch of poses in
+base_link and return, per pose, the exact answer (and where it came from) and the voxel's index;
+the paper's centre-sampled bit of the voxel and the direction nearest to the pose's z axis is
+:meth:`CapabilityMap.query_points` (a compiled kernel, >2 M queries/s). Nearest direction uses a
+lookup table over (polar angle, azimuth) cells (cell centre -> nearest spiral direction), at
+least 128 x 256 cells: a cell's half-diagonal is <= 0.71 pi / 128 = 0.017 rad, ~20x below the
+direction spacing even at K = 200, so only poses that close to a Voronoi border can get the
+neighbour (the certificate's direction radii include it).
 
 The map is built in independent voxel blocks through any ``concurrent.futures.Executor``
 (:func:`build`; a ``ProcessPoolExecutor`` by default, a Dask client's from
@@ -57,8 +65,8 @@ map does not depend on the engine, the completion order or the resumption.
 
 Storage: HDF5 (h5py) with the parameters and ``schema_version`` as attributes; only voxels with at
 least one reachable direction are stored (packed bits), with a dense int32 grid -> row table.
-Schema 2 adds ``cell`` and ``slack`` to the parameters; schema 1 files (centre-sampled, unsafe)
-are refused with a message naming the file (rebuild them).
+Schema 3 adds ``yes_bits`` (certified cells per direction x roll bin); schema 1 and 2 files are
+refused with a message naming the file (rebuild them).
 
 Departures from the paper: directions only (roll proved free or sampled as above), as the DLR
 maps do for symmetric tools; the paper does not state its rotational grid.
@@ -191,13 +199,12 @@ class MapParams:
         rolls: roll samples about the approach axis; 1 when roll is free (flange-coaxial frame).
         self_collision: a branch also has to be free of self-collision (arm capsules of
             :mod:`systems.robot.collision_primitives` on links two or more apart must not overlap).
-        cell: ``"certified"`` (default): a (voxel, direction) is reachable only if IK succeeds,
-            at every roll and with ``slack`` to spare at every joint limit, at all 8 corners of
-            the voxel for the direction and all its neighbours on the sphere (the conservative
-            map, see the module docstring); ``"centre"``: IK at the voxel centre and the
-            direction only (the sampled map of the paper; answers "some roll"; it can say
-            reachable where exact IK fails, kept to measure that).
-        slack: joint-limit margin in rad of the certified build (0 for ``"centre"``).
+        cell: ``"certified"`` (default): the paper's centre-sampled bits plus a certificate per
+            (voxel, direction, roll bin) (:mod:`systems.capability.certificate`, with ``slack``
+            to spare at every joint limit); ``"centre"``: the paper's bits only (IK at the
+            voxel centre and the direction, "some roll"); either way undecided cells are
+            resolved by IK when queried (module docstring).
+        slack: joint-limit margin in rad of the certificate (0 for ``"centre"``).
     """
 
     voxel: float
@@ -1076,6 +1083,49 @@ def random_poses(n: int, *, seed: int, radius: float | None = None, center=SHOUL
     X = np.zeros((n, 4, 4))
     X[:, :3, :3], X[:, :3, 3], X[:, 3, 3] = R, p, 1.0
     return X
+
+
+def region_poses(X_targets: np.ndarray, n: int, *, seed: int, margin: float = 0.03,
+                 cone: float = np.radians(45.0)) -> np.ndarray:
+    """``n`` poses (n, 4, 4) uniform over a task region: positions uniform in the axis-aligned
+    box bounding the targets' origins grown by ``margin`` (m), z axes uniform in the cone of
+    half angle ``cone`` (rad) about the targets' mean z axis, rolls uniform in [0, 2 pi). For
+    the oral region: the feeding targets of a plan, in the robot's base frame. Same seed -> same
+    poses."""
+    X_targets = np.asarray(X_targets, dtype=float).reshape(-1, 4, 4)
+    rng = np.random.default_rng(seed)
+    lo = X_targets[:, :3, 3].min(axis=0) - margin
+    hi = X_targets[:, :3, 3].max(axis=0) + margin
+    axis = X_targets[:, :3, 2].mean(axis=0)
+    axis /= np.linalg.norm(axis)
+    c = rng.uniform(np.cos(cone), 1.0, n)
+    phi = rng.uniform(0.0, 2.0 * np.pi, n)
+    s = np.sqrt(1.0 - c * c)
+    z = np.stack([s * np.cos(phi), s * np.sin(phi), c], axis=1) @ frames_from_z(axis).T
+    g = rng.uniform(0.0, 2.0 * np.pi, n)
+    Rz = np.zeros((n, 3, 3))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = (
+        np.cos(g), -np.sin(g), np.sin(g), np.cos(g), 1.0)  # fmt: skip
+    X = np.zeros((n, 4, 4))
+    X[:, :3, :3] = frames_from_z(z) @ Rz
+    X[:, :3, 3] = rng.uniform(lo, hi, (n, 3))
+    X[:, 3, 3] = 1.0
+    return X
+
+
+def regional_map(params: MapParams, p: np.ndarray, *, pad: int = 1,
+                 certify_options: dict | None = None) -> CapabilityMap:
+    """The map of ``params`` over the voxels holding the positions ``p`` (n, 3) and ``pad``
+    voxels around them (built in this process, one block: the plan's capability check and the
+    oral-region measurements need the map where the tasks are, not the whole workspace)."""
+    grid = make_grid(params)
+    c = np.unique(grid.cells(np.asarray(p, dtype=float).reshape(-1, 3)), axis=0)
+    r = np.arange(-pad, pad + 1)
+    offs = np.stack(np.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
+    c = np.unique((c[:, None] + offs[None]).reshape(-1, 3), axis=0)
+    c = c[np.all((c >= 0) & (c < np.asarray(grid.shape)), axis=1)]
+    ids = np.ravel_multi_index(c.T, grid.shape)
+    return CapabilityMap(params, grid, *build_block(params, ids, certify_options=certify_options))
 
 
 def accuracy(cmap: CapabilityMap, poses: np.ndarray, *, exact_roll: bool = True) -> dict:
