@@ -235,6 +235,46 @@ def bench_certificate(workers: int, samples: int, plan_dir: str | None, whole: b
     print("    agree: the answer (certified, else closed-form IK at the pose) equals exact IK;")
     print("    false yes / no: certified cells exact IK contradicts; coverage: share of the")
     print("    IK-reachable poses in certified-yes cells; by IK: poses in undecided cells")
+    bench_certificate_terms(3000, X_A)
+
+
+CERTIFICATE_VARIANTS = {  # name: certify options (the full certificate first)
+    "full": {}, "kappa 1.5": {"kappa": 1.5}, "kappa 1": {"kappa": 1.0},
+    "no position": {"position_term": False}, "no rotation": {"rotation_term": False},
+    "no shoulder": {"shoulder_term": False},
+}
+
+
+def bench_certificate_terms(samples: int, X_oral: np.ndarray) -> None:
+    """False yes of the certificate and of variants with a bound weakened or dropped, in 12 cm
+    balls (three fixed regions, the oral region, three random ones): ``samples`` uniform poses
+    (SO(3)) and as many within 1e-7 of the exact boundary per ball, actuator and flange."""
+    from implantplan.systems.actuator import actuator_map_frame
+
+    rng = np.random.default_rng(5)
+    centres = {"outer reach": cm.SHOULDER + np.array([0.62, -0.55, 0.58]),
+               "shoulder cylinder": np.array([0.05, 0.24, 0.45]),
+               "mid workspace": cm.SHOULDER + np.array([-0.35, 0.45, -0.2]),
+               "oral": X_oral[:, :3, 3].mean(axis=0)}  # fmt: skip
+    for i in range(3):
+        v = rng.normal(size=3)
+        centres[f"random {i}"] = cm.SHOULDER + v / np.linalg.norm(v) * rng.uniform(0.2, 1.3)
+    print(f"\n  false yes in {len(centres)} balls of 12 cm x ({samples:,} uniform + {samples:,} "
+          "boundary poses), 5 cm x 100")
+    print(f"  {'tool':<9s} " + " ".join(f"{k:>12s}" for k in CERTIFICATE_VARIANTS))
+    for tool in ("actuator", "flange"):
+        X_FT = actuator_map_frame() if tool == "actuator" else np.eye(4)
+        params = cm.make_params(0.05, 100, X_FT=X_FT, tool=tool)
+        false_yes = dict.fromkeys(CERTIFICATE_VARIANTS, 0)
+        for c in centres.values():
+            X = np.concatenate([cm.random_poses(samples, seed=1, radius=0.12, center=c),
+                                cm.boundary_poses(params, samples, seed=2, radius=0.12,
+                                                  center=c)])  # fmt: skip
+            for name, opt in CERTIFICATE_VARIANTS.items():
+                m = cm.regional_map(params, X[:, :3, 3], certify_options=opt)
+                false_yes[name] += cm.accuracy(m, X)["false_yes"]
+        print(f"  {tool:<9s} " + " ".join(f"{v:>12d}" for v in false_yes.values()))
+    print("    full: the certificate (kappa 2); the others must be caught (false yes > 0)")
 
 
 def _noop(x):

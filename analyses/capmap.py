@@ -183,7 +183,8 @@ def _cmd_query(args) -> int:
     write_json(
         args.out,
         {"map": str(args.map), "reachable": reach.tolist(), "index": index.tolist(),
-         "answer": [cm.SOURCES[int(v)] for v in source], "answers": counts},
+         "answer": [cm.SOURCES[int(v)] for v in source], "answers": counts,
+         "index_map": f"centre-sampled index (seed 004) of the {cmap.params.describe()}"},
         kind="capmap_query",
     )
     print(json.dumps({"out": str(args.out), "poses": len(X),

@@ -63,9 +63,7 @@ def capability_fields(params, *, reachable: bool, source: int, index: float,
             "map_answer": cm.SOURCES[int(source)],
             "voxel_index": float(index),
             "neighbourhood_index": float(neighbourhood_index),
-            "index_map": f"centre-sampled index (seed 004) of the {params.cell} map: "
-                         f"{params.tool}, {params.voxel * 1e3:g} mm voxels, {params.directions} "
-                         f"directions x {params.rolls} roll(s), +-{params.limits} deg",
+            "index_map": f"centre-sampled index (seed 004) of the {params.describe()}",
             "ik_branches_within_limits": int(ik_branches)}
 
 

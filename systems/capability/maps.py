@@ -233,6 +233,11 @@ class MapParams:
             "slack": float(self.slack),
         }
 
+    def describe(self) -> str:
+        """One line for people: which map this is (what an index or an answer came from)."""
+        return (f"{self.cell} map: {self.tool}, {self.voxel * 1e3:g} mm voxels, "
+                f"{self.directions} directions x {self.rolls} roll(s), +-{self.limits} deg")
+
     def key(self) -> str:
         """Stable hash of the parameters (used to key derived RASSCMAPs)."""
         text = json.dumps(self.as_dict(), sort_keys=True)

@@ -60,6 +60,8 @@ def test_query_json(map_path, tmp_path):
     assert q["answer"] == ["resolved by IK", "certified unreachable"]
     assert q["answers"] == {"certified reachable": 0, "certified unreachable": 1,
                             "resolved by IK": 1}
+    assert q["index_map"] == "centre-sampled index (seed 004) of the centre map: flange, 100 mm " \
+        "voxels, 40 directions x 1 roll(s), +-175 deg"
 
 
 def test_query_answers_agree_with_exact_ik_and_say_where_they_came_from(tmp_path, capsys):
