@@ -2,7 +2,7 @@
 
 Run: ``python -m implantplan.analyses.bench_capmap [--workers W] [--skip-fine] [--samples N]
 [--scaleout-only | --skip-scaleout] [--scaleout-directions K] [--safety-only]
-[--safety-samples N]``
+[--safety-samples N] [--certificate-only [--plan DIR] [--oral-samples N] [--whole]]``
 
 Prints, side by side with the paper's figures (seed 004 Sec. 4-5, Table 1) and the public anchors
 for capability maps (~3,300 IK/s single-thread; a 5 cm x 200-direction map in ~25 min; 1.3-1.45 M
@@ -17,16 +17,23 @@ single-process work here) built in this process, on a 1-worker and on a 2-worker
 one round trip alone, and the cost per task when many are queued) against one block's work.
 Safety (the house rule: a map may reject reachable poses, never accept unreachable ones): the
 certified map (``cell="certified"``, the default) against the centre-sampled map of the paper
-(``cell="centre"``), side by side on the same poses: false-safe count against exact IK at the pose
-(``--safety-samples`` uniform poses plus as many within 1e-7 of the exact reachability boundary),
-the share of IK-reachable poses each rejects (the cost), and why the centre map's false-safe
-cases happen (roll, position in the voxel, direction in the bin; the IK's failure reason).
+(``cell="centre"``), side by side on the same poses: false-safe count of the paper's bits and
+false yes of the certified cells against exact IK at the pose (``--safety-samples`` uniform
+poses plus as many within 1e-7 of the exact reachability boundary), the certified cells'
+coverage of the IK-reachable poses, and why the paper's bits are false-safe (roll, position in
+the voxel, direction in the bin; the IK's failure reason).
+Certificate (``--certificate-only [--plan DIR] [--oral-samples N] [--whole]``): build time of the
+certified map against the centre map side by side (ratio; the oral region of a plan, flange and
+actuator; ``--whole``: the whole 5 cm x 100 flange map too) and the answers against exact IK on
+the plan's targets and on poses uniform in the oral region (agreement, false yes / no, certified
+share, coverage of the reachable poses).
 Timings on a shared machine are noisy; the lead re-runs them.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import tempfile
 import time
@@ -90,7 +97,7 @@ def false_safe_causes(cmap: cm.CapabilityMap, poses: np.ndarray) -> dict:
     pose's direction differs from its bin's), else ``both``; and the IK's failure reasons at the
     pose (q6 relaxed): the workspace boundary (elbow / shoulder / wrist) or joint limits."""
     p = cmap.params
-    reach, _ = cmap.query(poses)
+    reach, _ = cmap.query_points(poses[:, :3, 3], poses[:, :3, 2])  # the paper's bits
     bad = np.flatnonzero(reach & ~cm.exact_reachable(p, poses))
     X = poses[bad]
     relaxed = cm.relaxed_limits(p.limits)
@@ -134,19 +141,158 @@ def bench_safety(voxel: float, k: int, workers: int, samples: int, maps=None) ->
         f"{samples:,} poses within 1e-7 of the IK boundary": cm.boundary_poses(
             built["centre"].params, samples, seed=12),
     }  # fmt: skip
-    print(f"  {'poses':<46s} {'map':<10s} {'false-safe':>10s} {'rejected':>9s} {'index':>7s}")
+    print(f"  {'poses':<46s} {'map':<10s} {'false-safe':>10s} {'false yes':>9s} "
+          f"{'coverage':>8s} {'agree':>7s} {'index':>7s}")
     for name, X in sets.items():
+        truth = cm.exact_reachable(built["centre"].params, X)
         for cell, m in built.items():
+            bits, _ = m.query_points(X[:, :3, 3], X[:, :3, 2])
             a = cm.accuracy(m, X)
-            print(f"  {name:<46s} {cell:<10s} {a['false_safe']:>10d} "
-                  f"{a['rejected_reachable']:>9.2%} {m.index.mean() if len(m.index) else 0:>7.3f}")
-    print("    false-safe: map says reachable, exact IK at the pose (its roll) finds no branch;")
-    print("    rejected: share of the IK-reachable poses the map calls unreachable (the cost);")
-    print("    index: mean reachability index of the stored voxels")
+            print(f"  {name:<46s} {cell:<10s} {int(np.sum(bits & ~truth)):>10d} "
+                  f"{a['false_yes']:>9d} {a['coverage']:>8.2%} {a['correct']:>7.2%} "
+                  f"{m.index.mean() if len(m.index) else 0:>7.3f}")
+    print("    false-safe: the centre-sampled bits (the paper's map) say reachable where exact IK")
+    print("    at the pose (its roll) finds no branch; false yes: a certified cell does; coverage:")
+    print("    share of the IK-reachable poses in certified cells; agree: the answers (undecided")
+    print("    cells by IK) against exact IK; index: mean index of the stored voxels")
     for name, X in sets.items():
         print(f"  causes of the centre map's false-safe cases, {name}: "
               f"{false_safe_causes(built['centre'], X)}")
     return built
+
+
+def plan_targets(plan_dir: str | None) -> tuple[np.ndarray, np.ndarray, str]:
+    """The feeding targets of a plan in its robot's base frame: the actuator's map frame (implant
+    tip, z = drilling) and the flange, (S, 4, 4) each; without ``plan_dir`` the default case is
+    planned first (no feeds, no figures) into a temporary folder."""
+    from implantplan.analyses.case import default_case_path, load_case
+    from implantplan.analyses.plan import plan_case
+    from implantplan.systems import actuator
+    from implantplan.systems.frames import invert
+
+    tmp = None
+    if plan_dir is None:
+        tmp = tempfile.TemporaryDirectory()
+        plan_dir = os.path.join(tmp.name, "plan")
+        plan_case(load_case(default_case_path()), plan_dir, runs=0, html_scene=False,
+                  quiet=True, figures=False)
+    with open(os.path.join(plan_dir, "plan.json")) as f:
+        plan = json.load(f)
+    X_BE = np.array([s["feeding_target"]["X_BaseEnd"] for s in plan["sites"]])
+    X_BF = X_BE @ invert(actuator.X_FT())
+    name = f"{plan['case']['name']} ({', '.join(s['name'] for s in plan['sites'])})"
+    if tmp is not None:
+        tmp.cleanup()
+    return X_BF @ actuator.actuator_map_frame(), X_BF, name
+
+
+def _cpu_seconds() -> float:
+    """CPU seconds of this process and its finished children (a build's worker processes)."""
+    import resource
+
+    me = resource.getrusage(resource.RUSAGE_SELF)
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
+
+
+def _timed_regional(params, p):
+    t0 = time.perf_counter()
+    m = cm.regional_map(params, p)
+    return m, time.perf_counter() - t0
+
+
+def bench_certificate(workers: int, samples: int, plan_dir: str | None, whole: bool) -> None:
+    """The certified map against the centre map of the paper, side by side in one run: build
+    time (the certificate is one Jacobian per cell over the centre map's own IK samples) and,
+    over the plan's targets and an independent set of poses uniform in the oral region (the
+    box of the targets grown by 3 cm, z in a 45 deg cone about their mean axis, any roll), the
+    answers against exact IK, the certified share and the coverage of the reachable poses."""
+    from implantplan.systems.actuator import actuator_map_frame
+
+    X_A, X_F, case = plan_targets(plan_dir)
+    print(f"\nCertified vs centre map: the oral region of {case}, 5 cm x 100 directions")
+    print(f"  {'map (voxels)':<44s} {'centre s':>9s} {'certified s':>12s} {'ratio':>7s}")
+    maps = {}
+    for tool, X_T in (("actuator", X_A), ("flange", X_F)):
+        X_FT = actuator_map_frame() if tool == "actuator" else np.eye(4)
+        region = cm.region_poses(X_T, samples, seed=20261203)
+        built = {"centre": [], "certified": []}
+        for _ in range(3):  # the first round compiles the kernels; then the faster of two
+            for cell in ("centre", "certified"):
+                params = cm.make_params(0.05, 100, X_FT=X_FT, tool=tool, cell=cell)
+                built[cell].append(_timed_regional(params, region[:, :3, 3]))
+        tc = min(t for _, t in built["centre"][1:])
+        m, t = built["certified"][-1][0], min(t for _, t in built["certified"][1:])
+        maps[tool] = (m, X_T, region)
+        label = f"{tool}, {m.params.rolls} roll(s), oral region ({len(m.voxel_ids)})"
+        print(f"  {label:<44s} {tc:>9.3f} {t:>12.3f} {t / tc:>6.2f}x")
+    if whole:  # two alternating rounds, the faster of each (the machine is shared)
+        wall, cpu = {"centre": [], "certified": []}, {"centre": [], "certified": []}
+        for _ in range(2):
+            for cell in ("centre", "certified"):
+                c0 = _cpu_seconds()
+                m, t = bench_map(0.05, 100, workers, cell)
+                wall[cell].append(t)
+                cpu[cell].append(_cpu_seconds() - c0)
+        tc, t = min(wall["centre"]), min(wall["certified"])
+        label = f"flange, whole workspace ({len(m.voxel_ids)}, {workers} workers)"
+        print(f"  {label:<44s} {tc:>9.3f} {t:>12.3f} {t / tc:>6.2f}x")
+        cc, c = min(cpu["centre"]), min(cpu["certified"])
+        print(f"  {'  same, CPU seconds (all processes)':<44s} {cc:>9.1f} {c:>12.1f} "
+              f"{c / cc:>6.2f}x")
+    print("    ratio: certified / centre build time (target <= 2x)")
+    print(f"\n  {'poses':<34s} {'map':<9s} {'agree':>7s} {'false yes':>9s} {'false no':>8s} "
+          f"{'certified':>9s} {'coverage':>8s} {'by IK':>7s}")
+    for tool, (m, X_T, region) in maps.items():
+        for name, X in ((f"{len(X_T)} feeding targets", X_T),
+                        (f"{samples:,} oral region (seed 20261203)", region)):
+            a = cm.accuracy(m, X)
+            print(f"  {name:<34s} {tool:<9s} {a['correct']:>7.2%} {a['false_yes']:>9d} "
+                  f"{a['false_no']:>8d} {a['certified_yes'] + a['certified_no']:>9.2%} "
+                  f"{a['coverage']:>8.2%} {a['resolved_by_ik']:>7.2%}")
+    print("    agree: the answer (certified, else closed-form IK at the pose) equals exact IK;")
+    print("    false yes / no: certified cells exact IK contradicts; coverage: share of the")
+    print("    IK-reachable poses in certified-yes cells; by IK: poses in undecided cells")
+    bench_certificate_terms(3000, X_A)
+
+
+CERTIFICATE_VARIANTS = {  # name: certify options (the full certificate first)
+    "full": {}, "kappa 1.5": {"kappa": 1.5}, "kappa 1": {"kappa": 1.0},
+    "no position": {"position_term": False}, "no rotation": {"rotation_term": False},
+    "no shoulder": {"shoulder_term": False},
+}
+
+
+def bench_certificate_terms(samples: int, X_oral: np.ndarray) -> None:
+    """False yes of the certificate and of variants with a bound weakened or dropped, in 12 cm
+    balls (three fixed regions, the oral region, three random ones): ``samples`` uniform poses
+    (SO(3)) and as many within 1e-7 of the exact boundary per ball, actuator and flange."""
+    from implantplan.systems.actuator import actuator_map_frame
+
+    rng = np.random.default_rng(5)
+    centres = {"outer reach": cm.SHOULDER + np.array([0.62, -0.55, 0.58]),
+               "shoulder cylinder": np.array([0.05, 0.24, 0.45]),
+               "mid workspace": cm.SHOULDER + np.array([-0.35, 0.45, -0.2]),
+               "oral": X_oral[:, :3, 3].mean(axis=0)}  # fmt: skip
+    for i in range(3):
+        v = rng.normal(size=3)
+        centres[f"random {i}"] = cm.SHOULDER + v / np.linalg.norm(v) * rng.uniform(0.2, 1.3)
+    print(f"\n  false yes in {len(centres)} balls of 12 cm x ({samples:,} uniform + {samples:,} "
+          "boundary poses), 5 cm x 100")
+    print(f"  {'tool':<9s} " + " ".join(f"{k:>12s}" for k in CERTIFICATE_VARIANTS))
+    for tool in ("actuator", "flange"):
+        X_FT = actuator_map_frame() if tool == "actuator" else np.eye(4)
+        params = cm.make_params(0.05, 100, X_FT=X_FT, tool=tool)
+        false_yes = dict.fromkeys(CERTIFICATE_VARIANTS, 0)
+        for c in centres.values():
+            X = np.concatenate([cm.random_poses(samples, seed=1, radius=0.12, center=c),
+                                cm.boundary_poses(params, samples, seed=2, radius=0.12,
+                                                  center=c)])  # fmt: skip
+            for name, opt in CERTIFICATE_VARIANTS.items():
+                m = cm.regional_map(params, X[:, :3, 3], certify_options=opt)
+                false_yes[name] += cm.accuracy(m, X)["false_yes"]
+        print(f"  {tool:<9s} " + " ".join(f"{v:>12d}" for v in false_yes.values()))
+    print("    full: the certificate (kappa 2); the others must be caught (false yes > 0)")
 
 
 def _noop(x):
@@ -232,6 +378,15 @@ def main(argv=None) -> int:
     ap.add_argument("--safety-only", action="store_true", help="only the safety section")
     ap.add_argument("--safety-samples", type=int, default=20_000,
                     help="poses per set of the safety section (uniform, near the boundary)")
+    ap.add_argument("--certificate-only", action="store_true",
+                    help="only the certified-vs-centre section (oral region of a plan)")
+    ap.add_argument("--plan", default=None,
+                    help="plan folder whose targets define the oral region (default: plan the "
+                    "default case first)")
+    ap.add_argument("--oral-samples", type=int, default=20_000,
+                    help="oral-region poses of the certificate section (default 20000)")
+    ap.add_argument("--whole", action="store_true",
+                    help="also build the whole 5 cm x 100 flange map both ways (minutes)")
     ap.add_argument("--block-poses", type=int, default=None,
                     help="IK poses per block of the scale-out map (default: the CLI's)")
     args = ap.parse_args(argv)
@@ -242,6 +397,9 @@ def main(argv=None) -> int:
     if args.safety_only:
         bench_safety(0.05, 100, args.workers, args.safety_samples)
         return 0
+    if args.certificate_only:
+        bench_certificate(args.workers, args.oral_samples, args.plan, args.whole)
+        return 0
 
     _header("Capability map (AUBO-i10 flange, +-175 deg; roll free about joint 6)")
     ik_rate = bench_ik()
@@ -249,15 +407,16 @@ def main(argv=None) -> int:
     m100, t100 = bench_map(0.05, 100, args.workers)
     _row(f"map 5 cm x 100 dirs ({args.workers} workers) [a]", t100, 25 * 60.0 / 2, "s")
     c100, tc100 = bench_map(0.05, 100, args.workers, "centre")
-    _row("  same, centre-sampled (the paper's; not safe) [a]", tc100, 25 * 60.0 / 2, "s")
+    _row("  same, centre-sampled (the paper's; no certificate) [a]", tc100, 25 * 60.0 / 2, "s")
+    print(f"  certified / centre build time: {t100 / tc100:.2f}x (target <= 2x)")
     m200, t200 = bench_map(0.05, 200, args.workers)
     _row(f"map 5 cm x 200 dirs ({args.workers} workers)", t200, 25 * 60.0, "s")
     fine = None
     if not args.skip_fine:
         fine, tf = bench_map(0.025, 200, args.workers)
         _row(f"map 2.5 cm x 200 dirs ({args.workers} workers) [a]", tf, 25 * 60.0 * 8, "s")
-    print("    [a] anchor scaled by (voxels x directions): 25 min x 1/2 and x 8; certified maps")
-    print("        solve IK at every voxel corner (~2.2x the poses) and check each cell's samples")
+    print("    [a] anchor scaled by (voxels x directions): 25 min x 1/2 and x 8; a certified map")
+    print("        adds one Jacobian per cell to the centre map's IK samples")
     q = bench_query(m200)
     _row("queries/s (5 cm x 200 map, 2 M random poses)", q, 1.4e6, "1/s", higher_is_better=True)
 

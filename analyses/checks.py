@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from implantplan.systems.capability import maps as cm
 from implantplan.systems.frames import wrap_angle
 
 MAX_PENETRATION_DEPTH = 0.5e-3  # m, dense check of the FPSM fit
@@ -57,6 +58,20 @@ def scene_graph_fields(feed_clearance: list[dict], k: int) -> dict:
             "joint_headroom": {"min_rad": f["headroom"], "limit_rad": f["headroom_limit"],
                                "over": "every sample of the feed and of the feed under each "
                                        "head displacement the scenario allows"}}
+
+
+def capability_fields(params, *, reachable: bool, source: int, index: float,
+                      neighbourhood_index: float, ik_branches: int) -> dict:
+    """A site's ``capability`` block (plan.json, the studio): the map's answer at the target and
+    what it rests on (a certified cell, or closed-form IK at the target where the cell is
+    undecided: systems.capability.maps.SOURCES), the paper's centre-sampled index of the
+    target's voxel and around it, which map that index came from, and the IK branch count."""
+    return {"map_reachable": bool(reachable),
+            "map_answer": cm.SOURCES[int(source)],
+            "voxel_index": float(index),
+            "neighbourhood_index": float(neighbourhood_index),
+            "index_map": f"centre-sampled index (seed 004) of the {params.describe()}",
+            "ik_branches_within_limits": int(ik_branches)}
 
 
 def fpsm_checks(diagnostics: dict) -> list[dict]:

@@ -263,65 +263,60 @@ class CapabilityView:
     The map is of the arm + actuator in its base frame (seed 004), so the voxels a base position
     needs are the 3x3x3 neighbourhoods of the targets expressed in that base; voxels already built
     for an earlier position are kept. As in the plan's capability stage (analyses.pipeline): the
-    verdict "reachable" from the certified map (never reachable where exact IK fails), the
-    capability index and the voxel colours from the centre-sampled map (the certified tool map
-    certifies ~0 of these voxels). Resolution and directions are the plan's case's defaults
-    (``voxel``, ``directions``)."""
+    answer at a target is the certified cell's, or closed-form IK at the target where the cell
+    is undecided (:meth:`CapabilityMap.answer`, it says which); the capability index and the
+    voxel colours are the paper's centre-sampled index of the same map. Resolution and
+    directions are the plan's case's defaults (``voxel``, ``directions``)."""
 
     sp: StudioPlan
     voxel: float = CapabilitySection().voxel  # m, the case's default
     directions: int = CapabilitySection().directions
-    _built: dict = field(default_factory=dict)  # cell -> {voxel id: (reach row, all-roll row)}
-    _tried: dict = field(default_factory=dict)  # cell -> voxel ids built (stored or unreachable)
-
-    CELLS = ("certified", "centre")
+    _built: dict = field(default_factory=dict)  # voxel id -> (reach, all-roll, yes rows)
+    _tried: set = field(default_factory=set)  # voxel ids built (stored or unreachable)
 
     def __post_init__(self):
         X_FA = actuator.actuator_map_frame()
         self._X_FA = X_FA
-        self.params = {cell: cm.make_params(self.voxel, self.directions,
-                                            limits=self.sp.sc.limits, X_FT=X_FA,
-                                            tool="actuator", cell=cell) for cell in self.CELLS}
-        self.grid = cm.make_grid(self.params["centre"])
-        for cell in self.CELLS:
-            self._built.setdefault(cell, {})
-            self._tried.setdefault(cell, set())
+        self.params = cm.make_params(self.voxel, self.directions, limits=self.sp.sc.limits,
+                                     X_FT=X_FA, tool="actuator")
+        self.grid = cm.make_grid(self.params)
 
-    def _map(self, cell: str, ids: np.ndarray) -> cm.CapabilityMap:
-        """The ``cell`` map holding at least the voxels ``ids`` (building those not tried)."""
-        params, built, tried = self.params[cell], self._built[cell], self._tried[cell]
-        todo = np.array([i for i in ids if int(i) not in tried], dtype=np.int64)
+    def _map(self, ids: np.ndarray) -> cm.CapabilityMap:
+        """The map holding at least the voxels ``ids`` (building those not tried)."""
+        todo = np.array([i for i in ids if int(i) not in self._tried], dtype=np.int64)
         if todo.size:
-            vox, reach, allr = cm.build_block(params, todo)
-            for v, r, a in zip(vox, reach, allr, strict=True):
-                built[int(v)] = (r, a)
-            tried.update(int(i) for i in todo)
-        keys = np.array(sorted(built), dtype=np.int64)
-        width = (params.directions + 7) // 8
-        reach = np.array([built[int(k)][0] for k in keys], dtype=np.uint8).reshape(-1, width)
-        allr = np.array([built[int(k)][1] for k in keys], dtype=np.uint8).reshape(-1, width)
-        return cm.CapabilityMap(params, self.grid, keys, reach, allr)
+            block = cm.build_block(self.params, todo)
+            for v, *rows in zip(*block, strict=True):
+                self._built[int(v)] = rows
+            self._tried.update(int(i) for i in todo)
+        if not self._built:
+            return cm.empty_map(self.params)
+        keys = np.array(sorted(self._built), dtype=np.int64)
+        rows = [np.array([self._built[int(k)][i] for k in keys], dtype=np.uint8)
+                for i in range(3)]
+        return cm.CapabilityMap(self.params, self.grid, keys, *rows)
 
     def at(self, layout: Layout) -> dict:
         """Capability at each target from the layout's base, and the voxels around them.
 
         Returns:
             dict(index (S,) of the target's voxel, neighbourhood_index (S,), map_reachable (S,)
-            (certified), centres_W (V, 3) voxel centres in World, voxel_index (V,), voxel (m));
+            (the exact answer), map_source (S,) (what it rests on, maps.SOURCES), centres_W
+            (V, 3) voxel centres in World, voxel_index (V,), voxel (m), ik_branches (S,));
             also set as ``layout.capability``.
         """
         X_BE = moprp.target_pose(layout.xyz, self.sp.X_OT)
         X_BA = X_BE @ invert(actuator.X_FT()) @ self._X_FA
         near = self.grid.neighbourhood(X_BA[:, :3, 3])
         ids = np.unique(near[near >= 0])
-        map_reach, _ = self._map("certified", ids).query(X_BA)
-        cmap = self._map("centre", ids)
-        _, index = cmap.query(X_BA)
+        cmap = self._map(ids)
+        map_reach, source, index = cmap.answer(X_BA)
         neigh = cmap.neighbourhood_index(X_BA[:, :3, 3])
         centres_B = self.grid.centres(ids)
         X_WB = self.sp.sc.X_WO @ moprp.base_pose(layout.xyz)
         out = {
             "index": index, "neighbourhood_index": neigh, "map_reachable": map_reach,
+            "map_source": source, "params": self.params,
             "centres_W": centres_B @ X_WB[:3, :3].T + X_WB[:3, 3],
             "voxel_index": cmap.voxel_index(centres_B),
             "voxel": self.voxel,

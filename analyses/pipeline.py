@@ -379,8 +379,9 @@ def robot_stage(case: Case, placements: list[Placement], *, progress=None) -> Ro
 class CapabilityResult:
     cmap: object  # systems.capability.maps.CapabilityMap over the sites' neighbourhoods
     X_BA: np.ndarray  # (S, 4, 4) the mapped frame (implant tip, z = drilling) at each target
-    map_reachable: np.ndarray  # (S,) the map's answer for the target's voxel and direction
-    index: np.ndarray  # (S,) reachability index of the target's voxel
+    map_reachable: np.ndarray  # (S,) the map's answer at the target (exact: undecided -> IK)
+    map_source: np.ndarray  # (S,) int8 what it rests on (maps.SOURCES: certified / by IK)
+    index: np.ndarray  # (S,) reachability index of the target's voxel (centre-sampled, seed 004)
     neighbourhood_index: np.ndarray  # (S,) mean index over the 3x3x3 voxels around the target
     ik_branches: np.ndarray  # (S,) closed-form branches within limits at the exact target
     seconds: float
@@ -390,34 +391,30 @@ def capability_stage(case: Case, robot: RobotResult, *, progress=None) -> Capabi
     """Capability map (seed 004) of the arm + actuator around each feeding target, from the chosen
     base: the voxels of the 3x3x3 neighbourhood of every target, all approach directions and
     sampled rolls (the contra-angle's roll is not free). Only these voxels are built: the check
-    needs the map where the tasks are, not the whole workspace (a full 5 cm map takes minutes)."""
+    needs the map where the tasks are, not the whole workspace (a full 5 cm map takes minutes).
+    The answer at each target is the certified cell's or, where the cell is undecided,
+    closed-form IK at the target (:meth:`CapabilityMap.answer`): never "not reachable" where IK
+    reaches; the index is the paper's (centre-sampled) of the same map."""
     t0 = time.perf_counter()
     sc = robot.scenario
     X_FA = actuator.actuator_map_frame()
     X_BE = moprp.target_pose(robot.base_xyz, robot.X_OT)
     X_BA = X_BE @ invert(actuator.X_FT()) @ X_FA
-    maps = {}
-    for cell in ("certified", "centre"):
-        params = cm.make_params(case.capability.voxel, case.capability.directions,
-                                limits=sc.limits, X_FT=X_FA, tool="actuator", cell=cell)
-        grid = cm.make_grid(params)
-        near = grid.neighbourhood(X_BA[:, :3, 3])
-        block = cm.build_block(params, np.unique(near[near >= 0]))
-        maps[cell] = cm.CapabilityMap(params, grid, *block)
-    # the verdict from the certified map (never reachable where exact IK fails); the dexterity
-    # index and the figure from the centre-sampled map: the certified tool map (12 sampled rolls,
-    # every roll) certifies ~0 of these voxels (systems/capability/maps.py, issue report)
-    map_reach, _ = maps["certified"].query(X_BA)
-    cmap = maps["centre"]
-    _, index = cmap.query(X_BA)
+    params = cm.make_params(case.capability.voxel, case.capability.directions,
+                            limits=sc.limits, X_FT=X_FA, tool="actuator")
+    grid = cm.make_grid(params)
+    near = grid.neighbourhood(X_BA[:, :3, 3])
+    cmap = cm.CapabilityMap(params, grid, *cm.build_block(params, np.unique(near[near >= 0])))
+    map_reach, source, index = cmap.answer(X_BA)
     neigh = cmap.neighbourhood_index(X_BA[:, :3, 3])
     branches = kin.ik(X_BE, limits=sc.limits, X_FT=actuator.X_FT()).valid.sum(axis=-1)
     if progress is not None:
-        for site, r, i, b in zip(case.sites, map_reach, index, branches, strict=True):
-            progress.say(f"site {site.name}: certified map says "
-                         f"{'reachable' if r else 'NOT reachable'}, voxel index {i:.2f} "
-                         f"(centre-sampled), {int(b)} IK branches within limits")
-    return CapabilityResult(cmap, X_BA, map_reach, index, neigh, branches,
+        for site, r, src, i, b in zip(case.sites, map_reach, source, index, branches,
+                                      strict=True):
+            progress.say(f"site {site.name}: {'reachable' if r else 'NOT reachable'} "
+                         f"({cm.SOURCES[int(src)]}), voxel index {i:.2f}, "
+                         f"{int(b)} IK branches within limits")
+    return CapabilityResult(cmap, X_BA, map_reach, source, index, neigh, branches,
                             time.perf_counter() - t0)
 
 

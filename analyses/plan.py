@@ -298,10 +298,10 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims, sites_checked) -> d
                    "indices": dict(zip(moprp.INDEX_NAMES, robot.site_indices[k].tolist(),
                                        strict=True)),
                    **checks_.scene_graph_fields(robot.feed_clearance, k)},
-            "capability": {"map_reachable": bool(cap.map_reachable[k]),
-                           "voxel_index": float(cap.index[k]),
-                           "neighbourhood_index": float(cap.neighbourhood_index[k]),
-                           "ik_branches_within_limits": int(cap.ik_branches[k])},
+            "capability": checks_.capability_fields(
+                cap.cmap.params, reachable=cap.map_reachable[k], source=cap.map_source[k],
+                index=cap.index[k], neighbourhood_index=cap.neighbourhood_index[k],
+                ik_branches=cap.ik_branches[k]),
             "simulation": None if sim is None else {
                 "runs": [{key: val for key, val in r.items() if key != "travel_curve"}
                          for r in sim["runs"]],

@@ -199,9 +199,10 @@ def render(plan: dict, figs: dict) -> str:
 
     parts += [
         "<h2>4. Capability check from the chosen base</h2>",
-        _table(["site", "map: reachable", "voxel index", "mean index around the target",
-                "IK branches within limits"], [
-            [s["name"], "yes" if s["capability"]["map_reachable"] else "NO",
+        _table(["site", "reachable (how it is known)", "voxel index (seed 004)",
+                "mean index around the target", "IK branches within limits"], [
+            [s["name"], ("yes" if s["capability"]["map_reachable"] else "no")
+             + (f" ({s['capability']['map_answer']})" if "map_answer" in s["capability"] else ""),
              f"{s['capability']['voxel_index']:.2f}",
              f"{s['capability']['neighbourhood_index']:.2f}",
              s["capability"]["ik_branches_within_limits"]] for s in plan["sites"]]),

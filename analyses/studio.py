@@ -50,6 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from implantplan.analyses import live_setup as ls
+from implantplan.systems.capability import maps as cm
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import to_jsonable, write_json
 from implantplan.systems.robot import moprp
@@ -282,10 +283,10 @@ class Studio:
                                     strict=True)),
                 **checks_.scene_graph_fields(lay.confirmation, k)})
             s["feeding_target"]["X_BaseEnd"] = moprp.target_pose(lay.xyz, sp.X_OT[k])
-            s["capability"] = {"map_reachable": bool(cap["map_reachable"][k]),
-                               "voxel_index": float(cap["index"][k]),
-                               "neighbourhood_index": float(cap["neighbourhood_index"][k]),
-                               "ik_branches_within_limits": int(cap["ik_branches"][k])}
+            s["capability"] = checks_.capability_fields(
+                cap["params"], reachable=cap["map_reachable"][k], source=cap["map_source"][k],
+                index=cap["index"][k], neighbourhood_index=cap["neighbourhood_index"][k],
+                ik_branches=cap["ik_branches"][k])
             if s.get("simulation") is not None:
                 s["simulation"]["layout"] = "the planned base (not re-simulated in the studio)"
             n = s["name"]
@@ -482,6 +483,10 @@ class Studio:
                 lay.capability["index"],
                 "capability_neighbourhood": None if lay.capability is None else
                 lay.capability["neighbourhood_index"],
+                "capability_reachable": None if lay.capability is None else
+                [{"reachable": bool(r), "answer": cm.SOURCES[int(src)]} for r, src in
+                 zip(lay.capability["map_reachable"], lay.capability["map_source"],
+                     strict=True)],
                 "tool_clearance_mm": [{k: _mm(v) for k, v in c.items()}
                                       for c in sp.tool_clearances()],
                 "latency_ms": 1e3 * self.latency[-1] if self.latency else None,

@@ -5,24 +5,30 @@ each voxel gets ``K`` approach directions on the unit sphere (golden spiral). Th
 index of a voxel is the fraction of its directions that are reachable (Sec. 3: "number of
 reachable orientations in that voxel with respect to all the discretized orientations"), in [0, 1].
 
-What "reachable" means (``MapParams.cell``) -- a map is a safety verdict, so it must never say
-reachable where exact IK (:func:`systems.robot.kinematics.ik`, all 8 branches, the joint limits) at
-the
-pose itself says no (it may reject some reachable poses):
+Answers (``MapParams.cell``) -- a map is a safety verdict, so what it says must be what exact IK
+(:func:`systems.robot.kinematics.ik`, all 8 branches, the joint limits) at the pose itself says.
+A query's cell (the voxel holding the position x the direction bin of its z axis x, for a
+sampled roll, the roll bin) is **certified yes**, **certified no** or **undecided**, and
+:meth:`CapabilityMap.answer` resolves undecided cells with closed-form IK at the pose (~2 us),
+saying which it was (:data:`SOURCES`):
 
-* ``"centre"`` (the paper's map, kept to measure it): IK at the voxel centre with +z along the
-  bin's direction, some roll. It is *not* safe: a query maps every pose in the voxel and in the
-  bin's region of the sphere to that one sample. Measured (``analyses/bench_capmap.py``, 5 cm x
-  100, 20,000 uniform poses): 221 false-safe (1.1 %); of those 6 are the roll (only the pose's own
-  roll hits the q6 gap), the rest the pose lying elsewhere in the voxel or its direction off the
-  bin's, almost all at the workspace boundary (the elbow's reach, the shoulder cylinder), a few
-  at joint limits, one kind a sampled map can never see: the 10 deg band of q5 about +-180 deg
-  (and of q1, q3) is a hole smaller than the sample spacing.
-* ``"certified"`` (the default): the cell is certified over all 8 voxel corners x the direction
-  and its neighbours x every roll, one IK branch throughout, with joint-limit room for the joints'
-  motion across the cell (:func:`certified_cells`). Measured: 0 false-safe on 20,000 uniform and
-  20,000 boundary poses (5 cm x 100), at the cost of rejecting about two thirds of the reachable
-  poses (the map is an inner approximation).
+* ``"certified"`` (the default): the paper's IK samples at the voxel centres (below) and, from
+  the same samples, a certificate per (voxel, direction, roll bin): one IK branch reaches the
+  whole cell with room to its joint limits and singular values over first-order bounds on the
+  IK (:mod:`systems.capability.certificate`). Measured (``analyses/bench_capmap.py
+  --certificate-only``): 0 false yes; about two thirds of the IK-reachable poses of the oral
+  region fall in certified cells, the rest are resolved by IK; the build takes about 1.5x the
+  centre map's. Certified no: outside the grid or the reach sphere (rigorous).
+* ``"centre"`` (the paper's map alone): IK at the voxel centre with +z along the bin's direction,
+  some roll. Its bits are *not* a verdict: a lookup maps every pose in the voxel and in the bin's
+  region of the sphere to that one sample. Measured (5 cm x 100, 20,000 uniform poses): 221
+  false-safe (1.1 %), almost all at the workspace boundary (the elbow's reach, the shoulder
+  cylinder), a few at joint limits, one kind a sampled map can never see: the 10 deg band of q5
+  about +-180 deg (and of q1, q3) is a hole smaller than the sample spacing. Its answers are all
+  resolved by IK.
+
+The reachability index (the paper's: the share of a voxel's directions reachable at its centre,
+some roll) comes from the centre samples in both kinds, so it is the same number.
 
 Roll about the approach axis (the rotation of the mapped frame about its own z):
 
@@ -40,12 +46,14 @@ Roll about the approach axis (the rotation of the mapped frame about its own z):
   axis perpendicular to the rod): roll is **not** free (it moves q1..q5), so ``rolls`` values are
   sampled evenly in [0, 2*pi); ``reachable`` = any sample reachable, ``all_rolls`` = all samples.
 
-Queries (:meth:`CapabilityMap.query`) take a batch of poses in base_link and return, per pose,
-whether the voxel holding its position has the direction nearest to the pose's z axis reachable,
-and that voxel's index; a compiled kernel does >2 M queries/s. Nearest direction uses a lookup
-table over (polar angle, azimuth) cells (cell centre -> nearest spiral direction), at least 128 x
-256 cells: a cell's half-diagonal is <= 0.71 pi / 128 = 0.017 rad, ~20x below the direction
-spacing even at K = 200, so only poses that close to a Voronoi border can get the neighbour.
+Queries (:meth:`CapabilityMap.answer`, :meth:`CapabilityMap.query`) take a batch of poses in
+base_link and return, per pose, the exact answer (and where it came from) and the voxel's index;
+the paper's centre-sampled bit of the voxel and the direction nearest to the pose's z axis is
+:meth:`CapabilityMap.query_points` (a compiled kernel, >2 M queries/s). Nearest direction uses a
+lookup table over (polar angle, azimuth) cells (cell centre -> nearest spiral direction), at
+least 128 x 256 cells: a cell's half-diagonal is <= 0.71 pi / 128 = 0.017 rad, ~20x below the
+direction spacing even at K = 200, so only poses that close to a Voronoi border can get the
+neighbour (the certificate's direction radii include it).
 
 The map is built in independent voxel blocks through any ``concurrent.futures.Executor``
 (:func:`build`; a ``ProcessPoolExecutor`` by default, a Dask client's from
@@ -57,8 +65,8 @@ map does not depend on the engine, the completion order or the resumption.
 
 Storage: HDF5 (h5py) with the parameters and ``schema_version`` as attributes; only voxels with at
 least one reachable direction are stored (packed bits), with a dense int32 grid -> row table.
-Schema 2 adds ``cell`` and ``slack`` to the parameters; schema 1 files (centre-sampled, unsafe)
-are refused with a message naming the file (rebuild them).
+Schema 3 adds ``yes_bits`` (certified cells per direction x roll bin); schema 1 and 2 files are
+refused with a message naming the file (rebuild them).
 
 Departures from the paper: directions only (roll proved free or sampled as above), as the DLR
 maps do for symmetric tools; the paper does not state its rotational grid.
@@ -66,6 +74,7 @@ maps do for symmetric tools; the paper does not state its rotational grid.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -80,6 +89,7 @@ import numba
 import numpy as np
 
 from implantplan.systems import validate
+from implantplan.systems.capability import certificate
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import write_atomic, write_json
 from implantplan.systems.frames import invert
@@ -95,11 +105,12 @@ from implantplan.systems.robot.kinematics import (
 )
 
 KIND = "capability_map"
-SCHEMA_VERSION = 2  # 2: certified (conservative) cells; 1 (centre-sampled only) is refused
+SCHEMA_VERSION = 3  # 3: per-(direction, roll) certified-yes bits beside the paper's bits
 SLACK = float(np.radians(1.0))  # joint-limit margin of certified maps (rad)
-ROLL_NB = 1  # sampled rolls: a cell's samples include this many roll neighbours each side
-OVERSHOOT = 0.5  # a joint may move past its sampled range by this share of it inside a cell
 GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
+YES, NO, UNDECIDED = np.int8(1), np.int8(-1), np.int8(0)  # a cell's verdict (CapabilityMap.verdict)
+SOURCES = {1: "certified reachable", -1: "certified unreachable", 0: "resolved by IK"}
+"""What an answer of :meth:`CapabilityMap.answer` rests on, by its ``source`` code."""
 SHOULDER = np.array([0.0, 0.0, DH_D1])  # joint 2 axis meets joint 1 axis here (base_link)
 ARM_REACH = abs(DH_A2) + abs(DH_A3) + abs(DH_D4) + abs(DH_D5) + abs(DH_D6)  # bound from SHOULDER
 
@@ -128,6 +139,23 @@ def frames_from_z(d: np.ndarray) -> np.ndarray:
     x /= np.linalg.norm(x, axis=-1, keepdims=True)
     y = np.cross(d, x)
     return np.stack([x, y, d], axis=-1)
+
+
+def roll_bins(R: np.ndarray, d: np.ndarray, rolls: int) -> np.ndarray:
+    """Roll bin (n,) of rotations R (n, 3, 3) whose z axes the query gave directions d (n, 3):
+    the roll of R about its z, measured from F(d) (:func:`frames_from_z`) carried to R's z by the
+    shortest rotation (so it is continuous over d's region of the sphere), rounded to the
+    nearest of the ``rolls`` samples 2 pi r / R."""
+    if rolls == 1:
+        return np.zeros(len(R), dtype=np.int64)
+    z, x = R[:, :, 2], R[:, :, 0]
+    xd = frames_from_z(d)[:, :, 0]
+    a = np.cross(d, z)
+    c = np.sum(d * z, axis=1, keepdims=True)
+    x_ref = xd + np.cross(a, xd) + np.cross(a, np.cross(a, xd)) / (1.0 + c)  # Rodrigues, d -> z
+    y_ref = np.cross(z, x_ref)
+    gamma = np.arctan2(np.sum(x * y_ref, axis=1), np.sum(x * x_ref, axis=1))
+    return np.rint(gamma * rolls / (2.0 * np.pi)).astype(np.int64) % rolls
 
 
 def direction_table(directions: np.ndarray, n_theta: int | None = None) -> np.ndarray:
@@ -171,13 +199,12 @@ class MapParams:
         rolls: roll samples about the approach axis; 1 when roll is free (flange-coaxial frame).
         self_collision: a branch also has to be free of self-collision (arm capsules of
             :mod:`systems.robot.collision_primitives` on links two or more apart must not overlap).
-        cell: ``"certified"`` (default): a (voxel, direction) is reachable only if IK succeeds,
-            at every roll and with ``slack`` to spare at every joint limit, at all 8 corners of
-            the voxel for the direction and all its neighbours on the sphere (the conservative
-            map, see the module docstring); ``"centre"``: IK at the voxel centre and the
-            direction only (the sampled map of the paper; answers "some roll"; it can say
-            reachable where exact IK fails, kept to measure that).
-        slack: joint-limit margin in rad of the certified build (0 for ``"centre"``).
+        cell: ``"certified"`` (default): the paper's centre-sampled bits plus a certificate per
+            (voxel, direction, roll bin) (:mod:`systems.capability.certificate`, with ``slack``
+            to spare at every joint limit); ``"centre"``: the paper's bits only (IK at the
+            voxel centre and the direction, "some roll"); either way undecided cells are
+            resolved by IK when queried (module docstring).
+        slack: joint-limit margin in rad of the certificate (0 for ``"centre"``).
     """
 
     voxel: float
@@ -205,6 +232,11 @@ class MapParams:
             "cell": str(self.cell),
             "slack": float(self.slack),
         }
+
+    def describe(self) -> str:
+        """One line for people: which map this is (what an index or an answer came from)."""
+        return (f"{self.cell} map: {self.tool}, {self.voxel * 1e3:g} mm voxels, "
+                f"{self.directions} directions x {self.rolls} roll(s), +-{self.limits} deg")
 
     def key(self) -> str:
         """Stable hash of the parameters (used to key derived RASSCMAPs)."""
@@ -369,6 +401,54 @@ def _collision_filter(params: MapParams, res) -> np.ndarray:
     return valid
 
 
+def roll_frames(directions: np.ndarray, rolls: int) -> np.ndarray:
+    """(K, R, 3, 3) the centre samples' rotations: F(d) Rz(2 pi r / R) (:func:`frames_from_z`)."""
+    gammas = 2.0 * np.pi * np.arange(rolls) / rolls
+    c, s = np.cos(gammas), np.sin(gammas)
+    Rz = np.zeros((rolls, 3, 3))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
+    return frames_from_z(directions)[:, None] @ Rz[None]
+
+
+def centre_samples(params: MapParams, centres: np.ndarray, directions: np.ndarray, *,
+                   slack: float = 0.0):
+    """IK (all 8 branches) at the cells' centre samples: positions ``centres`` (n, 3) x
+    ``directions`` (k, 3) x the roll samples. Returns ``(R_s (k, R, 3, 3), res (IkResult over
+    (n, k, R)), valid (n, k, R, 8))``; a free roll (R = 1) relaxes q6 (some roll), ``valid``
+    drops self-colliding branches when the params ask, ``slack`` narrows the limits."""
+    centres = np.asarray(centres, dtype=float)
+    R_s = roll_frames(directions, params.rolls)
+    n, k, r = len(centres), len(directions), params.rolls
+    X = np.zeros((n, k, r, 4, 4))
+    X[..., :3, :3] = R_s[None]
+    X[..., :3, 3] = centres[:, None, None]
+    X[..., 3, 3] = 1.0
+    lim = relaxed_limits(params.limits, slack) if r == 1 else _limits_with_slack(params.limits,
+                                                                                slack)
+    X_FT = params.X_FT_matrix()
+    res = ik(X, limits=lim, X_FT=None if np.allclose(X_FT, np.eye(4)) else X_FT)
+    return R_s, res, _collision_filter(params, res)
+
+
+def _roll_answers(params: MapParams, res, valid: np.ndarray, slack: float = 0.0):
+    """(reachable, all_rolls) (n, k) of centre samples: some roll / every roll (module
+    docstring: exact for a free roll, over the samples otherwise)."""
+    if params.rolls > 1:
+        per_roll = valid.any(-1)
+        return per_roll.any(-1), per_roll.all(-1)
+    valid, q6 = valid[:, :, 0], res.q[:, :, 0, :, 5]
+    reachable = valid.any(-1)
+    lim = _limits_with_slack(params.limits, slack)
+    gap = 2.0 * np.pi - (lim[1, 5] - lim[0, 5])
+    if gap <= 0.0:
+        return reachable, reachable.copy()
+    q6 = np.where(valid, q6, np.nan)  # (n, k, 8)
+    d = np.abs(q6[..., :, None] - q6[..., None, :])
+    d = np.minimum(d, 2.0 * np.pi - d)
+    spread = np.nanmax(np.where(np.isnan(d), -1.0, d), axis=(-1, -2))
+    return reachable, reachable & (spread >= gap)
+
+
 def reach_at(
     params: MapParams, centres: np.ndarray, directions: np.ndarray, *, slack: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -381,235 +461,62 @@ def reach_at(
     Returns:
         ``(reachable, all_rolls)``: bool (n, k) each; see the module docstring for the roll.
     """
-    centres = np.asarray(centres, dtype=float)
-    R_dir = frames_from_z(directions)  # (k, 3, 3)
-    n, k = len(centres), len(directions)
-    X_FT = params.X_FT_matrix()
-    if params.rolls == 1:
-        X = np.zeros((n, k, 4, 4))
-        X[..., :3, :3] = R_dir[None]
-        X[..., :3, 3] = centres[:, None]
-        X[..., 3, 3] = 1.0
-        X_BF = X @ invert(X_FT) if not np.allclose(X_FT, np.eye(4)) else X
-        res = ik(X_BF, limits=relaxed_limits(params.limits, slack))
-        valid = _collision_filter(params, res)
-        reachable = valid.any(-1)
-        lim = _limits_with_slack(params.limits, slack)
-        gap = 2.0 * np.pi - (lim[1, 5] - lim[0, 5])
-        if gap <= 0.0:
-            return reachable, reachable.copy()
-        q6 = np.where(valid, res.q[..., 5], np.nan)  # (n, k, 8)
-        d = np.abs(q6[..., :, None] - q6[..., None, :])
-        d = np.minimum(d, 2.0 * np.pi - d)
-        spread = np.nanmax(np.where(np.isnan(d), -1.0, d), axis=(-1, -2))
-        return reachable, reachable & (spread >= gap)
-    gammas = 2.0 * np.pi * np.arange(params.rolls) / params.rolls
-    c, s = np.cos(gammas), np.sin(gammas)
-    Rz = np.zeros((params.rolls, 3, 3))
-    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
-    X = np.zeros((n, k, params.rolls, 4, 4))
-    X[..., :3, :3] = (R_dir[:, None] @ Rz[None])[None]
-    X[..., :3, 3] = centres[:, None, None]
-    X[..., 3, 3] = 1.0
-    res = ik(X, limits=_limits_with_slack(params.limits, slack), X_FT=X_FT)
-    per_roll = _collision_filter(params, res).any(-1)
-    return per_roll.any(-1), per_roll.all(-1)
+    _, res, valid = centre_samples(params, centres, directions, slack=slack)
+    return _roll_answers(params, res, valid, slack)
 
 
-CORNERS = np.stack(np.meshgrid(*[[0, 1]] * 3, indexing="ij"), -1).reshape(-1, 3)
-"""(8, 3) offsets of a voxel's corners in cells (voxel (i, j, k) spans [ijk, ijk + 1] v)."""
-
-
-def direction_neighbours(directions: np.ndarray) -> np.ndarray:
-    """(K, m) indices: row d is d itself, then its neighbours on the sphere (the edges of the
-    convex hull of the unit vectors = their spherical Delaunay triangulation), padded with d.
-    The neighbours surround d's Voronoi cell (the directions the query maps to d), so a cell
-    whose neighbours are all reachable is enclosed by reachable samples."""
-    k = len(directions)
-    if k < 5:
-        return np.tile(np.arange(k), (k, 1))
-    from scipy.spatial import ConvexHull
-
-    tri = ConvexHull(directions).simplices
-    edges = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
-    edges = np.unique(np.sort(edges, axis=1), axis=0)
-    nbs = [[d] for d in range(k)]
-    for a, b in edges:
-        nbs[a].append(int(b))
-        nbs[b].append(int(a))
-    width = max(len(n) for n in nbs)
-    return np.array([n + [n[0]] * (width - len(n)) for n in nbs], dtype=np.int64)
-
-
-def branch_samples(
-    params: MapParams, points: np.ndarray, directions: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """All 8 IK branches of the mapped frame at ``points`` (u, 3) x ``directions`` (k, 3) x the
-    roll samples: ``q`` (u, k, R, 8, 6) and ``ok`` (u, k, R, 8) (exists, within the limits,
-    q6 relaxed when roll is free, not wrist-singular, free of self-collision if asked)."""
-    points = np.asarray(points, dtype=float)
-    u, k, r = len(points), len(directions), params.rolls
-    gammas = 2.0 * np.pi * np.arange(r) / r
-    c, s = np.cos(gammas), np.sin(gammas)
-    Rz = np.zeros((r, 3, 3))
-    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = c, -s, s, c, 1.0
-    X = np.zeros((u, k, r, 4, 4))
-    X[..., :3, :3] = (frames_from_z(directions)[:, None] @ Rz[None])[None]
-    X[..., :3, 3] = points[:, None, None]
-    X[..., 3, 3] = 1.0
-    lim = relaxed_limits(params.limits) if r == 1 else joint_limits(params.limits)
-    X_FT = params.X_FT_matrix()
-    res = ik(X, limits=lim, X_FT=None if np.allclose(X_FT, np.eye(4)) else X_FT)
-    return res.q, _collision_filter(params, res) & ~res.singular
-
-
-@numba.njit(cache=True)
-def _certify_kernel(
-    q, ok, corner_of, nb, lo, hi, slack, overshoot, gap, roll_nb, out
-):  # pragma: no cover - compiled
-    """out[v, d] = the cell (voxel v, direction d) is certified, see :func:`certified_cells`.
-
-    q (u, K, R, 8, 6), ok (u, K, R, 8): branches at the corner samples; corner_of (n, 8) rows
-    of u; nb (K, m) direction neighbourhoods; lo/hi (6,) joint limits; gap: the forbidden q6
-    arc when roll is free (R == 1; <= 0: none), ignored for sampled rolls (q6 is checked as the
-    other joints)."""
-    n_vox = corner_of.shape[0]
-    n_dir, m_nb = nb.shape
-    n_roll = q.shape[2]
-    n_joint = 5 if n_roll == 1 else 6
-    r_lo, r_hi = (-roll_nb, roll_nb + 1) if n_roll > 1 else (0, 1)
-    qlo = np.empty((8, 6))
-    qhi = np.empty((8, 6))
-    good = np.empty(8, dtype=np.bool_)
-    ref = np.zeros(6)
-    for v in range(n_vox):
-        for d in range(n_dir):
-            cell_ok = True
-            for r in range(n_roll):
-                for b in range(8):
-                    good[b] = True
-                    first = True
-                    for c in range(8):
-                        s = corner_of[v, c]
-                        for e in range(m_nb):
-                            dd = nb[d, e]
-                            for rr in range(r_lo, r_hi):
-                                rs = (r + rr) % n_roll
-                                if not ok[s, dd, rs, b]:
-                                    good[b] = False
-                                    break
-                                for j in range(6):
-                                    # unwrap about the first sample: a joint that jumps across
-                                    # +-pi shows as a spread past the limit (never certified)
-                                    x = q[s, dd, rs, b, j]
-                                    if first:
-                                        ref[j] = x
-                                    x = ref[j] + (x - ref[j] + np.pi) % (2 * np.pi) - np.pi
-                                    if first:
-                                        qlo[b, j] = x
-                                        qhi[b, j] = x
-                                    else:
-                                        qlo[b, j] = min(qlo[b, j], x)
-                                        qhi[b, j] = max(qhi[b, j], x)
-                                first = False
-                            if not good[b]:
-                                break
-                        if not good[b]:
-                            break
-                    if good[b]:
-                        for j in range(n_joint):
-                            room = slack + overshoot * (qhi[b, j] - qlo[b, j])
-                            if qlo[b, j] - lo[j] < room or hi[j] - qhi[b, j] < room:
-                                good[b] = False
-                found = False
-                if n_roll > 1 or gap <= 0.0:
-                    for b in range(8):
-                        found = found or good[b]
-                else:  # every roll: two branches whose forbidden roll windows stay disjoint
-                    for a in range(8):
-                        for b in range(a + 1, 8):
-                            if found or not (good[a] and good[b]):
-                                continue
-                            # q6_a - q6_b at each sample (the roll frame cancels), in [0, 2 pi)
-                            dlo, dhi, dref = 0.0, 0.0, 0.0
-                            first = True
-                            for c in range(8):
-                                s = corner_of[v, c]
-                                for e in range(m_nb):
-                                    x = q[s, nb[d, e], 0, a, 5] - q[s, nb[d, e], 0, b, 5]
-                                    if first:
-                                        dref = x % (2 * np.pi)
-                                        dlo, dhi, first = dref, dref, False
-                                    x = dref + (x - dref + np.pi) % (2 * np.pi) - np.pi
-                                    dlo, dhi = min(dlo, x), max(dhi, x)
-                            room = gap + 2.0 * slack + overshoot * (dhi - dlo)
-                            found = dlo >= room and dhi <= 2 * np.pi - room
-                if not found:
-                    cell_ok = False
-                    break
-            out[v, d] = cell_ok
-
-
-def certified_cells(
-    params: MapParams, grid: Grid, voxel_ids: np.ndarray, directions: np.ndarray
-) -> np.ndarray:
-    """(n, K) bool: (voxel, direction) cells reachable for the whole cell (the conservative map).
-
-    The cell of (voxel, direction d) is every pose the query maps to it: positions in the closed
-    cube of the voxel, z axes in d's region of the sphere, any roll. Its samples: the voxel's 8
-    corners (they span the cube) x d and its neighbours (:func:`direction_neighbours`; they
-    enclose d's region) x (sampled rolls: the roll and its two neighbours; free roll: q6 handled
-    exactly as below). The cell is certified iff one IK branch (the same closed-form branch at
-    every sample) is valid at all samples, none wrist-singular, and every joint keeps, at every
-    sample, more than ``params.slack`` + its own spread over the samples to its limits: the spread
-    is the finite-difference estimate of how far the joint moves across the cell, so a joint
-    that swings (near a singularity, where the cell may hide a hole) needs that much more room,
-    and a joint turning back inside the cell cannot reach its limit unless it moves by more than
-    its spread. For a free roll (flange) "every roll" needs two such branches whose q6 ranges
-    are farther apart than the forbidden q6 arc (the 10 deg gap of +-175 deg limits) + twice the
-    slack + both spreads (their forbidden roll windows stay disjoint over the cell); with +-360
-    deg one branch is enough. For sampled rolls every roll sample needs a certified branch.
-    Corners are shared by up to 8 voxels, so each is solved once per block.
-    """
-    voxel_ids = np.asarray(voxel_ids, dtype=np.int64)
-    ijk = np.stack(np.unravel_index(voxel_ids, grid.shape), axis=-1)
-    corners = (ijk[:, None, :] + CORNERS[None]).reshape(-1, 3)
-    uniq, inv = np.unique(corners, axis=0, return_inverse=True)
-    q, ok = branch_samples(params, grid.origin + uniq * grid.voxel, directions)
-    lim = joint_limits(params.limits)
-    gap = 2.0 * np.pi - (lim[1, 5] - lim[0, 5])
-    out = np.empty((len(voxel_ids), len(directions)), dtype=bool)
-    _certify_kernel(
-        np.ascontiguousarray(q), np.ascontiguousarray(ok),
-        np.ascontiguousarray(inv.reshape(len(voxel_ids), 8).astype(np.int64)),
-        direction_neighbours(directions), np.ascontiguousarray(lim[0]),
-        np.ascontiguousarray(lim[1]), float(params.slack), OVERSHOOT, float(gap), ROLL_NB, out,
-    )  # fmt: skip
+@functools.lru_cache(maxsize=8)
+def direction_radii(k: int) -> np.ndarray:
+    """(K,) the largest angle between each of the ``k`` golden-spiral directions and the z axes
+    the query gives it (:func:`systems.capability.certificate.direction_radii` over
+    :func:`direction_table`); cached, read-only."""
+    dirs = golden_spiral(k)
+    out = certificate.direction_radii(dirs, direction_table(dirs))
+    out.flags.writeable = False
     return out
 
 
-def build_block(
-    params: MapParams, voxel_ids: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One independent unit of work: reachability of the given voxels (picklable in and out).
+def build_block(params: MapParams, voxel_ids: np.ndarray, *, certify_options: dict | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One independent unit of work: the cells of the given voxels (picklable in and out).
+
+    IK at every cell's centre sample gives the paper's bits (some roll, every roll; the
+    reachability index) and, for a certified map, the certificate of each (direction, roll) cell
+    from the same samples (:mod:`systems.capability.certificate`). A map that checks
+    self-collision certifies nothing (the certificate does not bound the arm's clearance): its
+    cells are all resolved by IK.
+
+    Args:
+        certify_options: keyword arguments passed on to
+            :func:`systems.capability.certificate.certify` (tests: a term dropped).
 
     Returns:
-        ``(voxel_ids, reachable_bits, all_roll_bits)``: bits packed along the direction axis
-        (np.packbits, big-endian), only for voxels with >= 1 reachable direction.
+        ``(voxel_ids, reachable_bits, all_roll_bits, yes_bits)``: bits packed along the
+        direction axis (np.packbits, big-endian; ``yes_bits`` along direction x roll, d * R + r),
+        only for voxels with >= 1 reachable direction.
     """
     grid = make_grid(params)
     dirs = golden_spiral(params.directions)
     voxel_ids = np.asarray(voxel_ids, dtype=np.int64)
-    if params.cell == "centre":
-        reach, allr = reach_at(params, grid.centres(voxel_ids), dirs)
-    else:
-        reach = certified_cells(params, grid, voxel_ids, dirs)
-        allr = reach
+    centres = grid.centres(voxel_ids)
+    R_s, res, valid = centre_samples(params, centres, dirs)
+    reach, allr = _roll_answers(params, res, valid)
     keep = reach.any(axis=1)
+    k, r = params.directions, params.rolls
+    if params.cell == "certified" and not params.self_collision and keep.any():
+        yes = certificate.certify(
+            res.q[keep], (valid & ~res.singular)[keep], R_s, centres[keep],
+            alpha=direction_radii(params.directions), voxel=params.voxel, X_FT=params.X_FT_matrix(),
+            limits=joint_limits(params.limits), slack=params.slack, rolls=r,
+            **(certify_options or {}),
+        )  # fmt: skip
+    else:
+        yes = np.zeros((int(keep.sum()), k, r), dtype=bool)
     return (
-        np.asarray(voxel_ids)[keep].astype(np.int64),
+        voxel_ids[keep].astype(np.int64),
         np.packbits(reach[keep], axis=1),
         np.packbits(allr[keep], axis=1),
+        np.packbits(yes.reshape(len(yes), k * r), axis=1),
     )
 
 
@@ -622,7 +529,7 @@ class BlockStore:
 
     The folder (``<out>.blocks-<key>`` beside the map file, :meth:`beside`) is keyed by the map
     parameters and the block size, so blocks of a different map never mix in. Each block is an
-    ``.npz`` (voxel ids and the two packed bit arrays of :func:`build_block`) written atomically;
+    ``.npz`` (voxel ids and the three packed bit arrays of :func:`build_block`) written atomically;
     a block file that does not read back as the block it names counts as missing. ``manifest.json``
     records what the blocks are of. Counters: ``reused`` (read back), ``written`` (this run).
     """
@@ -692,27 +599,30 @@ class BlockStore:
     def read(self, i: int):
         """Block ``i`` as :func:`build_block` returned it, or None if missing or not that block."""
         nbytes = (self.params.directions + 7) // 8
+        ybytes = (self.params.directions * self.params.rolls + 7) // 8
         try:
             with np.load(self._path(i), allow_pickle=False) as z:
                 vox, reach, allr = z["voxel_ids"], z["reach_bits"], z["all_roll_bits"]
+                yes = z["yes_bits"]
         except (OSError, KeyError, ValueError):
             return None
         if (
             vox.ndim != 1
             or reach.shape != (len(vox), nbytes)
             or allr.shape != reach.shape
+            or yes.shape != (len(vox), ybytes)
             or not np.all(np.isin(vox, self.blocks[i]))
         ):
             return None
         self.reused += 1
-        return vox.astype(np.int64), reach, allr
+        return vox.astype(np.int64), reach, allr, yes
 
     def write(self, i: int, result) -> None:
-        vox, reach, allr = result
+        vox, reach, allr, yes = result
 
         def writer(tmp):
             with open(tmp, "wb") as f:
-                np.savez(f, voxel_ids=vox, reach_bits=reach, all_roll_bits=allr)
+                np.savez(f, voxel_ids=vox, reach_bits=reach, all_roll_bits=allr, yes_bits=yes)
 
         write_atomic(self._path(i), writer)
         self.written += 1
@@ -786,11 +696,9 @@ def build(
                 f.cancel()
             if own:
                 ex.shutdown()
-    vox = np.concatenate([r[0] for r in results]) if results else np.zeros(0, np.int64)
-    nbytes = (params.directions + 7) // 8
-    reach = np.concatenate([r[1] for r in results]) if results else np.zeros((0, nbytes), np.uint8)
-    allr = np.concatenate([r[2] for r in results]) if results else np.zeros((0, nbytes), np.uint8)
-    return CapabilityMap(params, grid, vox, reach, allr)
+    if not results:
+        return empty_map(params)
+    return CapabilityMap(params, grid, *(np.concatenate([r[i] for r in results]) for i in range(4)))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -855,18 +763,39 @@ def _index_kernel(p, X, origin, voxel, shape, row_of, index, out):  # pragma: no
                 out[b, n] = index[row]
 
 
+def _poses(X_BP) -> np.ndarray:
+    X = np.asarray(X_BP, dtype=float)
+    if X.ndim < 2 or X.shape[-2:] != (4, 4):
+        raise InputError("poses", f"expected poses of shape (..., 4, 4), got {X.shape}")
+    if not np.all(np.isfinite(X)):
+        raise InputError("poses", "poses must be finite (found NaN or inf)")
+    return X
+
+
+def empty_map(params: MapParams) -> CapabilityMap:
+    """A map of ``params`` with no voxel stored (every answer resolved by IK, or "no" outside
+    the reach sphere)."""
+    k, r = params.directions, params.rolls
+    z = np.zeros((0, (k + 7) // 8), np.uint8)
+    return CapabilityMap(params, make_grid(params), np.zeros(0, np.int64), z, z.copy(),
+                         np.zeros((0, (k * r + 7) // 8), np.uint8))
+
+
 @dataclass
 class CapabilityMap:
-    """A built map: params, grid, the stored voxels and their direction bits.
+    """A built map: params, grid, the stored voxels and their bits.
 
     Attributes:
         params: :class:`MapParams`.
         grid: :class:`Grid`.
-        voxel_ids: (m,) linear ids of voxels with >= 1 reachable direction.
-        reach_bits: (m, ceil(K/8)) uint8 packed reachable bits (certified maps: for the whole
-            cell, every roll; centre maps: at the sample, "some roll").
-        all_roll_bits: (m, ceil(K/8)) uint8 packed bits "reachable at every roll" (certified
-            maps: equal to ``reach_bits``).
+        voxel_ids: (m,) linear ids of voxels with >= 1 reachable direction at the centre.
+        reach_bits: (m, ceil(K/8)) uint8 packed bits "reachable at the voxel centre, some roll"
+            (the paper's centre-sampled map: the reachability index and RASSCMAP's c_s).
+        all_roll_bits: (m, ceil(K/8)) uint8 packed bits "reachable at the centre at every roll".
+        yes_bits: (m, ceil(K R/8)) uint8 packed bits, direction-major (d * R + r): the cell
+            (voxel, direction d, roll bin r) is certified reachable throughout
+            (:mod:`systems.capability.certificate`; a free roll: every roll). None: no cell is
+            certified (all zero).
     """
 
     params: MapParams
@@ -874,6 +803,7 @@ class CapabilityMap:
     voxel_ids: np.ndarray
     reach_bits: np.ndarray
     all_roll_bits: np.ndarray
+    yes_bits: np.ndarray | None = None
     directions: np.ndarray = field(init=False, repr=False)
     index: np.ndarray = field(init=False, repr=False)
     _row_of: np.ndarray = field(init=False, repr=False)
@@ -881,6 +811,9 @@ class CapabilityMap:
 
     def __post_init__(self):
         k = self.params.directions
+        if self.yes_bits is None:
+            width = (k * self.params.rolls + 7) // 8
+            self.yes_bits = np.zeros((len(self.voxel_ids), width), dtype=np.uint8)
         self.directions = golden_spiral(k)
         counts = np.unpackbits(self.reach_bits, axis=1, count=k).sum(axis=1)
         self.index = (counts / k).astype(np.float64)
@@ -898,7 +831,8 @@ class CapabilityMap:
         )  # fmt: skip
 
     def query_points(self, p: np.ndarray, z_axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(reachable, index) for positions (n, 3) and approach directions (n, 3) in base_link."""
+        """(reachable, index) for positions (n, 3) and approach directions (n, 3) in base_link from
+        the centre-sampled bits (the paper's map, some roll; not a verdict: :meth:`answer` is)."""
         p = np.ascontiguousarray(np.asarray(p, dtype=float).reshape(-1, 3))
         z = np.ascontiguousarray(np.asarray(z_axis, dtype=float).reshape(-1, 3))
         if len(p) != len(z):
@@ -908,17 +842,56 @@ class CapabilityMap:
         _query_kernel(p, z, *self.kernel_args(), self.index, reach, index)
         return reach, index
 
-    def query(self, X_BP: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(reachable, index) for poses (..., 4, 4) in base_link; the pose's z is the approach."""
-        X = np.asarray(X_BP, dtype=float)
-        if X.ndim < 2 or X.shape[-2:] != (4, 4):
-            raise InputError("poses", f"expected poses of shape (..., 4, 4), got {X.shape}")
-        if not np.all(np.isfinite(X)):
-            raise InputError("poses", "poses must be finite (found NaN or inf)")
+    def verdict(self, X_BP: np.ndarray) -> np.ndarray:
+        """The map's own answer (n,) int8 for poses (n, 4, 4) in base_link: :data:`YES` (the
+        pose's cell is certified reachable), :data:`NO` (no pose there can be reached: outside
+        the grid or the reach sphere) or :data:`UNDECIDED`; no IK is run."""
+        X = _poses(X_BP).reshape(-1, 4, 4)
+        p = X[:, :3, 3]
+        out = np.full(len(X), UNDECIDED, dtype=np.int8)
+        c = self.grid.cells(p)
+        inside = np.all((c >= 0) & (c < np.asarray(self.grid.shape)), axis=1)
+        far = (np.linalg.norm(p - SHOULDER, axis=1) > reach_radius(self.params)) | ~inside
+        out[far] = NO
+        ids = np.ravel_multi_index(np.clip(c, 0, np.asarray(self.grid.shape) - 1).T,
+                                   self.grid.shape)
+        rows = np.where(inside, self._row_of[ids], -1)
+        have = np.flatnonzero(rows >= 0)
+        if have.size:
+            d = self.nearest_direction(X[have, :3, 2])
+            r = roll_bins(X[have, :3, :3], self.directions[d], self.params.rolls)
+            bit = d * self.params.rolls + r
+            row = rows[have]
+            yes = (self.yes_bits[row, bit >> 3] >> (7 - (bit & 7))) & 1 == 1
+            out[have[yes]] = YES
+        return out.reshape(np.shape(X_BP)[:-2])
+
+    def answer(self, X_BP: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The exact answer for poses (..., 4, 4) in base_link, and where it came from.
+
+        Returns:
+            ``(reachable, source, index)``: reachable (bool); source (int8) :data:`YES` or
+            :data:`NO` (certified by the map) or :data:`UNDECIDED` (the cell is undecided, the
+            answer is closed-form IK at the pose, :func:`exact_reachable`); index: the
+            centre-sampled reachability index of the pose's voxel (the paper's, 0 outside).
+        """
+        X = _poses(X_BP)
         shape = X.shape[:-2]
         flat = X.reshape(-1, 4, 4)
-        reach, index = self.query_points(flat[:, :3, 3], flat[:, :3, 2])
-        return reach.reshape(shape), index.reshape(shape)
+        source = self.verdict(flat)
+        reach = source == YES
+        todo = np.flatnonzero(source == UNDECIDED)
+        if todo.size:
+            reach[todo] = exact_reachable(self.params, flat[todo])
+        _, index = self.query_points(flat[:, :3, 3], flat[:, :3, 2])
+        return reach.reshape(shape), source.reshape(shape), index.reshape(shape)
+
+    def query(self, X_BP: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(reachable, index) for poses (..., 4, 4) in base_link, the pose's z the approach:
+        the exact answer (certified cells as the map says, undecided ones by IK at the pose)
+        and the voxel's reachability index (:meth:`answer`)."""
+        reach, _, index = self.answer(X_BP)
+        return reach, index
 
     def nearest_direction(self, v: np.ndarray) -> np.ndarray:
         """Index of the map direction nearest to each vector (n, 3) (the query's lookup table)."""
@@ -965,15 +938,20 @@ class CapabilityMap:
         return np.unpackbits(bits, axis=1, count=self.params.directions).astype(bool)
 
     def stats(self) -> dict:
-        """Counts for reports: stored voxels, mean index, share of pairs reachable at all rolls."""
-        k = self.params.directions
+        """Counts for reports: stored voxels, mean index, (voxel, direction) pairs reachable at
+        the centre (some roll, every roll), certified cells (voxel, direction, roll bin) and
+        the cells of the stored voxels."""
+        k, r = self.params.directions, self.params.rolls
         reach = np.unpackbits(self.reach_bits, axis=1, count=k).sum()
         allr = np.unpackbits(self.all_roll_bits, axis=1, count=k).sum()
+        yes = np.unpackbits(self.yes_bits, axis=1, count=k * r).sum()
         return {
             "voxels_reachable": int(len(self.voxel_ids)),
             "mean_index": float(self.index.mean()) if len(self.index) else 0.0,
             "pairs_reachable": int(reach),
             "pairs_all_rolls": int(allr),
+            "cells_certified": int(yes),
+            "cells_stored": int(len(self.voxel_ids) * k * r),
         }
 
     # -- files --------------------------------------------------------------------------------
@@ -992,6 +970,7 @@ class CapabilityMap:
                 f.create_dataset("voxel_ids", data=self.voxel_ids, **kw)
                 f.create_dataset("reach_bits", data=self.reach_bits, **kw)
                 f.create_dataset("all_roll_bits", data=self.all_roll_bits, **kw)
+                f.create_dataset("yes_bits", data=self.yes_bits, **kw)
                 f.create_dataset("index", data=self.index.astype(np.float32), **kw)
 
         write_atomic(path, writer)
@@ -1021,6 +1000,14 @@ def load(path: str | os.PathLike, *, expect: dict | None = None) -> CapabilityMa
                 f"{path} is a schema_version 1 map: sampled at voxel centres only, it can say "
                 "reachable where exact IK fails; rebuild it with `implantplan capmap build` "
                 f"(this version reads {SCHEMA_VERSION}, certified cells)",
+            )
+        if version == 2:
+            raise InputError(
+                "map",
+                f"{path} is a schema_version 2 map: its certificate is for every roll at once "
+                "(it certifies almost no cell of an off-axis tool) and its index is not the "
+                "paper's; rebuild it with `implantplan capmap build` (this version reads "
+                f"{SCHEMA_VERSION}: per-roll certified cells, undecided ones resolved by IK)",
             )
         if version != SCHEMA_VERSION:
             raise InputError(
@@ -1054,12 +1041,16 @@ def load(path: str | os.PathLike, *, expect: dict | None = None) -> CapabilityMa
         vox = f["voxel_ids"][()]
         reach = f["reach_bits"][()]
         allr = f["all_roll_bits"][()]
+        yes = f["yes_bits"][()] if "yes_bits" in f else None
     nbytes = (params.directions + 7) // 8
-    if reach.shape != (len(vox), nbytes) or allr.shape != reach.shape:
-        raise InputError("map", f"{path}: bit arrays do not match {params.directions} directions")
+    ybytes = (params.directions * params.rolls + 7) // 8
+    if (reach.shape != (len(vox), nbytes) or allr.shape != reach.shape or yes is None
+            or yes.shape != (len(vox), ybytes)):
+        raise InputError("map", f"{path}: bit arrays do not match {params.directions} directions"
+                         f" x {params.rolls} roll(s)")
     if len(vox) and (vox.min() < 0 or vox.max() >= grid.size):
         raise InputError("map", f"{path}: voxel ids outside the grid")
-    return CapabilityMap(params, grid, vox.astype(np.int64), reach, allr)
+    return CapabilityMap(params, grid, vox.astype(np.int64), reach, allr, yes)
 
 
 def _same(a, b) -> bool:
@@ -1099,26 +1090,74 @@ def random_poses(n: int, *, seed: int, radius: float | None = None, center=SHOUL
     return X
 
 
+def region_poses(X_targets: np.ndarray, n: int, *, seed: int, margin: float = 0.03,
+                 cone: float = np.radians(45.0)) -> np.ndarray:
+    """``n`` poses (n, 4, 4) uniform over a task region: positions uniform in the axis-aligned
+    box bounding the targets' origins grown by ``margin`` (m), z axes uniform in the cone of
+    half angle ``cone`` (rad) about the targets' mean z axis, rolls uniform in [0, 2 pi). For
+    the oral region: the feeding targets of a plan, in the robot's base frame. Same seed -> same
+    poses."""
+    X_targets = np.asarray(X_targets, dtype=float).reshape(-1, 4, 4)
+    rng = np.random.default_rng(seed)
+    lo = X_targets[:, :3, 3].min(axis=0) - margin
+    hi = X_targets[:, :3, 3].max(axis=0) + margin
+    axis = X_targets[:, :3, 2].mean(axis=0)
+    axis /= np.linalg.norm(axis)
+    c = rng.uniform(np.cos(cone), 1.0, n)
+    phi = rng.uniform(0.0, 2.0 * np.pi, n)
+    s = np.sqrt(1.0 - c * c)
+    z = np.stack([s * np.cos(phi), s * np.sin(phi), c], axis=1) @ frames_from_z(axis).T
+    g = rng.uniform(0.0, 2.0 * np.pi, n)
+    Rz = np.zeros((n, 3, 3))
+    Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = (
+        np.cos(g), -np.sin(g), np.sin(g), np.cos(g), 1.0)  # fmt: skip
+    X = np.zeros((n, 4, 4))
+    X[:, :3, :3] = frames_from_z(z) @ Rz
+    X[:, :3, 3] = rng.uniform(lo, hi, (n, 3))
+    X[:, 3, 3] = 1.0
+    return X
+
+
+def regional_map(params: MapParams, p: np.ndarray, *, pad: int = 1,
+                 certify_options: dict | None = None) -> CapabilityMap:
+    """The map of ``params`` over the voxels holding the positions ``p`` (n, 3) and ``pad``
+    voxels around them (built in this process, one block: the plan's capability check and the
+    oral-region measurements need the map where the tasks are, not the whole workspace)."""
+    grid = make_grid(params)
+    c = np.unique(grid.cells(np.asarray(p, dtype=float).reshape(-1, 3)), axis=0)
+    r = np.arange(-pad, pad + 1)
+    offs = np.stack(np.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
+    c = np.unique((c[:, None] + offs[None]).reshape(-1, 3), axis=0)
+    c = c[np.all((c >= 0) & (c < np.asarray(grid.shape)), axis=1)]
+    ids = np.ravel_multi_index(c.T, grid.shape)
+    return CapabilityMap(params, grid, *build_block(params, ids, certify_options=certify_options))
+
+
 def accuracy(cmap: CapabilityMap, poses: np.ndarray, *, exact_roll: bool = True) -> dict:
-    """TP/FP/FN/TN of the map's answers against direct IK on ``poses`` (n, 4, 4), as the field
-    reports them (fractions of all poses).
+    """The map against direct IK on ``poses`` (n, 4, 4), as the field reports it.
 
     Args:
-        exact_roll: ground truth is IK of the exact pose (its roll included, true joint limits);
-            False: ground truth is "some roll" (the map's own question), which isolates the
-            discretization error.
+        exact_roll: True: the map's answer (:meth:`CapabilityMap.answer`: certified cells, the
+            undecided ones by IK at the pose) against IK of the exact pose (its roll, true joint
+            limits), with the certificate's own counts; False: the centre-sampled bits (the
+            paper's map, :meth:`CapabilityMap.query_points`) against "some roll" (the paper's
+            question), which isolates the discretization error.
 
     Returns:
-        n, TP, FP, FN, TN, correct (fractions of all poses), truth_reachable, and the share of
-        poses in partially reachable voxels (0 < index < 1) with the correct rate among them (the
-        hard cases: poses in full or empty voxels are mostly answered right by construction).
+        n, TP, FP, FN, TN, correct (fractions of all poses), truth_reachable, false_safe (count
+        of FP), rejected_reachable (FN / reachable), the share of poses in partially reachable
+        voxels (0 < index < 1) with the correct rate among them; with ``exact_roll`` also
+        certified_yes / certified_no / resolved_by_ik (shares of the poses), false_yes /
+        false_no (counts: a certified verdict exact IK contradicts) and coverage (the share of
+        the IK-reachable poses whose cell is certified reachable).
     """
     p = cmap.params
-    reach_map, index = cmap.query(poses)
     if exact_roll:
         truth = exact_reachable(p, poses)
+        reach_map, source, index = cmap.answer(poses)
     else:
         truth, _ = some_roll_truth(p, poses)
+        reach_map, index = cmap.query_points(poses[:, :3, 3], poses[:, :3, 2])
     n = len(poses)
     tp = np.sum(reach_map & truth)
     fp = np.sum(reach_map & ~truth)
@@ -1127,13 +1166,22 @@ def accuracy(cmap: CapabilityMap, poses: np.ndarray, *, exact_roll: bool = True)
     edge = (index > 0.0) & (index < 1.0)  # voxels where some directions are reachable, some not
     n_edge = int(edge.sum())
     edge_ok = float(np.mean(reach_map[edge] == truth[edge])) if n_edge else 1.0
-    return {
+    out = {
         "n": int(n), "TP": float(tp / n), "FP": float(fp / n), "FN": float(fn / n),
         "TN": float(tn / n), "correct": float((tp + tn) / n),
         "truth_reachable": float(truth.mean()),
         "partial_voxel_share": float(n_edge / n), "partial_voxel_correct": edge_ok,
         "false_safe": int(fp), "rejected_reachable": float(fn / max(tp + fn, 1)),
     }  # fmt: skip
+    if exact_roll:
+        yes, no = source == YES, source == NO
+        out.update({
+            "certified_yes": float(yes.mean()), "certified_no": float(no.mean()),
+            "resolved_by_ik": float(np.mean(source == UNDECIDED)),
+            "false_yes": int(np.sum(yes & ~truth)), "false_no": int(np.sum(no & truth)),
+            "coverage": float(np.sum(yes & truth) / max(int(truth.sum()), 1)),
+        })  # fmt: skip
+    return out
 
 
 def exact_reachable(params: MapParams, poses: np.ndarray) -> np.ndarray:

@@ -56,6 +56,33 @@ def test_query_json(map_path, tmp_path):
     q = read_json(tmp_path / "q.json", kind="capmap_query")
     assert q["reachable"] == [True, False]
     assert q["index"] == [m.index[row], 0.0] and m.index[row] > 0
+    # a centre map certifies nothing: the first answer is IK's, the second outside the reach
+    assert q["answer"] == ["resolved by IK", "certified unreachable"]
+    assert q["answers"] == {"certified reachable": 0, "certified unreachable": 1,
+                            "resolved by IK": 1}
+    assert q["index_map"] == "centre-sampled index (seed 004) of the centre map: flange, 100 mm " \
+        "voxels, 40 directions x 1 roll(s), +-175 deg"
+
+
+def test_query_answers_agree_with_exact_ik_and_say_where_they_came_from(tmp_path, capsys):
+    """A certified map through the CLI: every answer is exact IK's, certified cells among them."""
+    path = tmp_path / "c.h5"
+    assert main(["capmap", "build", "--voxel-mm", "100", "--directions", "30", "--workers", "1",
+                 "--out", str(path)]) == 0  # fmt: skip
+    X = cm.random_poses(3000, seed=17, radius=1.8)
+    np.save(tmp_path / "p.npy", X)
+    capsys.readouterr()
+    assert main(["capmap", "query", str(path), "--poses", str(tmp_path / "p.npy"),
+                 "--out", str(tmp_path / "q.json")]) == 0  # fmt: skip
+    line = json.loads(capsys.readouterr().out)
+    q = read_json(tmp_path / "q.json", kind="capmap_query")
+    exact = cm.exact_reachable(cm.load(path).params, X)
+    assert q["reachable"] == exact.tolist()
+    assert line["reachable"] == int(exact.sum()) and line["poses"] == 3000
+    assert all(q["answers"][k] > 0 for k in q["answers"])
+    ans = np.array(q["answer"])
+    assert np.all(exact[ans == "certified reachable"]) and not np.any(
+        exact[ans == "certified unreachable"])
 
 
 def test_query_bad_input_exit_2(map_path, tmp_path):

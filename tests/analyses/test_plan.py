@@ -50,6 +50,21 @@ def test_demo_writes_a_complete_passing_plan(demo_plan):
     assert "arm clearance along the feed (SceneGraph) (aubo::" in html
 
 
+def test_capability_answers_are_exact_and_say_where_they_came_from(demo_run):
+    """Never "NOT reachable" where IK reaches: each site's answer is the certified cell's or
+    closed-form IK's at the target, and says which; the index names its map."""
+    folder, printed = demo_run
+    plan = json.loads((folder / "plan.json").read_text())
+    for s in plan["sites"]:
+        cap = s["capability"]
+        assert cap["map_reachable"] == (cap["ik_branches_within_limits"] > 0)
+        assert cap["map_answer"] in ("certified reachable", "resolved by IK")
+        assert cap["index_map"].startswith("centre-sampled index (seed 004) of the certified map")
+        assert f"site {s['name']}: reachable ({cap['map_answer']})" in printed
+    assert "NOT reachable" not in printed
+    assert "reachable (how it is known)" in (folder / "report.html").read_text()
+
+
 def test_feeding_targets_are_consistent_across_frames(demo_plan):
     """The End target from the plan's base pose and q reproduces the feeding target in World."""
     from implantplan.diagrams import actuator_urdf as tools

@@ -68,10 +68,13 @@ def test_layout_at_the_planned_base_is_the_plans(studio):
     status = studio.status()
     assert status["setup"]["feasible"] and status["mode"] == "setup"
     assert len(status["setup"]["capability_index"]) == len(plan["sites"])
-    # the capability view gives the plan's verdict (certified map) and index (centre-sampled)
+    # the capability view gives the plan's answer (and what it rests on) and index
     cap = lay.capability
     for k, s in enumerate(plan["sites"]):
         assert bool(cap["map_reachable"][k]) == s["capability"]["map_reachable"]
+        assert status["setup"]["capability_reachable"][k] == {
+            "reachable": s["capability"]["map_reachable"],
+            "answer": s["capability"]["map_answer"]}
         assert cap["index"][k] == pytest.approx(s["capability"]["voxel_index"])
         assert cap["neighbourhood_index"][k] == pytest.approx(
             s["capability"]["neighbourhood_index"])
