@@ -45,6 +45,7 @@ import numpy as np
 
 from implantplan.analyses.figures.simulation import plot_circle, plot_feeding, plot_layouts
 from implantplan.analyses.progress import Progress
+from implantplan.analyses.studies.accuracy import register_analysis as register_accuracy_analysis
 from implantplan.analyses.studies.head_motion import register_analysis as register_head_analysis
 from implantplan.analyses.studies.moprp_fidelity import gii_units, register_analysis
 from implantplan.diagrams.feeding import (  # the case and the runs (bench_teleop reads them here)
@@ -280,6 +281,7 @@ def register(subparsers) -> None:
     p.set_defaults(func=cmd_layouts)
     register_analysis(sub)
     register_head_analysis(sub)
+    register_accuracy_analysis(sub)
 
 
 def _check_count(value: int, name: str, lo: int = 1) -> None:
