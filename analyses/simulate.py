@@ -262,7 +262,7 @@ def register(subparsers) -> None:
                    "its <name>.json case beside it) instead of scripted feeds")
     p.add_argument("--head-motion", help="the awake patient: breathing|swallow|startle|drift or "
                    "a CSV of head displacements (t_s,x_m,y_m,z_m,rx_rad,ry_rad,rz_rad); seeded "
-                   "by --seed; kinematic mode; the arm follows the tracked mouth")
+                   "by --seed; kinematic or dynamic mode; the arm follows the tracked mouth")
     _operator_options(p)
     p.set_defaults(func=cmd_feeding)
     p = sub.add_parser("circle", help="circle r 25 mm at 10 mm/s with injected joint error")

@@ -53,6 +53,7 @@ SWEEP = {
     "implantplan plan models/cases/default.yaml --out out/default": "the whole default case",
     "implantplan batch --cohort out/cohort/cohort.yaml": "plans two cases",
     "implantplan analyze head-motion --runs 2": "plans the default case, then the startles",
+    "implantplan analyze accuracy --runs 2": "plans the default case, then about 60 runs",
     "implantplan analyze moprp-fidelity --scenario lying": "25 draws of 20 random layouts",
     "implantplan simulate feeding --scenario lying --runs 10": "ten feeds",
     "--head-motion startle --out out/feed-head": "two feeds with the tracker and guard",
@@ -64,6 +65,7 @@ SWEEP = {
 }
 SLOW = {
     "implantplan analyze head-motion --runs 50": "50 runs per profile and site: 5-20 min",
+    "implantplan analyze accuracy --runs 200": "200 runs per row and site: 20-40 min",
     "implantplan analyze moprp-fidelity --scenario sitting": "the lying study's code, 1.5-2 min",
 }
 # Commands that write under out/ but are not run here, and why.

@@ -142,10 +142,26 @@ def test_supervisor_margin_input_tightens_the_barrier(setup):
     assert active == 1.0 and scale < 1.0
 
 
-def test_head_motion_needs_kinematic_mode(setup):
-    case = setup[0]
-    with pytest.raises(InputError, match="head_motion"):
-        build_teleop(case, head_motion=_head(case, "breathing", 0), mode="dynamic")
+def test_dynamic_arm_follows_the_moving_mouth(setup):
+    """Dynamic mode (1 ms plant, inverse dynamics) with head motion: the arm follows the
+    tracked mouth as the kinematic one does (the path error relative to the moving head stays
+    well below what ignoring the head gives)."""
+    case, inst, motions, stills, cavity = setup
+    m = motions[0]
+    hm = HeadMotion.make("swallow", seed=3, pivot=case.X_WCenter[:3, 3], start=0.5, window=0.0)
+    T = 2.0
+    dyn = simulate(build_teleop(case, head_motion=hm, tracker=TrackerParams(seed=1),
+                                mode="dynamic"), T, motion=m)
+    kin = simulate(build_teleop(case, head_motion=hm, tracker=TrackerParams(seed=1)), T,
+                   motion=m)
+    ign = simulate(build_teleop(case, head_motion=hm, follow=False), T, motion=m)
+    n = min(len(dyn.t), len(kin.t), len(ign.t))
+    err_dyn = np.linalg.norm(dyn.X_CT[:n, :3, 3] - kin.X_CT[:n, :3, 3], axis=1).max()
+    err_ign = np.linalg.norm(ign.X_CT[:n, :3, 3] - kin.X_CT[:n, :3, 3], axis=1).max()
+    assert err_ign > 0.002  # the swallow (3-5 mm) carries the mouth away from an arm ignoring it
+    assert err_dyn < 0.25 * err_ign
+    with pytest.raises(InputError, match="mode"):
+        build_teleop(case, head_motion=_head(case, "breathing", 0), mode="hybrid")
 
 
 def test_seeded_runs_repeat(setup):
