@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from implantplan.analyses.figures import save
+
 UNITS = {"entry": "mm", "apex": "mm", "angle": "deg"}
 
 
@@ -29,7 +31,6 @@ def plot_budget(study: dict, out_dir) -> list[Path]:
     clinical means of the robots (Yomi, autonomous) as lines."""
     plt = _plt()
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
     clinical = study.get("clinical", {})
     for label, entry in study["sites"].items():
@@ -53,11 +54,7 @@ def plot_budget(study: dict, out_dir) -> list[Path]:
             ax.set_title(k)
         axes[0].legend(fontsize=7)
         fig.suptitle(f"{label}: error budget ({study['runs']} runs per row)")
-        fig.tight_layout()
-        path = out_dir / f"accuracy_budget_{_slug(label)}.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        paths.append(path)
+        paths.append(save(fig, out_dir / f"accuracy_budget_{_slug(label)}.png", dpi=110))
     return paths
 
 
@@ -66,7 +63,6 @@ def plot_sensitivity(study: dict, out_dir) -> list[Path]:
     the tracker's latency, its rate, and the registration sigma."""
     plt = _plt()
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
     for label, entry in study["sites"].items():
         sens = entry.get("sensitivity")
@@ -87,9 +83,5 @@ def plot_sensitivity(study: dict, out_dir) -> list[Path]:
                     ax.set_xlabel(xlabel)
         axes[0, 0].legend(fontsize=7)
         fig.suptitle(f"{label}: sensitivity ({sens['runs']} runs per point)")
-        fig.tight_layout()
-        path = out_dir / f"accuracy_sensitivity_{_slug(label)}.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        paths.append(path)
+        paths.append(save(fig, out_dir / f"accuracy_sensitivity_{_slug(label)}.png", dpi=110))
     return paths
