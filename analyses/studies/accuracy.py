@@ -70,6 +70,7 @@ from implantplan.systems.teleop.insertion import (
     implant_deviation,
     insertion_fixture,
     planned_insertion,
+    tz,
 )
 from implantplan.systems.teleop.master_device import Operator, scripted_feed
 from implantplan.systems.teleop.tracker import TrackerParams
@@ -132,6 +133,7 @@ class Site:
 
     case: TeleopCase
     plan: PlannedImplant
+    scan: object = None  # the opened scan (trimesh, mesh frame), for the exact clearance
 
     @property
     def label(self) -> str:
@@ -183,9 +185,12 @@ def sites_of(*, plan=None, approach: float | None = None, progress=None) -> list
     from implantplan.analyses.live_setup import load_plan
 
     if plan is not None:
+        from implantplan.analyses.live_setup import opened_scan
+
         sp = load_plan(plan, field="--plan", reference=False)
         cases = [sp.teleop_case(k) for k in range(len(sp.names))]
         d_T = [float(s["placement"]["d_T"]) for s in sp.plan["sites"]]
+        scan = opened_scan(sp)
     else:  # planned as implantplan plan does (scan_reference.default_case_sites)
         from implantplan.analyses import pipeline
         from implantplan.analyses.case import default_case_path, load_case
@@ -198,11 +203,12 @@ def sites_of(*, plan=None, approach: float | None = None, progress=None) -> list
         cases = pipeline.teleop_cases(case, fit, placements,
                                       pipeline.robot_stage(case, placements))
         d_T = [p.d_T for p in placements]
+        scan = fit.opened
     out = []
     for tc, d in zip(cases, d_T, strict=True):
         X_CT = np.linalg.inv(tc.X_WCenter) @ tc.X_WTarget
         out.append(Site(case=approach_case(tc, approach),
-                        plan=planned_insertion(X_CT, d, tc.tool)))
+                        plan=planned_insertion(X_CT, d, tc.tool), scan=scan))
     return out
 
 
@@ -222,6 +228,28 @@ def approach_case(tc: TeleopCase, approach: float | None) -> TeleopCase:
     q = res.q[res.valid]
     q0 = q[np.argmin(kin.wrapped_distance(q, tc.q_start))]
     return dataclasses.replace(tc, q_start=q0)
+
+
+def insertion_clearance(site: Site, samples: int = 45) -> dict | None:
+    """The exact (FCL) clearance to the opened scan of the instrument without its implant
+    (rod, head) along the planned insertion, ``samples`` depths from the target to the planned
+    depth: the barrier is released while inserting (systems.teleop.insertion), so this is what
+    the insertion does to the tissue around the implant. None without the scan."""
+    if site.scan is None:
+        return None
+    from implantplan.analyses.studies.scan_reference import exact_for
+
+    tool = site.case.tool
+    body = dataclasses.replace(tool, shapes=tuple(x for x in tool.shapes if x.name != "implant"))
+    exact = exact_for(dataclasses.replace(site.case, instrument=body), site.scan)
+    depth = np.linspace(0.0, site.plan.depth, samples)
+    X_CT = site.plan.X_CT_target @ np.stack([tz(-d) for d in depth])
+    c = exact(site.case.fpsm.X_WC @ X_CT)
+    free = depth[: int(np.argmax(c < 0))] if np.any(c < 0) else depth
+    return {"depth_m": depth.tolist(), "clearance_m": c.tolist(), "min_m": float(c.min()),
+            "free_to_depth_m": float(free[-1]) if free.size else 0.0,
+            "parts": [x.name for x in body.shapes],
+            "reference": "FCL against the opened scan (faces below the mouth opening)"}
 
 
 def procedure(site: Site, i: int, seed: int, *, operator: bool):
@@ -448,6 +476,7 @@ def accuracy_study(sites, *, sources=SOURCES, runs: int = 200, seed: int = 0,
                                  "axis_C": site.plan.axis.tolist()},
                      **site_study(sim, sources, runs, sensitivity_runs, pool=pool, index=index,
                                   progress=progress)}
+            entry["insertion_clearance"] = insertion_clearance(site)
             entry["simulations"] = sim.simulations
             entry["sim_seconds"] = sim.sim_seconds
             entry["wall_seconds_in_simulation"] = sim.wall_seconds
@@ -520,6 +549,13 @@ def cmd_accuracy(args) -> int:
               f"(p95 {r['apex_p95']:.3f}) mm, angle {r['angle_mean']:.3f} +- {r['angle_sd']:.3f} "
               f"(p95 {r['angle_p95']:.3f}) deg; depth reached >= {r['depth_reached_min_mm']:.1f}"
               f" of {r['depth_planned_mm']:.1f} mm")
+    for label, entry in study["sites"].items():
+        c = entry["insertion_clearance"]
+        if c is not None:
+            print(f"{label} insertion: the {' and '.join(c['parts'])} stay clear of the scan to "
+                  f"{c['free_to_depth_m'] * 1e3:.1f} of {entry['planned']['depth_m'] * 1e3:.1f} "
+                  f"mm (exact clearance min {c['min_m'] * 1e3:.2f} mm; the barrier is released "
+                  "while inserting)")
     print(f"wrote {out / 'accuracy.json'} and {len(figs)} figures in {study['wall_seconds']:.0f} s")
     return 0
 

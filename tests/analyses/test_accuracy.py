@@ -97,6 +97,20 @@ def test_the_command_writes_the_table_figures_and_json(demo_plan, tmp_path):
     assert (foreign / "notes.txt").read_text() == "mine"
 
 
+def test_the_insertion_clearance_starts_free_at_the_target(sites, demo_plan):
+    """The instrument without its implant, at the feeding target, keeps at least the exact
+    clearance the plan verified for the whole instrument along the feed (another cut of the
+    same scan: 0.3 mm of tolerance), and the clearance is reported along the whole stroke."""
+    plan = json.loads((demo_plan / "plan.json").read_text())
+    for site, planned in zip(sites, plan["sites"], strict=True):
+        c = A.insertion_clearance(site, samples=5)
+        assert c["parts"] and "implant" not in c["parts"]
+        verified = planned["placement"]["verification"]["clearance_exact_min"]
+        assert c["clearance_m"][0] >= verified - 0.0003, site.label
+        assert c["depth_m"][-1] == pytest.approx(site.plan.depth)
+        assert 0.0 <= c["free_to_depth_m"] <= site.plan.depth
+
+
 @pytest.mark.parametrize("flags, field", [
     (["--runs", "0"], "--runs"),
     (["--sources", "registration,gravity"], "--sources"),
