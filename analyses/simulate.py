@@ -45,6 +45,7 @@ import numpy as np
 
 from implantplan.analyses.figures.simulation import plot_circle, plot_feeding, plot_layouts
 from implantplan.analyses.progress import Progress
+from implantplan.analyses.studies.accuracy import register_analysis as register_accuracy_analysis
 from implantplan.analyses.studies.head_motion import register_analysis as register_head_analysis
 from implantplan.analyses.studies.moprp_fidelity import gii_units, register_analysis
 from implantplan.diagrams.feeding import (  # the case and the runs (bench_teleop reads them here)
@@ -261,7 +262,7 @@ def register(subparsers) -> None:
                    "its <name>.json case beside it) instead of scripted feeds")
     p.add_argument("--head-motion", help="the awake patient: breathing|swallow|startle|drift or "
                    "a CSV of head displacements (t_s,x_m,y_m,z_m,rx_rad,ry_rad,rz_rad); seeded "
-                   "by --seed; kinematic mode; the arm follows the tracked mouth")
+                   "by --seed; kinematic or dynamic mode; the arm follows the tracked mouth")
     _operator_options(p)
     p.set_defaults(func=cmd_feeding)
     p = sub.add_parser("circle", help="circle r 25 mm at 10 mm/s with injected joint error")
@@ -280,6 +281,7 @@ def register(subparsers) -> None:
     p.set_defaults(func=cmd_layouts)
     register_analysis(sub)
     register_head_analysis(sub)
+    register_accuracy_analysis(sub)
 
 
 def _check_count(value: int, name: str, lo: int = 1) -> None:

@@ -40,7 +40,7 @@ Oral
 = Tool, and End's axes in Oral are R_OE). The FPSM and the virtual fixture live in the Center
 frame, placed in World by ``X_WCenter``.
 
-The awake patient (``head_motion``, kinematic mode; DESIGN.md section 7): a HeadMotionSource
+The awake patient (``head_motion``; DESIGN.md section 7): a HeadMotionSource
 moves the patient body (all of the scenario's patient and chair geometry, rigidly with the head)
 in the scene; a Tracker estimates the head pose; TrackedHeadFrame gives the fixture, the
 estimator and the master the measured tool pose in the tracked head (X_WCenter0 X_WHead^-1
@@ -48,7 +48,19 @@ X_WE: the constant X_WCenter composed with the tracked head displacement) and se
 supervisor's desired pose carried with the tracked head, so the arm follows the mouth; a
 HeadGuard between the fixture and the supervisor grows the supervisor's margin with the tracked
 head speed and backs the tool out on lost tracking or a head too fast to follow. With
-``follow=False`` the head moves but the arm ignores it (the comparison run).
+``follow=False`` the head moves but the arm ignores it (the comparison run). In dynamic mode the
+plant owns its geometry poses, so the patient's collision geometry stays where the plan put it
+(the arm's links meet it there; the tool, filtered against it, is guarded by the FPSM in the
+tracked frame) while everything else (tracker, guard, fixture, the measured deviation) follows
+the moving head as in kinematic mode.
+
+The implant's insertion (``insertion``, systems.teleop.insertion): after the feed the operator
+drives the tool along the implant's axis to the planned depth; a second VirtualFixtureForceLaw
+holds the insertion fixture (the implant axis, the depth stop) and an InsertionPhase switches
+the supervisor's input from the feed's fixture to it at the run's insertion start (the
+``insertion_start`` of :func:`simulate`), releasing the FPSM barrier from then on (the implant
+enters the bone by design; the speed limits stay). The operator then finishes by eye towards
+the planned final TCP instead of the feeding target.
 
 ```
 HeadMotion --X_WHead--> Tracker --X_WHead_est, V, lost--> TrackedHeadFrame, HeadGuard
@@ -105,6 +117,7 @@ from implantplan.systems.teleop.fixture_system import VirtualFixtureForceLaw
 from implantplan.systems.teleop.fpsm_estimator import FpsmEstimator, ToolLines
 from implantplan.systems.teleop.head_guard import GuardSettings, HeadGuard
 from implantplan.systems.teleop.head_motion import HeadMotion, HeadMotionSource
+from implantplan.systems.teleop.insertion import R_INSERT, InsertionPhase
 from implantplan.systems.teleop.master_device import IncrementalMapping, MasterDevice, MasterMotion
 from implantplan.systems.teleop.supervisor import Barrier, SafetySupervisor
 from implantplan.systems.teleop.tracker import Tracker, TrackerParams
@@ -232,6 +245,7 @@ class Teleop:
     head: HeadMotionSource | None = None
     tracker: Tracker | None = None
     guard: HeadGuard | None = None
+    phase: InsertionPhase | None = None
 
     def initialize(self, context) -> None:
         """Put the arm, DiffIK and the fixture's desired pose at the case's start."""
@@ -387,6 +401,7 @@ def build_teleop(
     follow: bool = True,
     guard: GuardSettings | None = None,
     limits: CommandLimits | None = None,
+    insertion: VirtualFixture | None = None,
 ) -> Teleop:
     """Wire the feeding diagram of one case; it replays any master motion.
 
@@ -414,18 +429,19 @@ def build_teleop(
         master: a master system to use instead of MasterDevice (a LeafSystem with the output
             port ``V_WE_command``, e.g. systems.teleop.master_input.LiveMasterDevice); ``motion``,
             ``mapping`` and ``finish`` are then its business (no finishing input is wired).
-        head_motion: the awake patient's head motion (kinematic mode only; module notes);
-            None: the patient is still and the diagram is today's.
+        head_motion: the awake patient's head motion (module notes; in dynamic mode the
+            patient's collision geometry stays put); None: the patient is still.
         tracker: the camera's settings (TrackerParams() if None) when ``head_motion`` is set.
         follow: with ``head_motion``, False lets the arm ignore the head (no tracker, no guard).
         guard: the HeadGuard's settings (GuardSettings() if None).
         limits: the command limits (the CommandLimiter before the fixture and every step the
             supervisor integrates); None: the case's safety spec's.
+        insertion: the insertion fixture (Center frame; systems.teleop.insertion.
+            insertion_fixture): the implant's insertion after the feed (module notes); None: the
+            feed alone.
     """
     if mode not in MODES:
         raise InputError("mode", f"expected kinematic or dynamic, got {mode!r}")
-    if head_motion is not None and mode != "kinematic":
-        raise InputError("head_motion", "expected mode kinematic with a head motion")
     tracking = head_motion is not None and follow
     builder = DiagramBuilder()
     plant, scene_graph = add_teleop_scene(builder, case, mode, plant_step)
@@ -435,6 +451,8 @@ def build_teleop(
     if master is not None:
         finish = False
     target = case.X_WTarget[:3, 3] if finish else None
+    if finish and insertion is not None:  # finish by eye at the planned depth
+        target = case.X_WCenter[:3, :3] @ insertion.origin + case.X_WCenter[:3, 3]
     master = builder.AddSystem(master or MasterDevice(motion, mapping, target_W=target))
     master.set_name("master")
     spec = case.safety
@@ -467,6 +485,7 @@ def build_teleop(
             period=period,
             enabled=supervisor_enabled,
             margin_input=tracking,
+            release_input=insertion is not None,
             limits=limits,
         )
     )
@@ -500,6 +519,19 @@ def build_teleop(
     builder.Connect(limiter.GetOutputPort("V_WE_limited"), vf.GetInputPort("V_WE_command"))
     # the fixture constrains the commanded pose (the supervisor's state: no algebraic loop)
     builder.Connect(supervisor.GetOutputPort("X_WE_desired"), vf.GetInputPort("X_WE"))
+    corrected, phase = vf.GetOutputPort("V_WE_corrected"), None
+    if insertion is not None:
+        vf_in = builder.AddSystem(VirtualFixtureForceLaw(
+            insertion, case.X_WCenter, R_ET=X_ET[:3, :3] @ R_INSERT, period=period,
+            stiffness=stiffness, damping=damping, enabled=vf_enabled, integrate=False))
+        vf_in.set_name("insertion_fixture")
+        builder.Connect(limiter.GetOutputPort("V_WE_limited"), vf_in.GetInputPort("V_WE_command"))
+        builder.Connect(supervisor.GetOutputPort("X_WE_desired"), vf_in.GetInputPort("X_WE"))
+        phase = builder.AddSystem(InsertionPhase())
+        phase.set_name("insertion_phase")
+        builder.Connect(corrected, phase.GetInputPort("V_WE_feed"))
+        builder.Connect(vf_in.GetOutputPort("V_WE_corrected"), phase.GetInputPort("V_WE_insertion"))
+        corrected = phase.GetOutputPort("V_WE_corrected")
     head = trk = head_guard = None
     measured = tool_pose.GetOutputPort("X_WE")
     if head_motion is not None:
@@ -524,8 +556,7 @@ def build_teleop(
             axis_W, lag=params.latency + params.period + period,
             error_bound=params.error_bound(), settings=guard, period=period))
         head_guard.set_name("head_guard")
-        builder.Connect(vf.GetOutputPort("V_WE_corrected"),
-                        head_guard.GetInputPort("V_WE_corrected"))
+        builder.Connect(corrected, head_guard.GetInputPort("V_WE_corrected"))
         builder.Connect(trk.GetOutputPort("V_WHead_estimated"),
                         head_guard.GetInputPort("V_WHead_estimated"))
         builder.Connect(trk.GetOutputPort("lost"), head_guard.GetInputPort("lost"))
@@ -535,10 +566,12 @@ def build_teleop(
         builder.Connect(head_guard.GetOutputPort("margin_extra"),
                         supervisor.GetInputPort("margin_extra"))
     else:
-        builder.Connect(vf.GetOutputPort("V_WE_corrected"),
-                        supervisor.GetInputPort("V_WE_corrected"))
+        builder.Connect(corrected, supervisor.GetInputPort("V_WE_corrected"))
         builder.Connect(supervisor.GetOutputPort("X_WE_desired"),
                         diffik.GetInputPort("X_AE_desired"))
+    if phase is not None:
+        builder.Connect(phase.GetOutputPort("barrier_release"),
+                        supervisor.GetInputPort("barrier_release"))
     builder.Connect(measured, estimator.GetInputPort("X_WT"))
     if finish:
         builder.Connect(measured, master.GetInputPort("X_WE_measured"))
@@ -589,6 +622,8 @@ def build_teleop(
         loggers["margin_extra"] = LogVectorOutput(head_guard.GetOutputPort("margin_extra"),
                                                   builder, period)
         loggers["lost"] = LogVectorOutput(trk.GetOutputPort("lost"), builder, period)
+    if phase is not None:
+        loggers["phase"] = LogVectorOutput(phase.GetOutputPort("phase"), builder, period)
     visualizer = None
     if meshcat is not None:
         visualizer = MeshcatVisualizer.AddToBuilder(
@@ -617,6 +652,7 @@ def build_teleop(
         head=head,
         tracker=trk,
         guard=head_guard,
+        phase=phase,
     )
 
 
@@ -643,6 +679,7 @@ class FeedRun:
     margin_extra: np.ndarray | None = None  # (n,) what the guard added to the margin (m)
     lost: np.ndarray | None = None  # (n,) bool: the tracker's lost flag
     command: np.ndarray | None = None  # (n, 6) the CommandLimiter's status log
+    phase: np.ndarray | None = None  # (n,) 1 while inserting (an insertion diagram)
 
     @property
     def fault_times(self) -> np.ndarray:
@@ -667,15 +704,20 @@ class FeedRun:
 
 
 def simulate(teleop: Teleop, duration: float, *, motion: MasterMotion | None = None,
-             recording: bool = False) -> FeedRun:
+             recording: bool = False, insertion_start: float | None = None) -> FeedRun:
     """Run the diagram from the case's start for ``duration`` seconds of simulated time, in a
-    fresh context replaying ``motion`` (None: the motion the diagram was built with)."""
+    fresh context replaying ``motion`` (None: the motion the diagram was built with); an
+    insertion diagram starts inserting at ``insertion_start`` (s; None: never)."""
     if not np.isfinite(duration) or duration <= 0:
         raise InputError("duration", f"expected a duration > 0 s, got {duration}")
     simulator = Simulator(teleop.diagram)
     context = simulator.get_mutable_context()
     if motion is not None:
         teleop.master.set_motion(context, motion)
+    if insertion_start is not None:
+        if teleop.phase is None:
+            raise InputError("insertion_start", "expected a diagram built with an insertion")
+        teleop.phase.set_start(context, insertion_start)
     diffik_context = teleop.diffik.GetMyMutableContextFromRoot(context)
     teleop.diffik.GetInputPort("use_robot_state").FixValue(diffik_context, False)
     teleop.initialize(context)
@@ -703,10 +745,12 @@ def simulate(teleop: Teleop, duration: float, *, motion: MasterMotion | None = N
         X_CT = np.linalg.inv(case.X_WCenter) @ X_WE @ X_ET
     violation, angle_violation = case.vf.body_violation(X_CT)
     extra = {}
+    if "phase" in logs:
+        extra["phase"] = logs["phase"].data()[0] > 0.5
     if "guard" in logs:
-        extra = {"guard": logs["guard"].data().T.copy(),
-                 "margin_extra": logs["margin_extra"].data()[0].copy(),
-                 "lost": logs["lost"].data()[0] > 0.5}
+        extra.update(guard=logs["guard"].data().T.copy(),
+                     margin_extra=logs["margin_extra"].data()[0].copy(),
+                     lost=logs["lost"].data()[0] > 0.5)
     return FeedRun(
         t=t_log,
         q=q,

@@ -203,6 +203,22 @@ class ExactCavity:
             out = np.minimum(out, c)
         return out
 
+def registration_errors(safety: SafetySpec, rng: np.random.Generator,
+                        samples: int) -> np.ndarray:
+    """(samples, 4, 4) E^-1 for ``samples`` draws of the Center frame's registration error E
+    (translation ~ N(0, sigma_translation^2) per axis, rotation vector ~ N(0, sigma_rotation^2)
+    per axis, about Center's origin; the sigmas are ``safety.registration_sigma_*``): relative
+    to the true anatomy a pose X planned in the registered frame is at E^-1 X. The one sampler
+    of the registration error (the Monte Carlo below and analyses.studies.accuracy)."""
+    t = rng.normal(0.0, safety.registration_sigma_translation, (samples, 3))
+    R = rotations(rng.normal(0.0, safety.registration_sigma_rotation, (samples, 3)))
+    E_inv = np.zeros((samples, 4, 4))
+    E_inv[:, :3, :3] = np.transpose(R, (0, 2, 1))
+    E_inv[:, :3, 3] = -np.einsum("nji,nj->ni", R, t)
+    E_inv[:, 3, 3] = 1.0
+    return E_inv
+
+
 def registration_monte_carlo(
     exact: ExactCavity,
     X_CT,
@@ -239,13 +255,7 @@ def registration_monte_carlo(
                          f"expected at least 1 sample, got {samples}")
     sigma_translation = safety.registration_sigma_translation
     sigma_rotation = safety.registration_sigma_rotation
-    rng = np.random.default_rng(seed)
-    t = rng.normal(0.0, sigma_translation, (samples, 3))
-    R = rotations(rng.normal(0.0, sigma_rotation, (samples, 3)))
-    E_inv = np.zeros((samples, 4, 4))
-    E_inv[:, :3, :3] = np.transpose(R, (0, 2, 1))
-    E_inv[:, :3, 3] = -np.einsum("nji,nj->ni", R, t)
-    E_inv[:, 3, 3] = 1.0
+    E_inv = registration_errors(safety, np.random.default_rng(seed), samples)
     from implantplan.systems.placement.tool_clearance import feed_poses
 
     P, _ = feed_poses(X_CT, depth, depth_step)  # (1, S, 4, 4)

@@ -444,6 +444,10 @@ class SafetySupervisor(LeafSystem):
             barrier's margin at every update (the awake patient: tracking lag and error).
         limits: the speed limits every integrated step keeps (step 0; CommandLimits() if
             None), with the supervisor on or off.
+        release_input: declare a vector input port ``barrier_release`` (1): while it is > 0.5
+            the command is integrated without the barrier (speed limits kept), as with
+            ``enabled`` False: the implant's insertion into the bone (systems.teleop.insertion),
+            which the FPSM, the cavity's free space, calls a collision.
     """
 
     def __init__(
@@ -459,6 +463,7 @@ class SafetySupervisor(LeafSystem):
         enabled: bool = True,
         margin_input: bool = False,
         limits: CommandLimits | None = None,
+        release_input: bool = False,
     ):
         super().__init__()
         if not np.isfinite(period) or period <= 0:
@@ -481,6 +486,8 @@ class SafetySupervisor(LeafSystem):
         self._Vc, self._Vo, self._g = np.zeros(6), np.zeros(6), np.zeros(6)
         self._V_in = self.DeclareVectorInputPort("V_WE_corrected", 6)
         self._margin_in = self.DeclareVectorInputPort("margin_extra", 1) if margin_input else None
+        self._release = (self.DeclareVectorInputPort("barrier_release", 1) if release_input
+                         else None)
         # state: [p_CT (3), R_CT row-major (9), V filtered in World (6), h, scale, active,
         #         p_WE (3), R_WE row-major (9), gradient (6), its age in steps]
         self.DeclareDiscreteState(self._state_of(np.asarray(X_WE_initial, dtype=float)))
@@ -522,7 +529,8 @@ class SafetySupervisor(LeafSystem):
         X1 = np.empty((4, 4))
         _advance(x, V_W, dR, self._period, self._R_CW, self._X_WC, self._X_TE, new, X1)
         h0 = np.inf if x[18] >= FAR else float(x[18])
-        if self._enabled:
+        released = self._release is not None and self._release.Eval(context)[0] > 0.5
+        if self._enabled and not released:
             h = self._clear.one(X1)
             bar = self._barrier
             if self._margin_in is not None:  # the awake patient: tracking lag and error
@@ -546,7 +554,7 @@ class SafetySupervisor(LeafSystem):
                 _commit(self._Xn, self._Vo, scale, self._R_CW, self._X_WC, self._X_TE, new)
             new[18] = min(h, FAR)
         else:
-            new[18] = min(h0, FAR)
+            new[18] = min(self._clear.one(X1), FAR) if released else min(h0, FAR)
         if new[20] == 0.0:  # not at the wall this step: the next slow step computes afresh
             new[33:39], new[39] = 0.0, GRADIENT_REUSE
         discrete_state.get_mutable_vector(0).SetFromVector(new)

@@ -24,9 +24,10 @@ def test_bad_head_motion_is_a_user_error(tmp_path, capsys):
                  str(tmp_path / "x"), "--quiet"])
     assert code == 2
     assert "--head-motion" in capsys.readouterr().err
-    code = main(["simulate", "feeding", "--runs", "1", "--head-motion", "drift", "--mode",
-                 "dynamic", "--out", str(tmp_path / "y"), "--quiet"])
+    code = main(["simulate", "feeding", "--runs", "1", "--head-motion", str(tmp_path / "no.csv"),
+                 "--out", str(tmp_path / "y"), "--quiet"])
     assert code == 2
+    assert "--head-motion" in capsys.readouterr().err
 
 
 def test_head_motion_study_small(tmp_path, capsys):

@@ -55,6 +55,7 @@ SWEEP = {
     "implantplan phantom --out out/phantom --voxel-mm 0.4": "a 34 M-voxel CT series, 45 s",
     "implantplan plan out/phantom/case.yaml": "plans the phantom's CBCT, 2-3 min",
     "implantplan analyze head-motion --runs 2": "plans the default case, then the startles",
+    "implantplan analyze accuracy --runs 2": "plans the default case, then about 60 runs",
     "implantplan analyze moprp-fidelity --scenario lying": "25 draws of 20 random layouts",
     "implantplan simulate feeding --scenario lying --runs 10": "ten feeds",
     "--head-motion startle --out out/feed-head": "two feeds with the tracker and guard",
@@ -66,6 +67,7 @@ SWEEP = {
 }
 SLOW = {
     "implantplan analyze head-motion --runs 50": "50 runs per profile and site: 5-20 min",
+    "implantplan analyze accuracy --runs 200": "200 runs per row and site: 20-40 min",
     "implantplan analyze moprp-fidelity --scenario sitting": "the lying study's code, 1.5-2 min",
 }
 # Commands that write under out/ but are not run here, and why.

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from pydrake.systems.analysis import Simulator
 
-from implantplan.analyses.studies.head_motion import cylinder_cavity, measure
+from implantplan.analyses.studies.head_motion import cylinder_cavity, measure, path_distance
 from implantplan.diagrams import feeding as S
 from implantplan.diagrams.teleop import X_ET, build_teleop, simulate
 from implantplan.systems.errors import InputError
@@ -142,10 +142,39 @@ def test_supervisor_margin_input_tightens_the_barrier(setup):
     assert active == 1.0 and scale < 1.0
 
 
-def test_head_motion_needs_kinematic_mode(setup):
-    case = setup[0]
-    with pytest.raises(InputError, match="head_motion"):
-        build_teleop(case, head_motion=_head(case, "breathing", 0), mode="dynamic")
+def test_dynamic_arm_follows_the_moving_mouth(setup):
+    """Dynamic mode (1 ms plant, inverse dynamics) with head motion: the arm follows the
+    tracked mouth as the kinematic one does, plus at most the controller's lag: with kp = w^2
+    and kd = 2 w (critically damped, w = 30 rad/s) a ramp of speed v lags by 2 v / w, and the
+    swallow's head speed peaks at pi A / 1 s."""
+    case, inst, motions, stills, cavity = setup
+    m = motions[0]
+    hm = HeadMotion.make("swallow", seed=3, pivot=case.X_WCenter[:3, 3], start=0.5, window=0.0)
+    T = 2.0
+
+    def run(**kw):
+        return simulate(build_teleop(case, **kw), T, motion=m)
+
+    trk = TrackerParams(seed=1)
+
+    def deviation(fol, still):
+        """The path relative to the moving mouth against the same arm's with the head still
+        (the deviation from its path: the guard may slow the feed while the head moves)."""
+        return path_distance(fol.X_CT[:, :3, 3], still.X_CT[:, :3, 3]).max()
+
+    d_still = run(mode="dynamic")
+    dyn = deviation(run(mode="dynamic", head_motion=hm, tracker=trk), d_still)
+    ign = deviation(run(mode="dynamic", head_motion=hm, follow=False), d_still)
+    kin = deviation(run(head_motion=hm, tracker=trk), run())
+    kp, _, kd = 900.0, 1.0, 60.0  # build_teleop's gains
+    w = np.sqrt(kp)
+    assert kd == pytest.approx(2 * w)
+    lag = 2 * np.pi * hm.params["amplitude_m"] / w
+    assert ign > 0.003  # the swallow (3-5 mm) carries the mouth away from an arm ignoring it
+    assert dyn < ign
+    assert dyn <= kin + lag + 0.0002, (dyn, kin, lag)
+    with pytest.raises(InputError, match="mode"):
+        build_teleop(case, head_motion=_head(case, "breathing", 0), mode="hybrid")
 
 
 def test_seeded_runs_repeat(setup):
