@@ -428,7 +428,7 @@ def procedural_oral_cavity(
     return ProceduralCavity(mesh=mesh, length=float(length), params=params)
 
 
-def _rotate_about_axis(points: np.ndarray, point: np.ndarray, axis: np.ndarray, angle):
+def rotate_about_axis(points: np.ndarray, point: np.ndarray, axis: np.ndarray, angle):
     """Rotate each of ``points`` (K, 3) about the line through ``point`` along the unit ``axis``
     by its own ``angle`` (K,) rad (right-hand rule; Rodrigues' formula)."""
     v = points - point
@@ -512,13 +512,9 @@ def open_mouth(
         raise InputError("blend", f"expected a positive width in m, got {blend}")
     V = np.asarray(mesh.vertices, dtype=float)
     F = np.asarray(mesh.faces)
-    s = (V - occlusal_point) @ occlusal_normal
-    u = np.clip((0.5 * blend - s) / blend, 0.0, 1.0)
-    w = u * u * (3.0 - 2.0 * u)  # smoothstep: 1 below the band, 0 above
-    a = np.deg2rad(angle) * w
-    moved = a != 0  # an angle of 0 returns the vertices bit for bit
-    V2 = V.copy()
-    V2[moved] = _rotate_about_axis(V[moved], hinge_point, hinge_axis, a[moved])
+    V2, a = opening_map(V, angle, hinge_point, hinge_axis, occlusal_point, occlusal_normal,
+                        blend)
+    moved = a != 0
     out = trimesh.Trimesh(vertices=V2, faces=F.copy(), process=False)
     inverted, degenerate = face_flips(mesh, out, hinge_axis, a)
     out.metadata["implantplan"] = {
@@ -538,6 +534,22 @@ def open_mouth(
     return out
 
 
+def opening_map(points, angle_deg, hinge_point, hinge_axis, occlusal_point, occlusal_normal,
+                blend) -> tuple[np.ndarray, np.ndarray]:
+    """The jaw-opening model's point map (see :func:`open_mouth`; arguments as there, already
+    validated): the moved points (n, 3) and each point's rotation angle (rad). Used for the
+    mesh's vertices and for anatomy in the scanned frame (systems.anatomy)."""
+    V = np.asarray(points, dtype=float)
+    s = (V - occlusal_point) @ occlusal_normal
+    u = np.clip((0.5 * blend - s) / blend, 0.0, 1.0)
+    w = u * u * (3.0 - 2.0 * u)  # smoothstep: 1 below the band, 0 above
+    a = np.deg2rad(angle_deg) * w
+    moved = a != 0  # an angle of 0 returns the points bit for bit
+    V2 = V.copy()
+    V2[moved] = rotate_about_axis(V[moved], hinge_point, hinge_axis, a[moved])
+    return V2, a
+
+
 def face_flips(before: trimesh.Trimesh, after: trimesh.Trimesh, axis, vertex_angle) -> tuple:
     """(inverted, degenerate) face counts of a deformation with per-vertex rotation angles.
 
@@ -554,7 +566,7 @@ def face_flips(before: trimesh.Trimesh, after: trimesh.Trimesh, axis, vertex_ang
     n0 = normals(np.asarray(before.vertices, float))
     n1 = normals(np.asarray(after.vertices, float))
     ang = np.asarray(vertex_angle, float)[F].mean(axis=1)
-    n0r = _rotate_about_axis(n0, np.zeros(3), unit(axis), ang)
+    n0r = rotate_about_axis(n0, np.zeros(3), unit(axis), ang)
     scale = float(np.ptp(np.asarray(after.vertices), axis=0).max())
     area = np.linalg.norm(n1, axis=1)
     degenerate = area <= 1e-12 * scale * scale
