@@ -7,17 +7,19 @@ the case's ``center`` and sites stay as written. The volume is the cavity's boun
 margin of tissue, on a grid of ``voxel`` (0.2-0.4 mm is a clinical CBCT's; coarser for tests).
 
 Air occupancy is exact along z: a ray up each voxel column (``supersample``^2 per voxel,
-averaged, for the partial volume across x and y) (Embree, every hit) gives the column's
-inside intervals [a_m, b_m]; the air fraction of a voxel [z - h/2, z + h/2] is
-(F(z + h/2) - F(z - h/2)) / h with F(z) = sum_m clip(z - a_m, 0, b_m - a_m), so a surface
-crossing a voxel gives it the partial-volume value a scanner records, and the iso-surface at the
-mid-value lands on the wall to well under a voxel. Tissue classes by depth d below the air
-surface (Euclidean distance transform, scipy): mucosa/soft tissue 0-2 mm; under the cavity's
-floor and roof (the jaws) cortical bone 2-3.5 mm and cancellous bone 3.5-14 mm; teeth (enamel)
-in the tissue within 6 mm of the wall along the dental arch band near the occlusal plane; the
-mandibular canal a tube of soft-tissue HU through the cancellous bone. Then optionally a Gaussian
-blur (``psf_sigma``, voxels; off by default: it rounds creases and moves the iso-surface there
-by up to 0.1 mm at 1 mm voxels, measured) and Gaussian noise (``noise_hu``), seeded.
+averaged, for the partial volume across x and y) (Embree, every hit) gives the column's inside
+intervals [a_m, b_m]; the air fraction of a voxel [z - h/2, z + h/2] is (F(z + h/2) - F(z -
+h/2)) / h with F(z) = sum_m clip(z - a_m, 0, b_m - a_m), so a surface crossing a voxel gives it
+the partial-volume value a scanner records, and the iso-surface at the mid-value lands on the
+wall to well under a voxel. Tissue classes by depth d below the air surface (Euclidean distance
+transform, scipy): mucosa/soft tissue 0-2 mm, cortical bone 2-3.5 mm, cancellous bone deeper, in
+the jaws: 2-22 mm under each column's cavity floor and over its roof (vertical depth; crude
+anatomy, soft tissue elsewhere); teeth (enamel) in the tissue within 6 mm of the wall along the
+dental arch band near the occlusal plane, except the tooth each planned implant replaces; the
+mandibular canal a tube of soft-tissue HU through the bone, 5 mm under each implant's apex. Then
+optionally a Gaussian blur (``psf_sigma``, voxels; off by default: it rounds creases and moves
+the iso-surface there by up to 0.1 mm at 1 mm voxels, measured) and Gaussian noise
+(``noise_hu``), seeded.
 
 HU values (CBCT grey values calibrated to HU; typical published ranges): air -1000, soft tissue
 40, cancellous bone 500, cortical bone 1500, enamel 2500, canal contents 40.
@@ -36,7 +38,8 @@ from implantplan.systems.fpsm.oral_mesh import close_open_cuts
 HU = {"air": -1000.0, "soft_tissue": 40.0, "cancellous": 500.0, "cortical": 1500.0,
       "enamel": 2500.0, "canal": 40.0}
 MAX_VOXELS = 60_000_000  # float32 work arrays: about 1.5 GB at the bound
-MUCOSA_MM, CORTEX_MM, BONE_MM, TOOTH_MM = 2.0, 3.5, 14.0, 6.0
+MUCOSA_MM, CORTEX_MM, BONE_MM, TOOTH_MM = 2.0, 3.5, 22.0, 6.0
+TOOTH_GAP = 5.5e-3  # no tooth within this of an implant's entry along x: the missing tooth
 
 
 @dataclass(frozen=True)
@@ -50,7 +53,7 @@ class PhantomSpec:
     margin: float = 16e-3
     noise_hu: float = 20.0
     canal_radius: float = 1.2e-3
-    canal_depth: float = 9e-3
+    canal_depth: float = 5e-3
     occlusal_z: float = 100e-3
     arch_band: tuple = (8e-3, 35e-3)
     tooth_half_height: float = 6e-3
@@ -61,7 +64,7 @@ class PhantomSpec:
 @dataclass
 class Phantom:
     """``hu`` [k, j, i] int16 HU; ``origin`` (m, LPS) of voxel (0, 0, 0); ``voxel`` (m);
-    ``canals`` one (n, 3) polyline (m, LPS) per site, or None; ``canal_radius`` (m)."""
+    ``canals`` one (n, 3) polyline (m, LPS) per implant; ``canal_radius`` (m)."""
 
     hu: np.ndarray
     origin: np.ndarray
@@ -123,24 +126,12 @@ def column_air_fraction(mesh: trimesh.Trimesh, x: np.ndarray, y: np.ndarray,
     return frac.reshape(*shape, -1), first.reshape(shape), last.reshape(shape)
 
 
-def canal_polylines(first: np.ndarray, x: np.ndarray, y: np.ndarray, sites_mesh: np.ndarray,
-                    spec: PhantomSpec) -> list[np.ndarray]:
-    """One canal per implant site (None where the cavity has no floor above it): a line along
-    x through the site's y, ``canal_depth`` below the
-    cavity's floor (the mandible's alveolar canal runs under the molars), 20 mm each way."""
-    canals = []
-    for p in sites_mesh:
-        j = int(np.argmin(np.abs(y - p[1])))
-        xs = np.arange(p[0] - 20e-3, p[0] + 20e-3 + 1e-9, 2e-3)
-        i = np.clip(np.searchsorted(x, xs), 0, len(x) - 1)
-        floor = first[j, i]
-        ok = np.isfinite(floor)
-        if ok.sum() < 2:  # no cavity floor above this site: no canal
-            canals.append(None)
-            continue
-        canals.append(np.column_stack([xs[ok], np.full(ok.sum(), y[j]),
-                                       floor[ok] - spec.canal_depth]))
-    return canals
+def canal_polylines(apexes: np.ndarray, spec: PhantomSpec) -> list[np.ndarray]:
+    """One canal per implant: a straight line along x (front to back, as the mandibular canal
+    runs under the molars), 20 mm each way, ``canal_depth`` under the implant's apex."""
+    xs = np.arange(-20e-3, 20e-3 + 1e-9, 2e-3)
+    return [np.column_stack([a[0] + xs, np.full(len(xs), a[1]),
+                             np.full(len(xs), a[2] - spec.canal_depth)]) for a in apexes]
 
 
 def distance_to_polyline(points: np.ndarray, polyline: np.ndarray) -> np.ndarray:
@@ -153,10 +144,11 @@ def distance_to_polyline(points: np.ndarray, polyline: np.ndarray) -> np.ndarray
     return np.min(np.linalg.norm(points[:, None, :] - closest, axis=2), axis=1)
 
 
-def make_phantom(scan: trimesh.Trimesh, spec: PhantomSpec, *, seed, sites_mesh=None,
+def make_phantom(scan: trimesh.Trimesh, spec: PhantomSpec, *, seed, implants=None,
                  close_cuts: bool = True) -> Phantom:
     """The synthetic CBCT of a cavity mesh (m, mesh frame = LPS); see the module docstring.
-    ``sites_mesh`` (m, mesh frame as scanned) places one canal under each site."""
+    ``implants`` (entries, apexes: (n, 3) each, m, mesh frame as scanned) places a canal under
+    each implant's apex and leaves its tooth out (the tooth the implant replaces)."""
     from scipy import ndimage
 
     mesh = close_open_cuts(scan)[0] if close_cuts else scan
@@ -173,25 +165,31 @@ def make_phantom(scan: trimesh.Trimesh, spec: PhantomSpec, *, seed, sites_mesh=N
     ys = (y[:, None] + h * sub[None]).ravel()
     frac, first, last = column_air_fraction(mesh, xs, ys, z_edges)
     frac = frac.reshape(nj, n, ni, n, nk).mean(axis=(1, 3))
-    first = np.fmin.reduce(first.reshape(nj, n, ni, n), axis=(1, 3))
-    last = np.fmax.reduce(last.reshape(nj, n, ni, n), axis=(1, 3))
+    first = np.fmin.reduce(first.reshape(nj, n, ni, n), axis=(1, 3))  # the cavity's floor
+    last = np.fmax.reduce(last.reshape(nj, n, ni, n), axis=(1, 3))  # and roof, per column
     frac = np.ascontiguousarray(frac.transpose(2, 0, 1), dtype=np.float32)  # [k, j, i]
     tissue = frac < 0.5
     depth = ndimage.distance_transform_edt(tissue, sampling=h).astype(np.float32)
     zz = z[:, None, None]
-    below = zz < first[None]
-    above = zz > last[None]
-    jaws = (below | above) & (depth >= MUCOSA_MM * 1e-3) & (depth < BONE_MM * 1e-3)
+    # the jaws: under the floor and over the roof of each column, past the mucosa (vertical
+    # depth, so a ridge's bone reaches under a sloping wall as a jaw's does)
+    below = (first[None] - zz >= MUCOSA_MM * 1e-3) & (first[None] - zz < BONE_MM * 1e-3)
+    above = (zz - last[None] >= MUCOSA_MM * 1e-3) & (zz - last[None] < BONE_MM * 1e-3)
+    jaws = tissue & (below | above) & (depth >= MUCOSA_MM * 1e-3)
     hu_t = np.full(frac.shape, HU["soft_tissue"], dtype=np.float32)
     hu_t[jaws] = HU["cancellous"]
     hu_t[jaws & (depth < CORTEX_MM * 1e-3)] = HU["cortical"]
     band = (np.abs(y) >= spec.arch_band[0]) & (np.abs(y) <= spec.arch_band[1])
     teeth = (band[None, :, None] & (np.abs(zz - spec.occlusal_z) < spec.tooth_half_height)
              & tissue & (depth < TOOTH_MM * 1e-3))
+    entries, apexes = (np.zeros((0, 3)), np.zeros((0, 3))) if implants is None else \
+        (np.asarray(implants[0], float), np.asarray(implants[1], float))
+    for e in entries:  # the missing tooth at each implant site
+        teeth &= ~((np.abs(x - e[0]) < TOOTH_GAP)[None, None, :]
+                   & (np.sign(y) == np.sign(e[1]))[None, :, None])
     hu_t[teeth] = HU["enamel"]
-    canals = [] if sites_mesh is None else canal_polylines(first, x, y, np.asarray(sites_mesh),
-                                                           spec)
-    for c in (c for c in canals if c is not None):
+    canals = canal_polylines(apexes, spec)
+    for c in canals:
         lo = np.searchsorted(x, c[:, 0].min() - 2 * spec.canal_radius)
         hi = np.searchsorted(x, c[:, 0].max() + 2 * spec.canal_radius)
         jl = np.searchsorted(y, c[:, 1].min() - 2 * spec.canal_radius)

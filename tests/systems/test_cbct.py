@@ -33,8 +33,9 @@ def scan():
 
 @pytest.fixture(scope="module")
 def phantom(scan):
-    sites = np.array([[0.0853, -0.0145, 0.09], [0.0853, 0.0145, 0.09]])
-    return make_phantom(scan, PhantomSpec(voxel=VOXEL), seed=0, sites_mesh=sites)
+    entries = np.array([[0.0795, -0.0143, 0.0913], [0.0794, 0.0143, 0.0912]])
+    apexes = entries - [0.0042, 0.0026, 0.0084]
+    return make_phantom(scan, PhantomSpec(voxel=VOXEL), seed=0, implants=(entries, apexes))
 
 
 @pytest.fixture(scope="module")
@@ -63,7 +64,7 @@ def test_phantom_has_the_tissue_classes_and_canals(phantom):
         assert np.count_nonzero((hu > lo) & (hu < hi)) > 1000
     assert len(phantom.canals) == 2
     for c in phantom.canals:
-        assert np.all(np.diff(c[:, 0]) > 0) and np.ptp(c[:, 1]) == 0
+        assert np.all(np.diff(c[:, 0]) > 0) and np.ptp(c[:, 1]) == 0 and np.ptp(c[:, 2]) == 0
 
 
 def test_phantom_read_back_lands_on_the_scan(series, scan, phantom):

@@ -1,0 +1,89 @@
+"""Clinical distances (systems.anatomy.distances): exact segment distances against brute force,
+the canal rule at 1.5 mm (fails, with the value) and 2.5 mm (passes), the inverse of the
+jaw-opening map, and the voxel bounds never above the true distance."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from implantplan.analyses.checks import anatomy_checks
+from implantplan.systems.anatomy import distances as d
+from implantplan.systems.anatomy.cbct import Volume
+from implantplan.systems.fpsm.oral_mesh import opening_map
+
+
+def test_point_segment_distance():
+    pts = np.array([[0.5, 0.3, 0], [2, 0, 0], [-1, 0, 1]])
+    np.testing.assert_allclose(d.point_segment_distance(pts, np.zeros(3), np.array([1.0, 0, 0])),
+                               [0.3, 1.0, np.sqrt(2)])
+
+
+def _implant_and_canal(gap):
+    """A vertical implant r 2 mm, 10 mm long, and a canal r 1.2 mm crossing under its apex with
+    ``gap`` (m) between the surfaces."""
+    entry, apex = np.array([0.0, 0, 0.02]), np.array([0.0, 0, 0.01])
+    z = 0.01 - 1.2e-3 - gap
+    canal = np.array([[-0.02, 0.0, z], [0.0, 0.0, z], [0.02, 0.0, z]])
+    return entry, apex, canal
+
+
+@pytest.mark.parametrize(("gap_mm", "passes"), [(1.5, False), (2.5, True)])
+def test_a_canal_at_1_5_mm_fails_with_its_value_and_2_5_passes(gap_mm, passes):
+    entry, apex, canal = _implant_and_canal(gap_mm * 1e-3)
+    value = d.canal_clearance(entry, apex, 2e-3, canal, 1.2e-3)
+    assert value == pytest.approx(gap_mm * 1e-3, abs=1e-9)  # under the flat end: exact
+    anatomy = {"sites": [{"site": "36", "canal_clearance_m": value}]}
+    (c,) = anatomy_checks(anatomy)
+    assert c["id"] == "anatomy.canal_distance" and c["pass"] is passes
+    assert c["value"] == pytest.approx(gap_mm * 1e-3) and c["limit"] == 2e-3
+
+
+def test_inter_implant_clearances():
+    e = np.array([[0, 0, 0.01], [0.008, 0, 0.01], [0.03, 0, 0.01]])
+    a = e - [0, 0, 0.01]
+    c = d.inter_implant_clearances(e, a, np.array([2e-3, 2e-3, 2.5e-3]))
+    assert c[0, 1] == pytest.approx(4e-3, abs=1e-9) and c[1, 2] == pytest.approx(0.0175, abs=1e-9)
+    assert np.isinf(c[0, 0])
+    checks = anatomy_checks({"sites": [{"site": "a", "nearest_implant_m": 2.9e-3},
+                                       {"site": "b", "nearest_implant_m": 3.1e-3}]})
+    assert [x["pass"] for x in checks] == [False, True]
+
+
+def test_as_scanned_inverts_the_opening_map():
+    opening = {"hinge_point": np.array([0.15, 0, 0.12]), "hinge_axis": np.array([0, -1.0, 0]),
+               "occlusal_point": np.array([0, 0, 0.1]), "occlusal_normal": np.array([0, 0, 1.0]),
+               "blend": 0.02}
+    rng = np.random.default_rng(1)
+    p = rng.uniform([0.06, -0.03, 0.06], [0.14, 0.03, 0.12], size=(500, 3))
+    q = opening_map(p, 25.0, opening["hinge_point"], opening["hinge_axis"],
+                    opening["occlusal_point"], opening["occlusal_normal"], 0.02)[0]
+    x = d.as_scanned(q, 25.0, opening)
+    back = opening_map(x, 25.0, opening["hinge_point"], opening["hinge_axis"],
+                       opening["occlusal_point"], opening["occlusal_normal"], 0.02)[0]
+    np.testing.assert_allclose(back, q, atol=1e-9)  # a preimage, everywhere
+    rigid = np.abs(p[:, 2] - 0.1) > 0.01  # outside the blend band the map is one-to-one
+    np.testing.assert_allclose(x[rigid], p[rigid], atol=1e-9)
+
+
+def _box_volume(h=0.5):
+    """Bone (1000 HU) filling x, y in [-10, 10] mm, z in [-20, 0] mm; air above; h mm voxels."""
+    n = int(round(40 / h)) + 1
+    axis = -20 + h * np.arange(n)
+    Z, Y, X = np.meshgrid(axis, axis, axis, indexing="ij")
+    hu = np.where((np.abs(X) <= 10) & (np.abs(Y) <= 10) & (Z <= 0) & (Z >= -20), 1000.0, -1000.0)
+    affine = np.diag([h, h, h, 1.0])
+    affine[:3, 3] = -20
+    return Volume(hu.astype(np.float32), affine)
+
+
+def test_voxel_bounds_are_conservative_and_tight():
+    vol = _box_volume()
+    entry, apex = np.array([0.003, 0, -0.001]), np.array([0.003, 0, -0.011])
+    margin, crest = d.bone_margin(vol, entry, apex, 2e-3, 300.0)
+    true = 10e-3 - 3e-3 - 2e-3  # the nearest side wall (x = 10 mm) from the implant's surface
+    assert margin <= true and margin > true - 1.5e-3
+    assert crest == pytest.approx(0.0, abs=1e-3)
+    teeth = d.tooth_clearance(vol, np.array([0.0, 0, 0.008]), np.array([0.0, 0, 0.004]), 1e-3,
+                              300.0)
+    assert teeth <= 3e-3 and teeth > 3e-3 - 1e-3  # the bone top at z = 0, 4 mm under the apex
