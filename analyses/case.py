@@ -235,6 +235,51 @@ class InstrumentSection:
         return Instrument.from_urdf(self.urdf)
 
 
+def _polyline(value, where: str) -> np.ndarray:
+    """At least two points [x, y, z] (mm in the file, m here), at most 10,000."""
+    arr = np.asarray(value if isinstance(value, list) else [], dtype=object)
+    if arr.ndim != 2 or arr.shape[1] != 3 or not 2 <= len(arr) <= 10_000:
+        raise InputError(where, f"expected a list of 2 to 10000 points [x, y, z] (mm), got "
+                         f"{str(value)[:60]}")
+    return np.array([v.vec3(p, f"{where}[{i}]") for i, p in enumerate(value)]) * MM
+
+
+@dataclass(frozen=True)
+class Canal:
+    """A nerve canal (the inferior alveolar canal): a polyline in the scan's frame as scanned
+    (a CBCT's patient frame, LPS), with its radius."""
+
+    polyline: np.ndarray = v.spec(_polyline, key="polyline_mm")
+    radius: float = v.spec(partial(v.number, low=0.0, high=5.0), 1.2, key="radius_mm", scale=MM)
+
+
+@dataclass(frozen=True)
+class AnatomySection:
+    """``anatomy:`` what the clinical distance checks measure (systems.anatomy.distances):
+    ``canals`` (a list of polylines with radii) and/or ``canals_file`` (a canals YAML as
+    ``implantplan phantom`` writes it, relative to the case file), in the scan's frame as
+    scanned; ``teeth_threshold_hu`` the HU above which a CBCT voxel is tooth."""
+
+    canals: tuple = v.spec(v.sections(Canal), [])
+    canals_file: str | None = v.spec(v.text, None)
+    teeth_threshold_hu: float = v.spec(partial(v.number, low=500.0, high=4000.0), 1800.0)
+
+
+def _anatomy(value, where: str) -> AnatomySection | None:
+    return None if value is None else v.parse(AnatomySection, value, where)
+
+
+def load_canals(path: Path, field: str = "anatomy.canals_file") -> tuple:
+    """The canals of a canals YAML (``radius_mm``, ``canals: [{polyline_mm}]``)."""
+    data = read_yaml(path, field=field)
+    if not isinstance(data, dict) or not isinstance(data.get("canals"), list):
+        raise InputError(field, f"{path}: expected a mapping with a 'canals' list")
+    radius = data.get("radius_mm", 1.2)
+    return tuple(v.parse(Canal, {"polyline_mm": c.get("polyline_mm") if isinstance(c, dict)
+                                 else None, "radius_mm": radius}, f"{field}: canals[{i}]")
+                 for i, c in enumerate(data["canals"]))
+
+
 def _instrument(value, where: str) -> InstrumentSection:
     """``instrument:`` as a word (the kind), ``{urdf: PATH}`` or ``{kind: ..., urdf: ...}``."""
     if isinstance(value, str):
@@ -298,6 +343,7 @@ class Case:
     simulation: SimulationSection = v.spec(v.section(SimulationSection), {})
     safety: SafetySpec = v.spec(v.section(SafetySpec), {})
     instrument: InstrumentSection = v.spec(_instrument, "paper")
+    anatomy: AnatomySection | None = v.spec(_anatomy, None)
     source: Path | None = None
 
     def instrument_at(self, site: Site):
@@ -379,8 +425,14 @@ def case_from_dict(data: dict, *, source: Path) -> Case:
         urdf = resolve_path(instrument.urdf, base_dir, "instrument.urdf")
         instrument = replace(instrument, urdf=str(urdf))
         instrument.instrument(sites[0])  # a URDF the instrument cannot be read from stops here
+    anatomy = case.anatomy
+    if anatomy is not None and anatomy.canals_file is not None:
+        file = resolve_path(anatomy.canals_file, base_dir, "anatomy.canals_file")
+        anatomy = replace(anatomy, canals_file=str(file),
+                          canals=anatomy.canals + load_canals(file))
     return replace(
         case,
+        anatomy=anatomy,
         instrument=instrument,
         name=_stem_name(source) if case.name is None else case.name,
         source=source,
