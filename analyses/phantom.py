@@ -3,7 +3,8 @@
 Writes ``DIR/ct/CT0001.dcm ...`` (a DICOM CT series of the case's scan: air, soft tissue, bone,
 teeth, a canal under each site, noise; systems.anatomy.phantom), ``DIR/canals.yaml`` (the canal
 polylines, mm, in the patient frame = the case's mesh frame as scanned) and ``DIR/case.yaml``
-(the case with ``mesh.path: ct``: ``implantplan plan DIR/case.yaml`` plans the phantom). The
+(the case with ``mesh.path: ct`` and ``anatomy: {canals_file: canals.yaml}``: ``implantplan plan
+DIR/case.yaml`` plans the phantom and checks the clinical distances). The
 folder is built beside ``DIR`` and moved in at the end; an existing ``DIR`` is replaced only
 when the project made it (analyses.out_folder's marker) or with ``--force``.
 """
@@ -17,13 +18,13 @@ import yaml
 
 from implantplan.analyses import out_folder
 from implantplan.analyses.case import default_case_path, load_case
+from implantplan.analyses.pipeline import planned_implants
 from implantplan.systems.anatomy.cbct import is_volume_path
 from implantplan.systems.anatomy.dicom_ct import SeriesIds, write_ct_series
 from implantplan.systems.anatomy.phantom import PhantomSpec, make_phantom
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import read_yaml, write_text_atomic
-from implantplan.systems.fpsm.oral_mesh import center_frame, load_oral_mesh, open_mouth
-from implantplan.systems.frames import apply
+from implantplan.systems.fpsm.oral_mesh import center_frame, load_oral_mesh
 
 VOXEL_MM = (0.2, 2.0)
 
@@ -42,16 +43,6 @@ def register(subparsers) -> None:
     p.set_defaults(func=_cmd)
 
 
-def sites_as_scanned(case, scanned, opened) -> np.ndarray:
-    """The sites (m) in the mesh frame as scanned: each site's offset from its nearest opened
-    vertex, added to that vertex's scanned position (the opening moves vertices, keeps their
-    order)."""
-    X_WC = center_frame(case.center.origin, case.center.z_axis, x_hint=case.center.x_hint)
-    p_W = apply(X_WC, np.array([s.position for s in case.sites]))
-    _, idx = opened.kdtree.query(p_W)
-    return scanned.vertices[idx] + (p_W - opened.vertices[idx])
-
-
 def make_phantom_folder(case_file: Path, out: Path, *, voxel_mm: float, noise_hu: float,
                         seed: int | None, force: bool) -> dict:
     """Write the phantom of ``case_file`` into ``out`` (see the module docstring)."""
@@ -65,31 +56,30 @@ def make_phantom_folder(case_file: Path, out: Path, *, voxel_mm: float, noise_hu
     if is_volume_path(case.mesh.path):
         raise InputError("mesh.path", f"{case.mesh.path} is already a CBCT; expected a mesh case")
     scanned = load_oral_mesh(case.mesh.path, units=case.mesh.units, field="mesh.path")
-    opened = open_mouth(scanned, case.mesh.mouth_opening_deg, **case.mesh.opening) \
-        if case.mesh.mouth_opening_deg > 0 else scanned
     spec = PhantomSpec(voxel=voxel_mm * 1e-3, noise_hu=noise_hu)
     seed = case.seed if seed is None else seed
     if seed < 0:
         raise InputError("--seed", f"expected a number >= 0, got {seed}")
+    X_WC = center_frame(case.center.origin, case.center.z_axis, x_hint=case.center.x_hint)
     phantom = make_phantom(scanned, spec, seed=seed, close_cuts=case.mesh.close_open_cuts,
-                           sites_mesh=sites_as_scanned(case, scanned, opened))
+                           implants=planned_implants(case, X_WC, scanned=True))
     with out_folder.staged(out, "phantom") as staging:
         files = write_ct_series(staging / "ct", phantom.hu, phantom.origin * 1e3,
                                 [voxel_mm] * 3, ids=SeriesIds(patient_id=f"PHANTOM-{case.name}"))
         canals = {"schema_version": 1, "frame": "DICOM patient frame (LPS, mm) = the case's "
                   "mesh frame as scanned", "radius_mm": phantom.canal_radius * 1e3,
                   "canals": [{"site": s.name, "polyline_mm": np.round(c * 1e3, 4).tolist()}
-                             for s, c in zip(case.sites, phantom.canals, strict=True)
-                             if c is not None]}
+                             for s, c in zip(case.sites, phantom.canals, strict=True)]}
         write_text_atomic(staging / "canals.yaml", yaml.safe_dump(canals, sort_keys=False))
         data = read_yaml(case_file, field="case")
         data["mesh"]["path"] = "ct"
+        data["anatomy"] = {**(data.get("anatomy") or {}), "canals_file": "canals.yaml"}
         data["name"] = f"{case.name}-cbct"
         header = (f"# implantplan phantom of {case_file}: mesh.path is its synthetic CBCT "
                   f"({voxel_mm:g} mm voxels); the frames are DICOM's patient frame (LPS, mm).\n")
         write_text_atomic(staging / "case.yaml", header + yaml.safe_dump(data, sort_keys=False))
     return {"slices": len(files), "shape_kji": list(phantom.hu.shape), "voxel_mm": voxel_mm,
-            "canals": sum(c is not None for c in phantom.canals)}
+            "canals": len(phantom.canals)}
 
 
 def _cmd(args) -> int:

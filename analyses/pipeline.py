@@ -24,6 +24,7 @@ from implantplan.diagrams.arm_clearance import SceneGraphClearance, confirm_feed
 from implantplan.diagrams.feeding import run_feeding
 from implantplan.diagrams.teleop import TeleopCase
 from implantplan.systems import actuator, seeds
+from implantplan.systems.anatomy import distances as anatomy
 from implantplan.systems.anatomy.cbct import CbctScan, is_volume_path, load_cbct_scan
 from implantplan.systems.capability import maps as cm
 from implantplan.systems.errors import InputError, PlanningFailure, fields_renamed
@@ -31,7 +32,7 @@ from implantplan.systems.fpsm.fit import fit_fpsm
 from implantplan.systems.fpsm.model import Fpsm
 from implantplan.systems.fpsm.oral_mesh import center_frame, load_oral_mesh, open_mouth
 from implantplan.systems.fpsm.sites import SiteCheck, check_sites, site_problems
-from implantplan.systems.frames import invert, transform
+from implantplan.systems.frames import apply, invert, transform
 from implantplan.systems.placement.planner import Placement, place_instrument
 from implantplan.systems.robot import kinematics as kin
 from implantplan.systems.robot import moprp
@@ -468,3 +469,52 @@ def simulation_stage(case: Case, fit: FitResult, placements: list[Placement],
             progress.step(k, len(case.sites), f"site {site.name}: {runs} feeds, max VF "
                           f"violation {worst * 1e3:.2f} mm, realtime x{res['realtime_factor']:.1f}")
     return out
+
+
+def planned_implants(case: Case, X_WC: np.ndarray, *, scanned: bool = False):
+    """Each site's planned implant as (entries, apexes) (n, 3), m: the entry at the site, the
+    apex ``placed_length`` deeper along the axis; in the opened mesh frame, or with
+    ``scanned`` back in the scan's frame as scanned (systems.anatomy.distances.as_scanned)."""
+    entry = apply(X_WC, np.array([s.position for s in case.sites]))
+    axis = np.array([X_WC[:3, :3] @ s.axis for s in case.sites])
+    apex = entry - np.array([s.placed_length for s in case.sites])[:, None] * axis
+    if not scanned:
+        return entry, apex
+    both = anatomy.as_scanned(np.vstack([entry, apex]), case.mesh.mouth_opening_deg,
+                              case.mesh.opening)
+    return both[:len(entry)], both[len(entry):]
+
+
+def anatomy_stage(case: Case, fit: FitResult) -> dict | None:
+    """The clinical distances of every planned implant (systems.anatomy.distances), when the
+    case has anatomy (``anatomy:`` canals) or a CBCT (teeth and bone): each implant (its entry
+    at the site, its apex ``placed_length`` deeper, ``implant_diameter`` wide) is taken back
+    to the scan's frame as scanned (the inverse of the jaw-opening map), where the CBCT and the
+    canals are; distances in m. None without anatomy."""
+    if case.anatomy is None and fit.cbct is None:
+        return None
+    entry_s, apex_s = planned_implants(case, fit.fpsm.X_WC, scanned=True)
+    length = np.array([s.placed_length for s in case.sites])
+    radius = np.array([s.implant_diameter / 2 for s in case.sites])
+    canals = case.anatomy.canals if case.anatomy is not None else ()
+    teeth_hu = case.anatomy.teeth_threshold_hu if case.anatomy is not None else 1800.0
+    inter = anatomy.inter_implant_clearances(entry_s, apex_s, radius)
+    sites = []
+    for k, s in enumerate(case.sites):
+        rec = {"site": s.name, "entry": entry_s[k], "apex": apex_s[k],
+               "diameter": float(2 * radius[k]), "length": float(length[k]),
+               "nearest_implant_m": float(np.min(inter[k])) if len(case.sites) > 1 else None}
+        if canals:
+            d = [anatomy.canal_clearance(entry_s[k], apex_s[k], radius[k], c.polyline, c.radius)
+                 for c in canals]
+            rec["canal_clearance_m"], rec["canal"] = float(min(d)), int(np.argmin(d))
+        if fit.cbct is not None:
+            vol = fit.cbct.volume
+            rec["tooth_clearance_m"] = anatomy.tooth_clearance(vol, entry_s[k], apex_s[k],
+                                                               radius[k], teeth_hu)
+            rec["bone_margin_m"], rec["bone_crest_depth_m"] = anatomy.bone_margin(
+                vol, entry_s[k], apex_s[k], radius[k], case.mesh.bone_threshold_hu)
+        sites.append(rec)
+    return {"frame": "the scan's frame as scanned (a CBCT's patient frame, LPS), m",
+            "teeth_threshold_hu": teeth_hu, "bone_threshold_hu": case.mesh.bone_threshold_hu,
+            "canals": len(canals), "sites": sites}

@@ -208,6 +208,12 @@ def _plan_into(case: Case, out: Path, *, runs, html_scene: bool, quiet: bool,
     plan = plan_dict(case, fit, placements, robot, cap, sims, sites_checked)
     if notes:
         plan["acknowledged"] = notes
+    anatomy = pipeline.anatomy_stage(case, fit)
+    if anatomy is not None:
+        for site, rec in zip(plan["sites"], anatomy["sites"], strict=True):
+            site["anatomy"] = rec
+        plan["checks"] += checks_.anatomy_checks(anatomy)
+        plan["passed"] = checks_.passed(plan["checks"])
     plan["timing"] = timing
     plan["scan"] = scan_record(fit)
     plan["provenance"] = provenance(case_file=case.source, meshes=scan_files(case.mesh.path),

@@ -12,7 +12,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from implantplan.analyses import pipeline
-from implantplan.analyses.case import default_case_path, load_case
+from implantplan.analyses.case import case_from_dict, default_case_path, load_case
+from implantplan.analyses.checks import anatomy_checks
 from implantplan.analyses.cli import main
 from implantplan.analyses.out_folder import MARKER
 from implantplan.analyses.phantom import make_phantom_folder
@@ -88,6 +89,7 @@ def test_a_bad_series_in_a_case_exits_2_naming_the_file(coarse, tmp_path, capsys
     for p in sorted((out / "ct").iterdir())[:5]:
         (bad / p.name).write_bytes(p.read_bytes())
     (bad / "readme.txt").write_text("not an image")
+    (tmp_path / "canals.yaml").write_bytes((out / "canals.yaml").read_bytes())
     text = (out / "case.yaml").read_text().replace("path: ct", f"path: {bad}")
     (tmp_path / "case.yaml").write_text(text)
     code = main(["plan", str(tmp_path / "case.yaml"), "--out", str(tmp_path / "plan"),
@@ -125,3 +127,47 @@ def test_the_04mm_phantom_plans_like_the_mesh_case(tmp_path, mesh_fit):
     for b, s in zip(back, case_c.sites, strict=True):
         np.testing.assert_allclose(b["entry"], apply(X_WC, s.position), atol=1e-6)
     assert json.loads((tmp_path / "cbct" / "plan.json").read_text())["dicom"]["sr"] == "plan.dcm"
+
+
+def test_coarse_phantom_anatomy_checks_pass_with_their_values(coarse):
+    out, _ = coarse
+    case = load_case(out / "case.yaml")
+    assert len(case.anatomy.canals) == 2  # canals.yaml, from the case written beside it
+    fit = pipeline.fit_stage(case)
+    anatomy = pipeline.anatomy_stage(case, fit)
+    checks = {(c["id"], c["site"]): c for c in anatomy_checks(anatomy)}
+    assert set(checks) == {(i, s) for i in ("anatomy.canal_distance",
+                                            "anatomy.adjacent_tooth_distance",
+                                            "anatomy.inter_implant_distance")
+                           for s in ("36", "46")}
+    assert all(c["pass"] for c in checks.values())
+    # the phantom's canal runs 5 mm under the apex: r 1.2 mm, a 15 deg tilted implant r 2 mm
+    assert 2.5e-3 < checks[("anatomy.canal_distance", "36")]["value"] < 3.8e-3
+
+
+@pytest.mark.parametrize(("gap_mm", "passes"), [(1.5, False), (2.5, True)])
+def test_a_case_canal_1_5_mm_from_the_implant_fails_and_2_5_passes(mesh_fit, gap_mm, passes):
+    """A canal (case key) under site 36's planned implant, ``gap_mm`` below its apex's flat
+    end along the implant's axis, crossing it at right angles."""
+    case, fit = mesh_fit
+    entry, apex = pipeline.planned_implants(case, fit.fpsm.X_WC, scanned=True)
+    axis = (entry[0] - apex[0]) / np.linalg.norm(entry[0] - apex[0])
+    across = np.cross(axis, [1.0, 0, 0])
+    across /= np.linalg.norm(across)
+    centre = apex[0] - (gap_mm + 1.2) * 1e-3 * axis
+    line = [(centre + s * 15e-3 * across) * 1e3 for s in (-1, 0, 1)]
+    data = {**_raw_default(), "anatomy": {"canals": [
+        {"polyline_mm": [p.tolist() for p in line], "radius_mm": 1.2}]}}
+    with_canal = case_from_dict(data, source=default_case_path())
+    anatomy = pipeline.anatomy_stage(with_canal, fit)
+    (c,) = [c for c in anatomy_checks(anatomy)
+            if c["id"] == "anatomy.canal_distance" and c["site"] == "36"]
+    assert c["pass"] is passes
+    assert c["value"] == pytest.approx(gap_mm * 1e-3, abs=1e-6)
+    assert c["limit"] == 2e-3 and c["bound"] == "min"
+
+
+def _raw_default() -> dict:
+    from implantplan.systems.files import read_yaml
+
+    return read_yaml(default_case_path(), field="case")
