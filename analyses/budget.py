@@ -12,7 +12,8 @@ below gives 536 MB to the fit, measured 465 MB), rounded up:
 - the process with Drake, numba and the libraries loaded: 500 MB;
 - the scan: 2 KB per triangle (the scanned, opened and closed copies, the FCL tree, the ray
   scene), the triangles bounded from the file's size (at least 16 bytes per triangle in any
-  format: binary STL has 50, binary PLY about 19);
+  format: binary STL has 50, binary PLY about 19); a CBCT: 40 bytes per voxel (2 bytes each in
+  the files) and 6 x voxels^(2/3) triangles;
 - the FPSM fit: 128 bytes per ray of the dense check ((8 slices x 8 samples) per slice and sample)
   and 256 per ray of the conservative cast ((slices - 1) x 3 + 1 heights x samples);
 - the registration Monte Carlo: 512 bytes per sample and feed pose (51 poses: a feed of at most
@@ -32,12 +33,16 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from implantplan.systems.anatomy.cbct import is_volume_path, scan_files
 from implantplan.systems.errors import InputError
 
 MB = 1e6
 BASE = 500 * MB
 PER_FACE = 2048
 BYTES_PER_FACE_MIN = 16
+BYTES_PER_VOXEL = 2  # a CT slice's 16-bit pixels (uncompressed DICOM; a .nii.gz underestimates)
+PER_VOXEL = 40  # HU volume, masks, labels, marching cubes' field, for the air and bone surfaces
+FACES_PER_VOXEL_AREA = 6  # the air surface: 430,881 triangles of 23.2 M voxels (0.4 mm phantom)
 PER_DENSE_RAY, PER_CAST_RAY, CHECK_FACTOR, SLAB_LEVELS = 128, 256, 8, 3
 PER_REGISTRATION_POSE, FEED_POSES = 512, 51
 PER_INDIVIDUAL_BRANCH, BRANCHES = 4096, 8
@@ -70,17 +75,23 @@ def estimate(case, *, runs: int | None = None) -> dict[str, float]:
     site (None: the case's ``simulation.runs``); the module docstring gives each term."""
     n_sites = len(case.sites)
     fp = case.fpsm
-    try:
-        size = Path(case.mesh.path).stat().st_size
-    except OSError:
-        size = 0
-    faces = size / BYTES_PER_FACE_MIN
+    cbct = 0.0
+    if is_volume_path(case.mesh.path):  # a CBCT: voxels from the files' size (2 bytes each)
+        voxels = sum(p.stat().st_size for p in scan_files(case.mesh.path)) / BYTES_PER_VOXEL
+        cbct = PER_VOXEL * voxels
+        faces = FACES_PER_VOXEL_AREA * voxels ** (2 / 3)
+    else:
+        try:
+            size = Path(case.mesh.path).stat().st_size
+        except OSError:
+            size = 0
+        faces = size / BYTES_PER_FACE_MIN
     dense = (fp.slices * CHECK_FACTOR) * (fp.samples * CHECK_FACTOR)
     cast = ((fp.slices - 1) * SLAB_LEVELS + 1) * fp.samples
     runs = case.simulation.runs if runs is None else runs
     return {
         "process": BASE,
-        "scan": PER_FACE * faces,
+        "scan": PER_FACE * faces + cbct,
         "fpsm": PER_DENSE_RAY * dense + PER_CAST_RAY * cast,
         "registration": PER_REGISTRATION_POSE * FEED_POSES * case.safety.registration_samples,
         "robot": PER_INDIVIDUAL_BRANCH * 2 * case.robot.pop * n_sites * BRANCHES,
