@@ -23,11 +23,17 @@ MIN_INTER_IMPLANT = 3.0e-3
 MIN_BONE = 1.0e-3
 
 
-def point_segment_distance(points, a, b) -> np.ndarray:
-    """Distance of points (n, 3) to the segment [a, b]."""
-    ab = np.asarray(b, float) - np.asarray(a, float)
-    t = np.clip((points - a) @ ab / max(float(ab @ ab), 1e-30), 0.0, 1.0)
-    return np.linalg.norm(points - (a + t[:, None] * ab), axis=1)
+def point_cylinder_distance(points, apex, entry, radius: float) -> np.ndarray:
+    """Exact distance of points (n, 3) to the solid cylinder of ``radius`` around apex -> entry
+    (0 inside): with the axial coordinate a and radial distance rho of a point, the distance is
+    hypot(max(-a, a - L, 0), max(rho - r, 0))."""
+    axis = np.asarray(entry, float) - np.asarray(apex, float)
+    L = float(np.linalg.norm(axis))
+    axis = axis / L
+    rel = points - apex
+    a = rel @ axis
+    rho = np.linalg.norm(rel - a[:, None] * axis, axis=1)
+    return np.hypot(np.maximum(np.maximum(-a, a - L), 0.0), np.maximum(rho - radius, 0.0))
 
 
 def _along(a, b):
@@ -108,7 +114,7 @@ def tooth_clearance(volume, entry, apex, radius: float, threshold_hu: float, *,
         return float("inf")
     kji = np.argwhere(box) + i0[::-1]
     pts = volume.to_patient(kji[:, ::-1].astype(float)) * 1e-3
-    d = point_segment_distance(pts, apex, entry) - radius - np.sqrt(3) / 2 * h
+    d = point_cylinder_distance(pts, apex, entry, radius) - np.sqrt(3) / 2 * h
     return float(min(np.min(d), reach))
 
 

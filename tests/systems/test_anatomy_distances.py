@@ -13,12 +13,6 @@ from implantplan.systems.anatomy.cbct import Volume
 from implantplan.systems.fpsm.oral_mesh import opening_map
 
 
-def test_point_segment_distance():
-    pts = np.array([[0.5, 0.3, 0], [2, 0, 0], [-1, 0, 1]])
-    np.testing.assert_allclose(d.point_segment_distance(pts, np.zeros(3), np.array([1.0, 0, 0])),
-                               [0.3, 1.0, np.sqrt(2)])
-
-
 def _implant_and_canal(gap):
     """A vertical implant r 2 mm, 10 mm long, and a canal r 1.2 mm crossing under its apex with
     ``gap`` (m) between the surfaces."""
@@ -37,6 +31,13 @@ def test_a_canal_at_1_5_mm_fails_with_its_value_and_2_5_passes(gap_mm, passes):
     (c,) = anatomy_checks(anatomy)
     assert c["id"] == "anatomy.canal_distance" and c["pass"] is passes
     assert c["value"] == pytest.approx(gap_mm * 1e-3) and c["limit"] == 2e-3
+
+
+def test_point_cylinder_distance_is_exact():
+    apex, entry = np.zeros(3), np.array([0, 0, 0.01])
+    pts = np.array([[0.003, 0, 0.005], [0, 0, 0.013], [0.003, 0, -0.004], [0.001, 0, 0.002]])
+    np.testing.assert_allclose(d.point_cylinder_distance(pts, apex, entry, 0.002),
+                               [0.001, 0.003, np.hypot(0.001, 0.004), 0.0], atol=1e-15)
 
 
 def test_inter_implant_clearances():
@@ -86,4 +87,41 @@ def test_voxel_bounds_are_conservative_and_tight():
     assert crest == pytest.approx(0.0, abs=1e-3)
     teeth = d.tooth_clearance(vol, np.array([0.0, 0, 0.008]), np.array([0.0, 0, 0.004]), 1e-3,
                               300.0)
-    assert teeth <= 3e-3 and teeth > 3e-3 - 1e-3  # the bone top at z = 0, 4 mm under the apex
+    # the bone top at z = 0, 4 mm under the implant's flat end
+    assert teeth <= 4e-3 and teeth > 4e-3 - np.sqrt(3) * 0.5e-3
+
+
+def _ball_volume(h=0.5, centre=(1.3, -0.7, 0.4), radius=4.0):
+    """A tooth (2500 HU) ball in soft tissue, voxels of h mm over +-12 mm; centre and radius mm."""
+    axis = -12 + h * np.arange(int(round(24 / h)) + 1)
+    Z, Y, X = np.meshgrid(axis, axis, axis, indexing="ij")
+    r = np.sqrt((X - centre[0]) ** 2 + (Y - centre[1]) ** 2 + (Z - centre[2]) ** 2)
+    affine = np.diag([h, h, h, 1.0])
+    affine[:3, 3] = -12
+    return Volume(np.where(r <= radius, 2500.0, 40.0).astype(np.float32), affine)
+
+
+def test_tooth_clearance_is_never_above_the_exact_distance_on_random_implants():
+    import fcl
+
+    vol = _ball_volume()
+    ball = fcl.CollisionObject(fcl.Sphere(4e-3), fcl.Transform(np.array([1.3e-3, -0.7e-3, 0.4e-3])))
+    rng = np.random.default_rng(3)
+    false_safe, slack = 0, []
+    for _ in range(200):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        apex = rng.uniform(-6e-3, 6e-3, 3) + 7e-3 * rng.normal(size=3) / np.sqrt(3)
+        entry = apex + rng.uniform(6e-3, 12e-3) * axis
+        r = rng.uniform(1.5e-3, 2.5e-3)
+        exact = float(fcl.distance(d.implant_object(entry, apex, r), ball,
+                                   fcl.DistanceRequest(enable_signed_distance=True),
+                                   fcl.DistanceResult()))
+        if not 0 < exact < 10e-3:
+            continue
+        fast = d.tooth_clearance(vol, entry, apex, r, 1800.0)
+        false_safe += fast > exact + 1e-9
+        slack.append(exact - fast)
+    assert len(slack) > 50 and false_safe == 0
+    # tight: within two voxel half-diagonals (0.87 mm at 0.5 mm voxels) of the exact distance
+    assert max(slack) < np.sqrt(3) * 0.5e-3 + 1e-9
