@@ -58,10 +58,21 @@ class Volume:
         return ijk @ self.affine[:3, :3].T + self.affine[:3, 3]
 
 
+def is_dicom_file(path) -> bool:
+    """A file with DICOM's preamble ("DICM" at byte 128)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(132)[128:] == b"DICM"
+    except OSError:
+        return False
+
+
 def is_volume_path(path) -> bool:
-    """True when a scan path names a CBCT (a folder or a NIfTI file), not a mesh."""
+    """True when a scan path names a CBCT (a folder, a NIfTI file, or one DICOM file, which is
+    refused as a 2D image), not a mesh."""
     path = Path(path)
-    return path.is_dir() or path.name.lower().endswith(NIFTI_SUFFIXES)
+    return (path.is_dir() or path.name.lower().endswith(NIFTI_SUFFIXES)
+            or (path.is_file() and is_dicom_file(path)))
 
 
 def scan_files(path) -> list[Path]:
@@ -78,6 +89,9 @@ def read_volume(path, *, field: str = "mesh.path") -> Volume:
     path = Path(path)
     if path.is_dir():
         return read_dicom_series(path, field=field)
+    if is_dicom_file(path):
+        raise _bad(field, path, "one DICOM file (a 2D image); expected the folder of its CT "
+                   "series")
     return read_nifti(path, field=field)
 
 

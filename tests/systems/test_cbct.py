@@ -217,3 +217,33 @@ def test_distance_to_polyline_is_exact():
     pts = np.array([[0.5, 0.3, 0], [2, 2, 0], [-1, 0, 1], [1.2, 0.5, 0]])
     np.testing.assert_allclose(distance_to_polyline(pts, line),
                                [0.3, np.sqrt(2), np.sqrt(2), 0.2])
+
+
+def test_nifti_reads_back_to_its_surface_and_2d_inputs_are_refused(tmp_path):
+    import nibabel as nib
+
+    from implantplan.systems.anatomy.cbct import read_volume
+
+    # the sphere of air in LPS, written with a RAS affine as NIfTI files are
+    h, c, radius = 0.8, np.array([4.0, -2.0, 30.0]), 10.0
+    n = 36
+    ijk = np.stack(np.meshgrid(*(np.arange(n),) * 3, indexing="ij"), axis=-1).astype(float)
+    ras_affine = np.diag([h, h, h, 1.0])
+    ras_affine[:3, 3] = [-c[0] - n * h / 2, -c[1] - n * h / 2, c[2] - n * h / 2]
+    ras = ijk @ ras_affine[:3, :3].T + ras_affine[:3, 3]
+    lps = ras * [-1, -1, 1]
+    r = np.linalg.norm(lps - c, axis=-1)
+    air = np.clip(0.5 - (r - radius) / h, 0, 1)
+    nib.save(nib.Nifti1Image((air * -1000 + (1 - air) * 40).astype(np.float32), ras_affine),
+             tmp_path / "ct.nii.gz")
+    vol = read_volume(tmp_path / "ct.nii.gz")
+    mesh, _ = air_surface(vol, -500.0)
+    rr = np.linalg.norm(mesh.vertices * 1e3 - c, axis=1)
+    assert np.max(np.abs(rr - radius)) < 0.35
+    nib.save(nib.Nifti1Image(np.zeros((20, 20), np.float32), np.eye(4)), tmp_path / "flat.nii")
+    with pytest.raises(InputError, match="flat.nii: image of shape .20, 20.; expected a 3D"):
+        read_volume(tmp_path / "flat.nii")
+    (tmp_path / "s").mkdir()
+    one = write_sphere_series(tmp_path / "s", shape=(3, 8, 8))
+    with pytest.raises(InputError, match="one DICOM file .a 2D image."):
+        read_volume(one[0])
