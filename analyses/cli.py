@@ -52,7 +52,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "phantom": (
         "implantplan.analyses.phantom",
-        "a synthetic CBCT (DICOM CT series) of a mesh case, to plan from",
+        "a synthetic CBCT (DICOM CT series) of a mesh case",
     ),
     "batch": (
         "implantplan.analyses.batch",
