@@ -120,7 +120,7 @@ class Site:
     position: np.ndarray = v.spec(v.vec3, key="position_mm", scale=MM)
     axis: np.ndarray = v.spec(v.direction)
     # seed 000's d12: the actuator head's centre to the implant tip (not the implant's length;
-    # the key was ``implant_length_mm`` until issue 24, still read with a note)
+    # the key was ``implant_length_mm``, still read with a note)
     implant_length: float = v.spec(partial(v.number, low=1.0, high=100.0), 31.0,
                                    key="head_to_tip_mm", scale=MM)
     rod_radius: float = v.spec(v.nonneg, 6.0, key="rod_radius_mm", scale=MM)
