@@ -249,7 +249,8 @@ def confirm_layout(sp: StudioPlan, layout: Layout) -> list[dict]:
         if layout.branch[k] < 0:
             out.append({"distance": float("-inf"), "pair": ["", ""], "samples": 0, "ok": False,
                         "limit": sp.sc.clearance, "distance_pre": float("nan"),
-                        "distance_target": float("nan")})
+                        "distance_target": float("nan"), "headroom": np.full(6, -np.inf),
+                        "headroom_limit": float(sp.sc.joint_headroom)})
         else:
             out.append(confirm_feed(checker, sp.sc, int(layout.branch[k]), X_OT=T))
     layout.confirmation = out

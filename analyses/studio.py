@@ -478,6 +478,8 @@ class Studio:
                 "arm_clearance_scene_graph_mm": _mm([c["distance"] for c in lay.confirmation]
                                                     if lay.confirmation else None),
                 "clear": lay.clear, "confirmed": lay.confirmed,
+                "joint_headroom_deg": None if not lay.confirmation else
+                [float(np.rad2deg(np.min(c["headroom"]))) for c in lay.confirmation],
                 "cart_clearance_mm": _mm(lay.cart_clearance),
                 "capability_index": None if lay.capability is None else
                 lay.capability["index"],

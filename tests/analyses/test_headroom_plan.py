@@ -1,5 +1,5 @@
 """The default plan keeps >= 10 deg of joint headroom on every joint along every site's feed
-and under the head motions the scenario allows (issue 24 item 4; DESIGN.md section 7)."""
+and under the head motions the scenario allows (DESIGN.md section 7)."""
 
 import json
 

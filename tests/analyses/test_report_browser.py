@@ -78,7 +78,7 @@ def test_report_loads_without_errors(served, tmp_path):
 
 
 def test_the_first_screen_shows_every_implants_card(served, demo_plan, tmp_path):
-    """At 1400 x 900 CSS px the report's first screen holds every card whole (issue 24)."""
+    """At 1400 x 900 CSS px the report's first screen holds every card whole."""
     import json
 
     plan = json.loads((demo_plan / "plan.json").read_text())
