@@ -56,6 +56,7 @@ from pathlib import Path
 
 import numpy as np
 
+from implantplan.analyses.case import Site as CaseSite
 from implantplan.diagrams import feeding as F
 from implantplan.diagrams.teleop import TeleopCase, build_teleop, simulate
 from implantplan.systems import seeds
@@ -87,6 +88,8 @@ FINISH_SECONDS = F.FINISH_SECONDS  # after the script: the operator finishing by
 INSERTION_SPEED = 0.02  # m/s: the insertion stroke's mean speed (module notes)
 APPROACH_MM = 10.0  # default --approach-mm: the feed's last 10 mm (module notes)
 MAX_APPROACH_MM = 100.0
+# m: the case file's default placed implant (its one default: analyses.case.Site)
+PLACED_LENGTH = CaseSite.__dataclass_fields__["placed_length"].default_factory()
 MAX_WORKERS = 64
 IDEAL_CAMERA = TrackerParams(rate=60.0, latency=0.0, noise_position=0.0, noise_angle=0.0,
                              predict_samples=0)
@@ -190,6 +193,8 @@ def sites_of(*, plan=None, approach: float | None = None, progress=None) -> list
         sp = load_plan(plan, field="--plan", reference=False)
         cases = [sp.teleop_case(k) for k in range(len(sp.names))]
         d_T = [float(s["placement"]["d_T"]) for s in sp.plan["sites"]]
+        # a plan written before the placed implant had a length: the case file's default
+        length = [float(s.get("placed_implant_length", PLACED_LENGTH)) for s in sp.plan["sites"]]
         scan = opened_scan(sp)
     else:  # planned as implantplan plan does (scan_reference.default_case_sites)
         from implantplan.analyses import pipeline
@@ -203,12 +208,13 @@ def sites_of(*, plan=None, approach: float | None = None, progress=None) -> list
         cases = pipeline.teleop_cases(case, fit, placements,
                                       pipeline.robot_stage(case, placements))
         d_T = [p.d_T for p in placements]
+        length = [site.placed_length for site in case.sites]
         scan = fit.opened
     out = []
-    for tc, d in zip(cases, d_T, strict=True):
+    for tc, d, L in zip(cases, d_T, length, strict=True):
         X_CT = np.linalg.inv(tc.X_WCenter) @ tc.X_WTarget
         out.append(Site(case=approach_case(tc, approach),
-                        plan=planned_insertion(X_CT, d, tc.tool), scan=scan))
+                        plan=planned_insertion(X_CT, d, tc.tool, L), scan=scan))
     return out
 
 

@@ -2,14 +2,18 @@
 
 Geometry (seed 000 Eq. 18): the Tool frame at the feeding target is T = H (Rz(theta_T),
 [0, 0, d_T]) with H the Hole frame (origin on the jaw surface, z out of the bone), so Tool z is
-the implant axis and the implant points to -z. The implant of the instrument is the segment
-``platform``-``apex`` in T (:func:`implant_points`: the ``implant`` solid's ends, the upper one
-the platform). The plan places the implant with its platform on the hole's plane z_H = 0:
-the tool travels from the target along -z_T by
+the implant axis and the implant points to -z. The instrument's implant ends at its tip
+(:func:`implant_points`: the ``implant`` solid's lower end); the placed implant is the plan's
+(the case's ``placed_implant_length_mm``, L, the surgeon's card's): its last L, apex = the
+tip, platform = the tip + L z_T, placed with its platform on the hole's plane z_H = 0 and its
+apex L below. The tool travels from the target along -z_T by
 
-    depth = d_T + z_platform  (z_platform: the platform's z in T, <= 0),
+    depth = d_T + z_tip + L  (z_tip: the tip's z in T, -d12),
 
-so the planned final Tool pose is X_CT* = X_CT Tz(-depth) (:func:`planned_insertion`).
+so the planned final Tool pose is X_CT* = X_CT Tz(-depth) (:func:`planned_insertion`). The
+shipped actuator's implant is coaxial with the hole's axis, so its platform lands on the site;
+the paper's thin tool (seed 000 Eq. 19) carries its implant line r off the TCP along x_T, and
+so the plan's implant r off the site (the paper's line2).
 
 **The insertion fixture.** After the feed the operator drives the tool along -z_T; the feed's
 fixture (axis line1, the rod) would hold it on line1. :func:`insertion_fixture` is the same
@@ -49,8 +53,8 @@ R_INSERT = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
 
 
 def implant_points(tool) -> tuple[np.ndarray, np.ndarray]:
-    """(platform, apex) of the instrument's implant in its Tool frame (m): the ends of its
-    ``implant`` solid, the one with the larger z the platform; an instrument without one: the
+    """(top, tip) of the instrument's implant in its Tool frame (m): the ends of its
+    ``implant`` solid, the one with the larger z the top; an instrument without one: the
     Eq. 19 line from [line_offset, 0, 0] to [line_offset, 0, -d12]."""
     for s in tool.shapes:
         if s.name == "implant":
@@ -100,12 +104,19 @@ class PlannedImplant:
         return self.X_CT_target[:3, 2]
 
 
-def planned_insertion(X_CT_target, d_T: float, tool) -> PlannedImplant:
+def planned_insertion(X_CT_target, d_T: float, tool, placed_length: float) -> PlannedImplant:
     """The planned implant of a site whose feeding target is ``X_CT_target`` at distance ``d_T``
-    from the hole along its axis (module notes): platform on the hole's plane."""
+    from the hole along its axis, ``placed_length`` (m) long (module notes): its platform on
+    the hole's plane."""
     X = np.asarray(X_CT_target, dtype=float)
-    platform_T, apex_T = implant_points(tool)
-    depth = float(d_T) + float(platform_T[2])
+    top_T, apex_T = implant_points(tool)
+    L = float(placed_length)
+    if not (np.isfinite(L) and 0 < L <= top_T[2] - apex_T[2] + 1e-12):
+        raise InputError("placed_implant_length", f"expected a length in (0, "
+                         f"{(top_T[2] - apex_T[2]) * 1e3:.1f}] mm (the instrument's implant), "
+                         f"got {L * 1e3:.2f} mm")
+    platform_T = apex_T + np.array([0.0, 0.0, L])
+    depth = float(d_T) + float(apex_T[2]) + L
     if not np.isfinite(depth) or depth <= 0:
         raise InputError("d_T", f"expected the implant's platform above the hole at the target "
                          f"(insertion depth > 0), got {depth * 1e3:.2f} mm")

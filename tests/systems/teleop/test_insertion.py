@@ -21,7 +21,7 @@ from implantplan.systems.teleop.insertion import (
 )
 from implantplan.systems.teleop.master_device import MasterMotion
 
-R, D12 = 0.006, 0.031
+R, D12, L = 0.006, 0.031, 0.010
 
 
 def paper():
@@ -50,22 +50,27 @@ def test_implant_points_of_the_paper_tool_and_the_actuator():
 
 def test_planned_implant_sits_on_the_hole_plane():
     X_CH, X_CT = target(0.04)
-    plan = planned_insertion(X_CT, 0.04, paper())
-    assert plan.depth == pytest.approx(0.04)  # the paper's platform is at z = 0 in T
-    # platform on the hole's plane, apex d12 below it, the axis the hole's z
+    plan = planned_insertion(X_CT, 0.04, paper(), L)
+    # the tip travels from d_T - d12 above the hole's plane to L below it
+    assert plan.depth == pytest.approx(0.04 - D12 + L)
+    # platform on the hole's plane, apex L below it, the axis the hole's z
     np.testing.assert_allclose((plan.platform - X_CH[:3, 3]) @ X_CH[:3, 2], 0.0, atol=1e-15)
-    np.testing.assert_allclose((plan.apex - X_CH[:3, 3]) @ X_CH[:3, 2], -D12, atol=1e-15)
+    np.testing.assert_allclose((plan.apex - X_CH[:3, 3]) @ X_CH[:3, 2], -L, atol=1e-15)
     np.testing.assert_allclose(plan.axis, X_CH[:3, 2], atol=1e-15)
-    tool = Instrument.actuator()
-    z_top = implant_points(tool)[0][2]
-    assert planned_insertion(X_CT, 0.04, tool).depth == pytest.approx(0.04 + z_top)
+    # the paper's implant line is r off the hole's axis (Eq. 19's line2); the actuator's is on it
+    off = plan.platform - X_CH[:3, 3]
+    assert np.linalg.norm(off - (off @ X_CH[:3, 2]) * X_CH[:3, 2]) == pytest.approx(R)
+    act = planned_insertion(X_CT, 0.04, Instrument.actuator(), L)
+    np.testing.assert_allclose(act.platform, X_CH[:3, 3], atol=1e-12)  # on the site
     with pytest.raises(InputError, match="d_T"):
-        planned_insertion(X_CT, 0.0, paper())
+        planned_insertion(X_CT, D12 - L, paper(), L)
+    with pytest.raises(InputError, match="placed_implant_length"):
+        planned_insertion(X_CT, 0.04, paper(), 0.05)
 
 
 def test_deviation_of_known_placements():
     _, X_CT = target()
-    plan = planned_insertion(X_CT, 0.04, paper())
+    plan = planned_insertion(X_CT, 0.04, paper(), L)
     X = plan.X_CT_final
     d = implant_deviation(X, plan)
     assert d["entry"] == 0 and d["apex"] == 0 and d["angle"] == 0
@@ -83,7 +88,7 @@ def test_deviation_of_known_placements():
     turn = transform(Rt, p - Rt @ p)
     d = implant_deviation(turn @ X, plan)
     assert d["entry"] == pytest.approx(0.0, abs=1e-15)
-    assert d["apex"] == pytest.approx(2 * D12 * np.sin(a / 2), rel=1e-12)
+    assert d["apex"] == pytest.approx(2 * L * np.sin(a / 2), rel=1e-12)
     assert d["angle"] == pytest.approx(a, rel=1e-12)
     # half way: the depth reached is half the depth
     half = X_CT @ transform(np.eye(3), [0, 0, -plan.depth / 2])
@@ -96,10 +101,10 @@ def test_deviation_of_known_placements():
 def test_deviation_is_frame_free(w, t):
     """The deviations do not depend on the frame they are computed in (Center vs the scan)."""
     _, X_CT = target()
-    plan = planned_insertion(X_CT, 0.04, paper())
+    plan = planned_insertion(X_CT, 0.04, paper(), L)
     X = transform(rotations(np.array([w]))[0], t) @ plan.X_CT_final
     G = transform(rotations(np.array([[0.3, -1.0, 2.0]]))[0], [0.1, 0.2, -0.3])
-    moved = planned_insertion(G @ X_CT, 0.04, paper())
+    moved = planned_insertion(G @ X_CT, 0.04, paper(), L)
     a, b = implant_deviation(X, plan), implant_deviation(G @ X, moved)
     for k in ("entry", "apex", "angle"):
         assert a[k] == pytest.approx(b[k], abs=1e-12)
@@ -107,7 +112,7 @@ def test_deviation_is_frame_free(w, t):
 
 def test_insertion_fixture_passes_the_stroke_and_stops_at_the_depth():
     _, X_CT = target()
-    plan = planned_insertion(X_CT, 0.04, paper())
+    plan = planned_insertion(X_CT, 0.04, paper(), L)
     feed = VirtualFixture(origin=X_CT[:3, 3], direction=X_CT[:3, 0], entry_distance=0.03,
                           cylinder_radius=R, segment_lengths=(0.03, 0.05),
                           half_angles=np.deg2rad([15.0, 30.0]), R_ref=X_CT[:3, :3])
@@ -126,7 +131,7 @@ def test_insertion_fixture_passes_the_stroke_and_stops_at_the_depth():
     law = vf.correct_twist(plan.X_CT_final[:3, 3], R_fix, down, dt=0.005)
     assert abs(law.V[0, 3:] @ X_CT[:3, 2]) < 1e-9
     side = X_CT[:3, 0]
-    p_edge = X_CT[:3, 3] - 0.02 * X_CT[:3, 2] + vf.lateral_tolerance * side
+    p_edge = X_CT[:3, 3] - plan.depth / 2 * X_CT[:3, 2] + vf.lateral_tolerance * side
     law = vf.correct_twist(p_edge, R_fix, np.r_[0, 0, 0, 0.01 * side], dt=0.005)
     assert law.V[0, 3:] @ side < 1e-9
 
