@@ -172,14 +172,21 @@ def drake_ik_solver(*, starts: int, seed: int, limits: str, X_FT, scenario=None)
                        min_distance=scenario.clearance)
 
     def solve(X_BT, *, limits, X_FT):
+        # (..., K, 4, 4): the leading axes (bases, then e.g. head displacements) are flattened;
+        # the scene-aware solver is built once per base (leading axis 0) from its first feed
         X_BT = np.asarray(X_BT, dtype=float)
-        P, K = X_BT.shape[:2]
+        lead, K = X_BT.shape[:-3], X_BT.shape[-3]
+        per_base = int(np.prod(lead[1:], dtype=int))
+        X_BT = X_BT.reshape(-1, K, 4, 4)
+        P = X_BT.shape[0]
         q = np.zeros((P, K, 8, 6))
         ok = np.zeros((P, K, 8), dtype=bool)
         t0 = time.perf_counter()
+        ik_p = solver
         for p in range(P):
             prev = None
-            ik_p = solver if scenario is None else scene_solver(X_BT[p, -1])
+            if scenario is not None and p % per_base == 0:
+                ik_p = scene_solver(X_BT[p, -1])
             for k in range(K):
                 sols, _ = ik_p.solve(X_BT[p, k], starts=starts, seed=rng)
                 sols = sols[:8]
@@ -211,7 +218,7 @@ def drake_ik_solver(*, starts: int, seed: int, limits: str, X_FT, scenario=None)
                     used.add(b)
                     q_out[p, :, b] = q[p, :, s]
                     ok_out[p, :, b] = ok[p, :, s]
-        return q_out, ok_out
+        return q_out.reshape(*lead, K, 8, 6), ok_out.reshape(*lead, K, 8)
 
     solve.stats = stats
     return solve
