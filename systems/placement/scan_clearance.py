@@ -21,10 +21,10 @@ Tool frame, posed by X_CTool):
 
 A piece whose bound reaches the target (the claimed clearance, or the best upper estimate so far
 when the value is asked) is done; otherwise it is split in two along its longest extent until its
-ball is below the resolution (default 0.1 mm). The result is the smallest bound over the leaves
-(they cover the solid). Where that value is <= 0 the solid may touch, and the reference may then
-be as low as -r: the bound reports -r (the reference's floor), so the value is a lower bound of
-the reference everywhere, not only where free.
+ball is below the resolution (default 0.1 mm, plus 5 % of its bound). The result is the smallest
+bound over the leaves (they cover the solid). Where that value is <= 0 the solid may touch, and
+the reference may then be as low as -r: the bound reports -r (the reference's floor), so the
+value is a lower bound of the reference everywhere, not only where free.
 
 **The start** of each solid (its point a, as the reference tests it): the reference calls it in
 tissue when the horizontal segment from the Center axis (0, 0, z_a) to a crosses the mesh. The
@@ -59,6 +59,8 @@ from implantplan.systems.placement.distance_grid import (
 SAFE, UNDECIDED, UNSAFE = 1, 0, -1
 RESOLUTION = 0.1e-3  # m: a piece whose ball radius is below this is not split further
 VALUE_CAP = 0.005  # m: clearances above this are not resolved further (reported >= about it)
+RELATIVE = 0.05  # a piece whose bound is b is not split below res + RELATIVE * b (far pieces
+# are resolved coarser: a clearance of 3 mm is not near the margin)
 TOLERANCE = 0.05e-3  # m: a piece within this of the best upper estimate is not split further
 STACK = 4096  # pieces held per solid; past it the solid is undecided (sound)
 START_CLEARANCE = 1e-7  # m: the start segment must be at least this far from the mesh
@@ -105,8 +107,10 @@ def _segment_bound(G, lo, hi, ox, oy, oz, g, band, a, b, radius, target, res, st
         ub = upper_at(G, ox, oy, oz, g, band, lo, hi, x, y, z) - radius
         if ub < upper:
             upper = ub
+            if upper <= 0.0:  # proven to touch: the solid's value is the reference's floor
+                return 0.0, upper
         goal = target if target < upper - TOLERANCE else upper - TOLERANCE
-        if lb >= goal or h <= res or top + 2 > stack.shape[0]:
+        if lb >= goal or h <= res + RELATIVE * lb or top + 2 > stack.shape[0]:
             if lb < lower:
                 lower = lb
             continue
@@ -163,8 +167,10 @@ def _cylinder_bound(G, lo, hi, ox, oy, oz, g, band, a, b, R, target, res, stack)
         ub = upper_at(G, ox, oy, oz, g, band, lo, hi, x, y, z) - depth
         if ub < upper:
             upper = ub
+            if upper <= 0.0:  # proven to touch: the solid's value is the reference's floor
+                return 0.0, upper
         goal = target if target < upper - TOLERANCE else upper - TOLERANCE
-        if lb >= goal or rad <= res or top + 2 > stack.shape[0]:
+        if lb >= goal or rad <= res + RELATIVE * lb or top + 2 > stack.shape[0]:
             if lb < lower:
                 lower = lb
             continue
@@ -274,6 +280,7 @@ class ScanClearance:
         if not (np.isfinite(res) and res > 0):
             raise InputError("resolution", f"expected a positive length (m), got {resolution}")
         self.instrument = instrument or Instrument.paper()
+        self.grid_mesh = mesh
         self.grid = grid if grid is not None else distance_grid(mesh)
         self.resolution = res
         self._g = _grid_args(self.grid)
@@ -285,11 +292,12 @@ class ScanClearance:
         self._s2 = np.empty((STACK, 2))
         self._s6 = np.empty((STACK, 6))
 
-    def bounds(self, X_CTool, target=VALUE_CAP, *, decide: bool = False
-               ) -> tuple[np.ndarray, np.ndarray]:
+    def bounds(self, X_CTool, target=VALUE_CAP, *, decide: bool = False,
+               resolution: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(lower bounds, upper estimates) (n,) (m), resolved against ``target`` (scalar or
         (n,)); ``decide``: a verdict for the claimed clearance ``target`` (stops at the first
-        proof of "unsafe", the lower bound then the reference's floor)."""
+        proof of "unsafe", the lower bound then the reference's floor); ``resolution``: the
+        smallest piece (m), default the instance's."""
         from implantplan.systems.placement.tool_clearance import rigid_poses
 
         X = np.ascontiguousarray(rigid_poses(X_CTool))
@@ -298,7 +306,8 @@ class ScanClearance:
         if not np.all(np.isfinite(t)):
             raise InputError("clearance", "expected a finite claimed clearance (m)")
         lower, upper = np.empty(X.shape[0]), np.empty(X.shape[0])
-        _poses_kernel(*self._g, X, self._kind, self._A, self._B, self._r, t, self.resolution,
+        res = self.resolution if resolution is None else float(resolution)
+        _poses_kernel(*self._g, X, self._kind, self._A, self._B, self._r, t, res,
                       bool(decide), lower, upper)
         return lower, upper
 
@@ -354,3 +363,71 @@ class ScanClearance:
                 raise InputError("cavity", "undecided poses need the ExactCavity to resolve")
             vals[und] = self.exact.tool_clearance(X[und], self.instrument)
         return vals, und
+
+
+FEED_STEP = 0.1e-3  # m, pose spacing of :func:`feed_scan_clearance` (costs at most half of it)
+COARSE_RESOLUTION = 0.5e-3  # m, the first pass of :func:`feed_scan_clearance`
+NEAR_MINIMUM = 0.3e-3  # m: poses within this of the feed's least upper estimate are refined
+
+
+def feed_scan_clearance(scan: ScanClearance, X_CTool, *, depth: float, lateral: float = 0.0,
+                        angle: float = 0.0, clearance: float | None = None,
+                        step: float = FEED_STEP) -> dict:
+    """Certified clearance (m) of the instrument against the scan over its whole feed (the pose
+    ``X_CTool`` (4, 4) backed out along the rod by 0..``depth``) and the fixture's admissible
+    region (the rod axis within ``lateral`` of the planned line, the orientation within
+    ``angle``).
+
+    Per solid s and feed pose i the scan bound v_si (:meth:`ScanClearance.bounds`: a first
+    pass at :data:`COARSE_RESOLUTION`, then the poses whose bound is within
+    :data:`NEAR_MINIMUM` of the feed's least upper estimate refined at the scan's resolution
+    against that level: the others cannot hold the minimum); where a
+    pose's value minus the region's loss is below ``clearance`` (the margin; None: never) and
+    the scan holds an ExactCavity, FCL's exact value of each solid replaces the bound
+    (resolved). The region moves every point of solid s by at most lateral + angle * reach_s
+    (:meth:`Instrument.shape_reach_T`), so c_i = min_s (v_si - loss_s); between poses at spacing
+    t (a translation along the rod, 1-Lipschitz) the feed keeps min(c_i, (c_i + c_{i+1} - t) / 2).
+
+    Returns:
+        dict: ``value`` (m), ``poses``, ``resolved_poses`` (poses FCL resolved), ``step``,
+        ``solid`` (the solid at the minimum).
+    """
+    from dataclasses import replace
+
+    from implantplan.systems.placement.tool_clearance import feed_poses
+
+    for name, value in (("lateral", lateral), ("angle", angle)):
+        if not np.isfinite(value) or value < 0:
+            raise InputError(name, f"expected a tolerance >= 0, got {value}")
+    P, t = feed_poses(X_CTool, depth, step)
+    P = P.reshape(-1, 4, 4)
+    inst = scan.instrument
+    loss = lateral + angle * inst.shape_reach_T()
+    V = np.empty((len(inst.shapes), P.shape[0]))
+    U = np.empty_like(V)
+    solids = []
+    for k, s in enumerate(inst.shapes):
+        sub = ScanClearance(scan.exact if scan.exact is not None else scan.grid_mesh,
+                            replace(inst, shapes=(s,)), resolution=scan.resolution,
+                            grid=scan.grid)
+        lb, ub = sub.bounds(P, resolution=max(COARSE_RESOLUTION, scan.resolution))
+        level = min(ub.min() - loss[k] + NEAR_MINIMUM, VALUE_CAP)
+        V[k], U[k] = lb - loss[k], ub - loss[k]
+        refine = V[k] < level
+        if refine.any():
+            V[k, refine] = sub.bounds(P[refine], level + loss[k])[0] - loss[k]
+        solids.append(sub)
+    c_claim = -np.inf if clearance is None else float(clearance)
+    # FCL can lift a pose above the claim only where no solid's upper estimate is below it
+    low = (V.min(axis=0) < c_claim) & ~(U.min(axis=0) < c_claim)
+    resolved = int(low.sum())
+    if resolved and scan.exact is not None:
+        for k, sub in enumerate(solids):
+            V[k, low] = scan.exact.tool_clearance(P[low], sub.instrument) - loss[k]
+    c = V.min(axis=0)
+    value = float(c.min())
+    if c.size > 1:
+        value = min(value, float((0.5 * (c[:-1] + c[1:] - t)).min()))
+    return {"value": value, "poses": int(c.size), "resolved_poses": resolved if scan.exact
+            is not None else 0, "step": float(t), "solid": inst.shapes[int(
+                np.unravel_index(np.argmin(V), V.shape)[0])].name}
