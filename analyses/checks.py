@@ -93,8 +93,9 @@ def placement_checks(site: str, placement, *, distance_to_tissue: float, toleran
                  placement.d_safe_min_line2, clearance_margin, unit="m", upper=False, site=site)]
     ver = placement.verification
     if ver:
+        against = "scan" if ver.get("certified_against") == "scan" else "FPSM"
         out.append(check("placement.tool_clearance_certified", "tool clearance over the feed and "
-                         "the fixture's region (certified, FPSM)", ver["clearance_certified"],
+                         f"the fixture's region (certified, {against})", ver["clearance_certified"],
                          ver["clearance_margin"], unit="m", upper=False, site=site))
         if ver.get("clearance_exact_min") is not None:
             out.append(check("placement.tool_clearance_exact", "tool clearance over the feed and "

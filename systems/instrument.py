@@ -248,6 +248,13 @@ class Instrument:
         a, b, _ = self.capsules_T()
         return np.maximum(np.hypot(a[:, 1], a[:, 2]), np.hypot(b[:, 1], b[:, 2]))
 
+    def shape_reach_T(self) -> np.ndarray:
+        """(S,) per shape the largest distance of a point of the solid from the rod axis (Tool
+        x) (m): its axis ends' distance plus its radius (the solid lies within its radius of
+        its axis, and the distance to a line is convex along the axis)."""
+        return np.array([max(np.hypot(s.a[1], s.a[2]), np.hypot(s.b[1], s.b[2])) + s.radius
+                         for s in self.shapes])
+
     def lines_T(self) -> tuple[np.ndarray, np.ndarray]:
         """Eq. 19's lines in T: the starts P1 = [o, 0, 0] (line1, the rod) and P2 = [o, 0, -d12]
         (line2, the implant tip's path), o = :attr:`line_offset`, and their direction +x."""

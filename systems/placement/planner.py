@@ -426,27 +426,43 @@ def verify_placement(
     pose X_CT, at every depth of the feed (backed out along the rod axis until it is out of the
     mouth), against the clinical margin ``safety.clearance_margin`` (None: ``SafetySpec()``).
 
-    1. Certified, against the FPSM: :func:`systems.placement.tool_clearance.feed_clearance` (a lower
-       bound over the whole region, no sampling gaps).
-    2. Exact, against the scan mesh when ``exact`` (a :class:`systems.placement.exact_clearance.
-       ExactCavity`) is given: FCL at the planned pose, 8 lateral offsets and 4 turns
-       (:func:`systems.placement.tool_clearance.admissible_poses`), each every ``depth_step`` along
-       the
-       feed; the smallest value (exact at the samples).
+    1. Certified, against the scan when ``exact`` (a :class:`systems.placement.exact_clearance.
+       ExactCavity`) is given: :func:`systems.placement.scan_clearance.feed_scan_clearance` (the
+       scan bound of every solid over the feed and the whole region, FCL resolving the poses the
+       bound leaves below the margin); without a mesh, against the FPSM:
+       :func:`systems.placement.tool_clearance.feed_clearance` (a lower bound over the whole
+       region, no sampling gaps). The FPSM's value is kept as ``clearance_certified_fpsm``.
+    2. Exact, against the scan mesh when ``exact`` is given: FCL at the planned pose, 8 lateral
+       offsets and 4 turns (:func:`systems.placement.tool_clearance.admissible_poses`), each
+       every ``depth_step`` along the feed; the smallest value (exact at the samples).
 
     Returns:
-        dict (SI units) with ``clearance_certified``, ``clearance_exact_min`` (None without a
-        mesh), the tolerances, the margin, ``reasons`` (empty when both are >= margin).
+        dict (SI units) with ``clearance_certified``, ``certified_against`` ("scan" or
+        "fpsm"), ``clearance_certified_fpsm``, ``clearance_exact_min`` (None without a mesh),
+        the tolerances, the margin, ``reasons`` (empty when both are >= margin).
     """
     safety = SafetySpec() if safety is None else safety
     lateral, angle = safety.lateral_tolerance, safety.angle_tolerance
     margin = safety.clearance_margin
     X = np.asarray(X_CT, dtype=float).reshape(4, 4)
     depth = feed_depth(fpsm, X, tool)
-    certified = float(feed_clearance(fpsm, X, tool, depth=depth, lateral=lateral,
-                                     angle=angle)[0])
+    fpsm_value = float(feed_clearance(fpsm, X, tool, depth=depth, lateral=lateral,
+                                      angle=angle)[0])
+    certified, against, scan = fpsm_value, "fpsm", None
+    if exact is not None:
+        from implantplan.systems.placement.scan_clearance import (
+            ScanClearance,
+            feed_scan_clearance,
+        )
+
+        scan = feed_scan_clearance(ScanClearance(exact, tool), X, depth=depth, lateral=lateral,
+                                   angle=angle, clearance=margin)
+        certified, against = scan["value"], "scan"
     out = {
         "clearance_certified": certified,
+        "certified_against": against,
+        "clearance_certified_fpsm": fpsm_value,
+        "scan_bound": scan,
         "clearance_exact_min": None,
         "exact_poses": 0,
         "clearance_margin": margin,
@@ -454,16 +470,18 @@ def verify_placement(
         "angle_tolerance": float(angle),
         "feed_depth": depth,
         "tool": tool.to_dict(),
-        "method": "certified FPSM bound over the feed and the admissible region; FCL exact "
-                  "against the scan at sampled poses of that region",
+        "method": "certified bound over the feed and the admissible region (against the scan: "
+                  "its distance grid, FCL resolving the poses the bound leaves below the "
+                  "margin; without a mesh, the FPSM bound); FCL exact against the scan at "
+                  "sampled poses of that region",
         "units": "m, rad",
     }
     reasons = []
     region = f"(lateral {lateral * 1e3:.2f} mm, angle {np.degrees(angle):.2f} deg)"
     if not certified >= margin:
         reasons.append(
-            f"the tool's certified clearance over the feed and the fixture's admissible region "
-            f"{region} is {certified * 1e3:.3f} mm, below the clinical margin "
+            f"the tool's certified clearance ({against}) over the feed and the fixture's "
+            f"admissible region {region} is {certified * 1e3:.3f} mm, below the clinical margin "
             f"{margin * 1e3:.3f} mm"
         )
     if exact is not None:

@@ -1,0 +1,433 @@
+"""A sound, tight lower bound of the instrument's clearance against the opened scan itself.
+
+The exact reference is FCL against the scan (:class:`systems.placement.exact_clearance.
+ExactCavity`: per solid, -r when its start is in tissue or its axis touches the mesh, else the
+distance of the axis minus r for a capsule or sphere and the solid cylinder's own distance for a
+cylinder). This module bounds that value from below with the distance grid of the same mesh
+(:mod:`systems.placement.distance_grid`, a proven lower bound of the distance anywhere), by
+branch and bound over the instrument's solids (:class:`systems.instrument.Instrument`, in the
+Tool frame, posed by X_CTool):
+
+- a capsule (or sphere) of radius r: pieces are sub-segments of its axis; a piece of half-length
+  h about its midpoint q is at least D(q) - h from the mesh (1-Lipschitz), so the capsule piece
+  at least D(q) - h - r;
+- a cylinder (axis a-b, radius R, length L): pieces are annular sectors u in [u0, u1],
+  rho in [rho0, rho1], phi in [phi0, phi1] of its cylinder coordinates; a piece lies in the ball
+  about q = (u_m, (rho0 + rho1) / 2 at phi_m) whose radius is the largest distance from q to the
+  four corners of the sector in its (rho, phi) plane (the farthest point of an annular sector of
+  opening <= 2 pi from a point on its bisector is a corner: along each arc the distance grows
+  with the angle from the bisector, along each radial edge it is convex), combined with the
+  half-height (sqrt(c^2 + (h/2)^2)); the piece is at least D(q) minus that radius from the mesh.
+
+A piece whose bound reaches the target (the claimed clearance, or the best upper estimate so far
+when the value is asked) is done; otherwise it is split in two along its longest extent until its
+ball is below the resolution (default 0.1 mm, plus 5 % of its bound). The result is the smallest
+bound over the leaves (they cover the solid). Where that value is <= 0 the solid may touch, and
+the reference may then be as low as -r: the bound reports -r (the reference's floor), so the
+value is a lower bound of the reference everywhere, not only where free.
+
+**The start** of each solid (its point a, as the reference tests it): the reference calls it in
+tissue when the horizontal segment from the Center axis (0, 0, z_a) to a crosses the mesh. The
+bound certifies that this segment keeps a positive distance from the mesh (the same branch and
+bound, radius 0); otherwise the solid's bound is -r.
+
+**Upper estimates** (for the "unsafe" verdict): at each piece's centre q (inside the solid, at
+depth e from its surface) the solid is at most D_up(q) - e from the mesh (an exact node's value
+plus the distance to it); where the solid is free that is an upper bound of the reference, and
+where it is not the reference is <= 0. So for a claimed clearance c > 0, an upper estimate below
+c proves that the reference is below c.
+
+Verdicts for a claimed clearance c: ``SAFE`` (the bound >= c, FCL would agree), ``UNSAFE`` (an
+upper estimate < c), ``UNDECIDED`` (resolved by FCL in :meth:`ScanClearance.verdict` when the
+class holds an :class:`ExactCavity`).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from implantplan.systems.errors import InputError
+from implantplan.systems.instrument import Instrument
+from implantplan.systems.placement.distance_grid import (
+    DistanceGrid,
+    distance_grid,
+    lower_at,
+    upper_at,
+)
+
+SAFE, UNDECIDED, UNSAFE = 1, 0, -1
+RESOLUTION = 0.1e-3  # m: a piece whose ball radius is below this is not split further
+VALUE_CAP = 0.005  # m: clearances above this are not resolved further (reported >= about it)
+RELATIVE = 0.05  # a piece whose bound is b is not split below res + RELATIVE * b (far pieces
+# are resolved coarser: a clearance of 3 mm is not near the margin)
+TOLERANCE = 0.05e-3  # m: a piece within this of the best upper estimate is not split further
+STACK = 4096  # pieces held per solid; past it the solid is undecided (sound)
+START_CLEARANCE = 1e-7  # m: the start segment must be at least this far from the mesh
+KIND = {"capsule": 0, "sphere": 0, "cylinder": 1}
+
+
+@numba.njit(cache=True)
+def _frame(n):
+    """Two unit vectors completing the unit vector n to an orthonormal frame."""
+    if abs(n[0]) < 0.9:
+        ax, ay, az = 1.0, 0.0, 0.0
+    else:
+        ax, ay, az = 0.0, 1.0, 0.0
+    # e1 = n x a normalised, e2 = n x e1
+    e1 = np.array([n[1] * az - n[2] * ay, n[2] * ax - n[0] * az, n[0] * ay - n[1] * ax])
+    e1 /= np.sqrt(e1[0] ** 2 + e1[1] ** 2 + e1[2] ** 2)
+    e2 = np.array([n[1] * e1[2] - n[2] * e1[1], n[2] * e1[0] - n[0] * e1[2],
+                   n[0] * e1[1] - n[1] * e1[0]])
+    return e1, e2
+
+
+@numba.njit(cache=True)
+def _segment_bound(G, lo, hi, ox, oy, oz, g, band, a, b, radius, target, res, stack):
+    """(lower bound, upper estimate) of the distance of the capsule (axis a-b, radius) to the
+    mesh: pieces split while their bound is below min(target, best upper) and above the
+    resolution. ``stack`` (STACK, 2) is scratch."""
+    d = b - a
+    L = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    stack[0, 0] = 0.0
+    stack[0, 1] = 1.0
+    top = 1
+    lower = np.inf
+    upper = np.inf
+    while top > 0:
+        top -= 1
+        t0 = stack[top, 0]
+        t1 = stack[top, 1]
+        tm = 0.5 * (t0 + t1)
+        x = a[0] + tm * d[0]
+        y = a[1] + tm * d[1]
+        z = a[2] + tm * d[2]
+        h = 0.5 * (t1 - t0) * L
+        lb = lower_at(G, ox, oy, oz, g, band, lo, hi, x, y, z) - h - radius
+        ub = upper_at(G, ox, oy, oz, g, band, lo, hi, x, y, z) - radius
+        if ub < upper:
+            upper = ub
+            if upper <= 0.0:  # proven to touch: the solid's value is the reference's floor
+                return 0.0, upper
+        goal = target if target < upper - TOLERANCE else upper - TOLERANCE
+        if lb >= goal or h <= res + RELATIVE * lb or top + 2 > stack.shape[0]:
+            if lb < lower:
+                lower = lb
+            continue
+        stack[top, 0] = t0
+        stack[top, 1] = tm
+        stack[top + 1, 0] = tm
+        stack[top + 1, 1] = t1
+        top += 2
+    return lower, upper
+
+
+@numba.njit(cache=True)
+def _cylinder_bound(G, lo, hi, ox, oy, oz, g, band, a, b, R, target, res, stack):
+    """(lower bound, upper estimate) of the distance of the solid cylinder (axis a-b, radius R)
+    to the mesh by annular-sector pieces (module notes). ``stack`` (STACK, 6) is scratch."""
+    d = b - a
+    L = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    n = d / L
+    e1, e2 = _frame(n)
+    top = 0
+    for q in range(4):
+        stack[top, 0] = 0.0
+        stack[top, 1] = L
+        stack[top, 2] = 0.0
+        stack[top, 3] = R
+        stack[top, 4] = q * 0.5 * np.pi
+        stack[top, 5] = (q + 1) * 0.5 * np.pi
+        top += 1
+    lower = np.inf
+    upper = np.inf
+    while top > 0:
+        top -= 1
+        u0, u1, r0, r1, p0, p1 = (stack[top, 0], stack[top, 1], stack[top, 2], stack[top, 3],
+                                  stack[top, 4], stack[top, 5])
+        um = 0.5 * (u0 + u1)
+        rm = 0.5 * (r0 + r1)
+        pm = 0.5 * (p0 + p1)
+        # farthest corner of the annular sector from (rm, pm) in its plane
+        c = 0.0
+        for rr in (r0, r1):
+            for pp in (p0, p1):
+                dd = rm * rm + rr * rr - 2.0 * rm * rr * np.cos(pp - pm)
+                if dd > c:
+                    c = dd
+        hh = 0.5 * (u1 - u0)
+        rad = np.sqrt(c + hh * hh) * (1.0 + 1e-12) + 1e-15
+        cp = np.cos(pm) * rm
+        sp = np.sin(pm) * rm
+        x = a[0] + um * n[0] + cp * e1[0] + sp * e2[0]
+        y = a[1] + um * n[1] + cp * e1[1] + sp * e2[1]
+        z = a[2] + um * n[2] + cp * e1[2] + sp * e2[2]
+        lb = lower_at(G, ox, oy, oz, g, band, lo, hi, x, y, z) - rad
+        depth = min(R - rm, um, L - um)
+        ub = upper_at(G, ox, oy, oz, g, band, lo, hi, x, y, z) - depth
+        if ub < upper:
+            upper = ub
+            if upper <= 0.0:  # proven to touch: the solid's value is the reference's floor
+                return 0.0, upper
+        goal = target if target < upper - TOLERANCE else upper - TOLERANCE
+        if lb >= goal or rad <= res + RELATIVE * lb or top + 2 > stack.shape[0]:
+            if lb < lower:
+                lower = lb
+            continue
+        ext_u = u1 - u0
+        ext_r = r1 - r0
+        ext_p = r1 * (p1 - p0)
+        for s in range(2):
+            stack[top + s, 0] = u0
+            stack[top + s, 1] = u1
+            stack[top + s, 2] = r0
+            stack[top + s, 3] = r1
+            stack[top + s, 4] = p0
+            stack[top + s, 5] = p1
+        if ext_u >= ext_r and ext_u >= ext_p:
+            stack[top, 1] = um
+            stack[top + 1, 0] = um
+        elif ext_r >= ext_p:
+            stack[top, 3] = rm
+            stack[top + 1, 2] = rm
+        else:
+            stack[top, 5] = pm
+            stack[top + 1, 4] = pm
+        top += 2
+    return lower, upper
+
+
+@numba.njit(cache=True)
+def pose_bound(G, lo, hi, ox, oy, oz, g, band, X, kind, A, B, r, target, res, s2, s6, decide):
+    """(lower bound, upper estimate) of the reference clearance (m) of the instrument (solids
+    ``kind`` (S,), starts A (S, 3), ends B (S, 3) in T, radii r (S,)) at pose X (4, 4) of T in
+    Center, resolved against ``target`` (module notes). With ``decide`` (a verdict for the
+    claimed clearance ``target`` > 0) it stops at the first upper estimate below the target and
+    returns the reference's floor -max(r) as the lower bound."""
+    lower = np.inf
+    upper = np.inf
+    for s in range(kind.shape[0]):
+        a = np.empty(3)
+        b = np.empty(3)
+        for i in range(3):
+            a[i] = X[i, 0] * A[s, 0] + X[i, 1] * A[s, 1] + X[i, 2] * A[s, 2] + X[i, 3]
+            b[i] = X[i, 0] * B[s, 0] + X[i, 1] * B[s, 1] + X[i, 2] * B[s, 2] + X[i, 3]
+        # the start's horizontal segment from the Center axis must stay off the mesh
+        axis = np.array([0.0, 0.0, a[2]])
+        st, _ = _segment_bound(G, lo, hi, ox, oy, oz, g, band, axis, a, 0.0, START_CLEARANCE,
+                               res, s2)
+        goal = target if target < upper else upper  # the min over solids is at most upper
+        if kind[s] == 1:
+            lb, ub = _cylinder_bound(G, lo, hi, ox, oy, oz, g, band, a, b, r[s], goal, res, s6)
+        else:
+            lb, ub = _segment_bound(G, lo, hi, ox, oy, oz, g, band, a, b, r[s], goal, res, s2)
+        if not (st >= START_CLEARANCE and lb > 0.0):
+            lb = -r[s]
+        if lb < lower:
+            lower = lb
+        if ub < upper:
+            upper = ub
+        if decide and target > 0.0 and upper < target:
+            return -r.max(), upper
+    return lower, upper
+
+
+@numba.njit(cache=True, parallel=True)
+def _poses_kernel(G, lo, hi, ox, oy, oz, g, band, X, kind, A, B, r, target, res, decide, lower,
+                  upper):
+    for k in numba.prange(X.shape[0]):
+        s2 = np.empty((STACK, 2))
+        s6 = np.empty((STACK, 6))
+        lower[k], upper[k] = pose_bound(G, lo, hi, ox, oy, oz, g, band, X[k], kind, A, B, r,
+                                        target[k], res, s2, s6, decide)
+
+
+def _grid_args(grid: DistanceGrid) -> tuple:
+    v, ox, oy, oz, g, band, lo, hi = grid.args()
+    return (v, np.ascontiguousarray(lo), np.ascontiguousarray(hi), ox, oy, oz, g, band)
+
+
+class ScanClearance:
+    """The scan bound of one instrument against one cavity (module notes).
+
+    Args:
+        cavity: an :class:`systems.placement.exact_clearance.ExactCavity` (its mesh, Center
+            frame, cut at the mouth opening; FCL resolves undecided verdicts) or a mesh
+            (``trimesh.Trimesh``, then no FCL).
+        instrument: the solids (default the paper's tool).
+        resolution: smallest piece (m).
+        grid: a prebuilt :class:`DistanceGrid` of the same mesh (default: built and kept).
+
+    ``check(X)`` -> (n,) lower bounds (m) for (n, 4, 4) or (4, 4) poses; ``verdict(X, c)`` ->
+    (n,) SAFE / UNSAFE / UNDECIDED; ``clearance(X, c)`` -> (n,) the bound where it decides and
+    FCL's value where not; ``one(X)`` -> float for one (4, 4) pose.
+    """
+
+    def __init__(self, cavity, instrument: Instrument | None = None, *,
+                 resolution: float = RESOLUTION, grid: DistanceGrid | None = None):
+        import trimesh
+
+        from implantplan.systems.placement.exact_clearance import ExactCavity
+
+        if isinstance(cavity, ExactCavity):
+            self.exact, mesh = cavity, cavity.mesh
+        elif isinstance(cavity, trimesh.Trimesh):
+            self.exact, mesh = None, cavity
+        else:
+            raise InputError("cavity", f"expected an ExactCavity or a mesh, got "
+                             f"{type(cavity).__name__}")
+        res = float(resolution)
+        if not (np.isfinite(res) and res > 0):
+            raise InputError("resolution", f"expected a positive length (m), got {resolution}")
+        self.instrument = instrument or Instrument.paper()
+        self.grid_mesh = mesh
+        self.grid = grid if grid is not None else distance_grid(mesh)
+        self.resolution = res
+        self._g = _grid_args(self.grid)
+        shapes = self.instrument.shapes
+        self._kind = np.array([KIND[s.kind] for s in shapes], dtype=np.int64)
+        self._A = np.ascontiguousarray([s.a for s in shapes], dtype=float)
+        self._B = np.ascontiguousarray([s.b for s in shapes], dtype=float)
+        self._r = np.ascontiguousarray([s.radius for s in shapes], dtype=float)
+        self._s2 = np.empty((STACK, 2))
+        self._s6 = np.empty((STACK, 6))
+
+    def bounds(self, X_CTool, target=VALUE_CAP, *, decide: bool = False,
+               resolution: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(lower bounds, upper estimates) (n,) (m), resolved against ``target`` (scalar or
+        (n,)); ``decide``: a verdict for the claimed clearance ``target`` (stops at the first
+        proof of "unsafe", the lower bound then the reference's floor); ``resolution``: the
+        smallest piece (m), default the instance's."""
+        from implantplan.systems.placement.tool_clearance import rigid_poses
+
+        X = np.ascontiguousarray(rigid_poses(X_CTool))
+        t = np.ascontiguousarray(np.broadcast_to(np.asarray(target, dtype=float),
+                                                 (X.shape[0],)))
+        if not np.all(np.isfinite(t)):
+            raise InputError("clearance", "expected a finite claimed clearance (m)")
+        lower, upper = np.empty(X.shape[0]), np.empty(X.shape[0])
+        res = self.resolution if resolution is None else float(resolution)
+        _poses_kernel(*self._g, X, self._kind, self._A, self._B, self._r, t, res,
+                      bool(decide), lower, upper)
+        return lower, upper
+
+    def check(self, X_CTool) -> np.ndarray:
+        """(n,) proven lower bounds (m) of the reference clearance (resolved up to
+        :data:`VALUE_CAP`)."""
+        return self.bounds(X_CTool)[0]
+
+    def one(self, X_CTool: np.ndarray) -> float:
+        """The lower bound (m) at one (4, 4) pose, without input checks."""
+        X = np.ascontiguousarray(X_CTool, dtype=float)
+        return float(pose_bound(*self._g, X, self._kind, self._A, self._B, self._r, VALUE_CAP,
+                                self.resolution, self._s2, self._s6, False)[0])
+
+    def fast_verdict(self, X_CTool, clearance: float) -> np.ndarray:
+        """(n,) SAFE / UNSAFE / UNDECIDED for the claimed ``clearance`` (m) without FCL."""
+        c = float(clearance)
+        lower, upper = self.bounds(X_CTool, c, decide=True)
+        out = np.full(lower.shape, UNDECIDED, dtype=np.int8)
+        out[lower >= c] = SAFE
+        if c > 0:
+            out[(upper < c) & (lower < c)] = UNSAFE
+        return out
+
+    def verdict(self, X_CTool, clearance: float) -> np.ndarray:
+        """(n,) True where the instrument keeps ``clearance`` (m): the fast verdict, FCL
+        resolving the undecided poses (requires an ExactCavity)."""
+        v = self.fast_verdict(X_CTool, clearance)
+        und = v == UNDECIDED
+        if und.any():
+            if self.exact is None:
+                raise InputError("cavity", "undecided poses need the ExactCavity to resolve")
+            from implantplan.systems.placement.tool_clearance import rigid_poses
+
+            X = rigid_poses(X_CTool)
+            v[und] = np.where(self.exact.tool_clearance(X[und], self.instrument)
+                              >= float(clearance), SAFE, UNSAFE)
+        return v == SAFE
+
+    def clearance(self, X_CTool, clearance: float) -> tuple[np.ndarray, np.ndarray]:
+        """(values (n,), resolved (n,) bool): the scan bound where it decides the claimed
+        ``clearance`` (m) (a lower bound of FCL's value), FCL's value at the undecided poses
+        (``resolved`` True there)."""
+        from implantplan.systems.placement.tool_clearance import rigid_poses
+
+        X = rigid_poses(X_CTool)
+        c = float(clearance)
+        lower, upper = self.bounds(X, c, decide=True)
+        und = (lower < c) & ~((upper < c) & (c > 0))
+        vals = lower.copy()
+        if und.any():
+            if self.exact is None:
+                raise InputError("cavity", "undecided poses need the ExactCavity to resolve")
+            vals[und] = self.exact.tool_clearance(X[und], self.instrument)
+        return vals, und
+
+
+FEED_STEP = 0.1e-3  # m, pose spacing of :func:`feed_scan_clearance` (costs at most half of it)
+COARSE_RESOLUTION = 0.5e-3  # m, the first pass of :func:`feed_scan_clearance`
+NEAR_MINIMUM = 0.3e-3  # m: poses within this of the feed's least upper estimate are refined
+
+
+def feed_scan_clearance(scan: ScanClearance, X_CTool, *, depth: float, lateral: float = 0.0,
+                        angle: float = 0.0, clearance: float | None = None,
+                        step: float = FEED_STEP) -> dict:
+    """Certified clearance (m) of the instrument against the scan over its whole feed (the pose
+    ``X_CTool`` (4, 4) backed out along the rod by 0..``depth``) and the fixture's admissible
+    region (the rod axis within ``lateral`` of the planned line, the orientation within
+    ``angle``).
+
+    Per solid s and feed pose i the scan bound v_si (:meth:`ScanClearance.bounds`: a first
+    pass at :data:`COARSE_RESOLUTION`, then the poses whose bound is within
+    :data:`NEAR_MINIMUM` of the feed's least upper estimate refined at the scan's resolution
+    against that level: the others cannot hold the minimum); where a
+    pose's value minus the region's loss is below ``clearance`` (the margin; None: never) and
+    the scan holds an ExactCavity, FCL's exact value of each solid replaces the bound
+    (resolved). The region moves every point of solid s by at most lateral + angle * reach_s
+    (:meth:`Instrument.shape_reach_T`), so c_i = min_s (v_si - loss_s); between poses at spacing
+    t (a translation along the rod, 1-Lipschitz) the feed keeps min(c_i, (c_i + c_{i+1} - t) / 2).
+
+    Returns:
+        dict: ``value`` (m), ``poses``, ``resolved_poses`` (poses FCL resolved), ``step``,
+        ``solid`` (the solid at the minimum).
+    """
+    from dataclasses import replace
+
+    from implantplan.systems.placement.tool_clearance import feed_poses
+
+    for name, value in (("lateral", lateral), ("angle", angle)):
+        if not np.isfinite(value) or value < 0:
+            raise InputError(name, f"expected a tolerance >= 0, got {value}")
+    P, t = feed_poses(X_CTool, depth, step)
+    P = P.reshape(-1, 4, 4)
+    inst = scan.instrument
+    loss = lateral + angle * inst.shape_reach_T()
+    V = np.empty((len(inst.shapes), P.shape[0]))
+    U = np.empty_like(V)
+    solids = []
+    for k, s in enumerate(inst.shapes):
+        sub = ScanClearance(scan.exact if scan.exact is not None else scan.grid_mesh,
+                            replace(inst, shapes=(s,)), resolution=scan.resolution,
+                            grid=scan.grid)
+        lb, ub = sub.bounds(P, resolution=max(COARSE_RESOLUTION, scan.resolution))
+        level = min(ub.min() - loss[k] + NEAR_MINIMUM, VALUE_CAP)
+        V[k], U[k] = lb - loss[k], ub - loss[k]
+        refine = V[k] < level
+        if refine.any():
+            V[k, refine] = sub.bounds(P[refine], level + loss[k])[0] - loss[k]
+        solids.append(sub)
+    c_claim = -np.inf if clearance is None else float(clearance)
+    # FCL can lift a pose above the claim only where no solid's upper estimate is below it
+    low = (V.min(axis=0) < c_claim) & ~(U.min(axis=0) < c_claim)
+    resolved = int(low.sum())
+    if resolved and scan.exact is not None:
+        for k, sub in enumerate(solids):
+            V[k, low] = scan.exact.tool_clearance(P[low], sub.instrument) - loss[k]
+    c = V.min(axis=0)
+    value = float(c.min())
+    if c.size > 1:
+        value = min(value, float((0.5 * (c[:-1] + c[1:] - t)).min()))
+    return {"value": value, "poses": int(c.size), "resolved_poses": resolved if scan.exact
+            is not None else 0, "step": float(t), "solid": inst.shapes[int(
+                np.unravel_index(np.argmin(V), V.shape)[0])].name}

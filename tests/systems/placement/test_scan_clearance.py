@@ -1,0 +1,150 @@
+"""The scan's distance grid and the instrument's scan bound against exact references (libigl's
+point-to-mesh distance, FCL's clearance of the whole instrument), on a cylindrical cavity."""
+
+import igl
+import numpy as np
+import pytest
+import trimesh
+
+from implantplan.systems.errors import InputError
+from implantplan.systems.frames import rotations
+from implantplan.systems.instrument import Instrument
+from implantplan.systems.placement.distance_grid import build_grid, distance_grid
+from implantplan.systems.placement.exact_clearance import ExactCavity
+from implantplan.systems.placement.scan_clearance import (
+    SAFE,
+    UNDECIDED,
+    UNSAFE,
+    ScanClearance,
+)
+
+R_CAVITY = 0.03  # m
+H_CAVITY = 0.08  # m
+
+
+@pytest.fixture(scope="module")
+def cavity():
+    """A cylinder of radius 30 mm from z = 0 to 80 mm, open at the top (its cap removed)."""
+    m = trimesh.creation.cylinder(radius=R_CAVITY, height=H_CAVITY, sections=96)
+    m.apply_translation([0, 0, H_CAVITY / 2])
+    keep = ~np.all(np.isclose(m.vertices[m.faces][..., 2], H_CAVITY), axis=1)
+    m = trimesh.Trimesh(m.vertices, m.faces[keep], process=False)
+    return ExactCavity(m)
+
+
+@pytest.fixture(scope="module")
+def grid(cavity):
+    return build_grid(cavity.mesh, spacing=1e-3)
+
+
+def exact_distance(mesh, P):
+    return np.sqrt(igl.point_mesh_squared_distance(
+        np.ascontiguousarray(P), np.ascontiguousarray(mesh.vertices),
+        np.ascontiguousarray(mesh.faces, dtype=np.int64))[0])
+
+
+def test_grid_bounds_the_exact_distance(cavity, grid):
+    rng = np.random.default_rng(0)
+    P = np.vstack([rng.uniform(grid.box_lo - 0.02, grid.box_hi + 0.04, (20000, 3)),
+                   rng.uniform([-0.03, -0.03, 0.0], [0.03, 0.03, 0.08], (20000, 3))])
+    d = exact_distance(cavity.mesh, P)
+    lower, upper = grid.lower(P), grid.upper(P)
+    assert np.all(lower <= d + 1e-12)
+    assert np.all(upper >= d - 1e-12)
+    # tight near the wall (1 mm grid: the square-root bound loses g^2 sum t(1-t) / 2d)
+    near = (d > 0.5e-3) & (d < 4e-3)
+    assert np.median(d[near] - lower[near]) < 0.2e-3
+    # hand-derived: on the axis at mid height the wall is 30 cos(pi / 96) mm away; far from the
+    # wall the nodes hold the coarse levels' bound (4 mm cells: at most their half diagonal,
+    # 2 sqrt(3) mm, lost)
+    axis = grid.lower([[0, 0, 0.04]])[0]
+    wall = 0.03 * np.cos(np.pi / 96)
+    assert wall - 2 * np.sqrt(3) * 1e-3 < axis <= wall
+    # a node 2 mm from the wall holds its exact distance
+    node = grid.origin + grid.spacing * np.round((np.array([0.028, 0, 0.04]) - grid.origin)
+                                                 / grid.spacing)
+    assert grid.lower([node])[0] == pytest.approx(exact_distance(cavity.mesh, node[None])[0],
+                                                  abs=1e-8)
+    # above the open top the bound carries the top plane's value up (not only the box distance)
+    q = np.array([[0.0, 0.0, 0.08 + 0.03]])
+    assert grid.lower(q)[0] > 0.035
+
+
+def test_grid_is_kept_per_mesh_and_checks_its_input(cavity):
+    a = distance_grid(cavity.mesh, spacing=2e-3)
+    assert distance_grid(cavity.mesh, spacing=2e-3) is a
+    with pytest.raises(InputError, match="spacing"):
+        build_grid(cavity.mesh, spacing=0.0)
+    with pytest.raises(InputError, match="spacing"):
+        build_grid(cavity.mesh, spacing=1e-5)  # too many nodes
+
+
+def random_poses(n, rng, *, lateral=0.02, z=(0.035, 0.075)):
+    """Tool poses in the cavity: the head centre anywhere within ``lateral`` of the axis, the
+    rod rising out of the mouth at a random tilt, the implant pointing down-ish."""
+    X = np.repeat(np.eye(4)[None], n, axis=0)
+    # T's x (the rod) up out of the cavity, tilted: base rotation x_T -> +z_C
+    base = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    w = rng.normal(size=(n, 3))
+    w *= (np.radians(35) * rng.uniform(0, 1, n) / np.linalg.norm(w, axis=1))[:, None]
+    X[:, :3, :3] = rotations(w) @ base
+    r = lateral * np.sqrt(rng.uniform(0, 1, n))
+    a = rng.uniform(0, 2 * np.pi, n)
+    X[:, :3, 3] = np.c_[r * np.cos(a), r * np.sin(a), rng.uniform(*z, n)]
+    return X
+
+
+@pytest.mark.parametrize("tool", ["actuator", "paper"])
+def test_scan_bound_never_above_fcl(cavity, grid, tool):
+    inst = Instrument.actuator() if tool == "actuator" else Instrument.paper()
+    sc = ScanClearance(cavity, inst, grid=grid)
+    rng = np.random.default_rng(1)
+    X = random_poses(300, rng)
+    exact = cavity.tool_clearance(X, inst)
+    lower = sc.check(X)
+    assert np.all(lower <= exact + 1e-9)
+    assert np.all(lower >= -max(s.radius for s in inst.shapes) - 1e-12)
+    c = 1e-3
+    v = sc.fast_verdict(X, c)
+    assert not np.any((v == SAFE) & (exact < c))
+    assert not np.any((v == UNSAFE) & (exact >= c))
+    free = exact >= c + 0.2e-3
+    assert free.sum() > 50 and (exact < c).sum() > 20  # both sides are sampled
+    assert np.mean(v[free] == SAFE) >= 0.9
+    # where it decides near the margin, near FCL (0.3 mm at the 0.5 mm grid; this one is 1 mm)
+    near = (exact > 0.5e-3) & (exact < 3e-3)
+    assert np.max(exact[near] - lower[near]) < 0.5e-3
+    # the resolved verdict and clearance agree with FCL
+    assert np.array_equal(sc.verdict(X, c), exact >= c)
+    vals, resolved = sc.clearance(X, c)
+    assert np.all(vals[~resolved] <= exact[~resolved] + 1e-9)
+    assert np.allclose(vals[resolved], exact[resolved])
+    assert np.all((vals >= c) == (exact >= c))
+    assert sc.one(X[0]) == pytest.approx(lower[0])
+    assert set(np.unique(v)) <= {SAFE, UNSAFE, UNDECIDED}
+
+
+def test_a_tool_outside_the_cavity_is_not_safe(cavity, grid):
+    """A pose whose head sits in the 'tissue' beyond the wall, far from it: the start test
+    (the horizontal segment from the axis crosses the wall) makes it -r, as FCL does."""
+    inst = Instrument.paper()
+    sc = ScanClearance(cavity, inst, grid=grid)
+    X = random_poses(1, np.random.default_rng(2))
+    X[0, :3, 3] = [0.06, 0.0, 0.04]  # 30 mm beyond the wall
+    X[0, :3, :3] = np.eye(3)  # the rod along +x, away from the wall
+    assert cavity.tool_clearance(X, inst)[0] < 0
+    assert sc.check(X)[0] < 0
+    assert sc.fast_verdict(X, 1e-3)[0] != SAFE
+
+
+def test_scan_clearance_checks_its_input(cavity, grid):
+    with pytest.raises(InputError, match="cavity"):
+        ScanClearance("mesh.stl")
+    with pytest.raises(InputError, match="resolution"):
+        ScanClearance(cavity, grid=grid, resolution=0.0)
+    sc = ScanClearance(cavity.mesh, Instrument.paper(), grid=grid)
+    X = random_poses(20, np.random.default_rng(3), lateral=0.029, z=(0.001, 0.01))
+    with pytest.raises(InputError, match="cavity"):  # undecided poses and no FCL to resolve
+        v = sc.fast_verdict(X, 5e-3)
+        assert (v == UNDECIDED).any()
+        sc.verdict(X, 5e-3)
