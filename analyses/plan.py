@@ -84,7 +84,8 @@ def acceptance_flags(p: argparse.ArgumentParser) -> None:
                         "the report)")
     p.add_argument("--accept-repairs", action="store_true",
                    help="plan a scan whose open boundary is more than "
-                        f"{pipeline.MAX_OPEN_EDGE_SHARE:.0%} of its edges (marked in the report)")
+                        f"{pipeline.MAX_OPEN_EDGE_SHARE * 100:.0f}%% of its edges "
+                        "(marked in the report)")
     p.add_argument("--memory-budget-mb", type=float, default=None,
                    help="refuse a plan estimated to need more memory (default: half the "
                         "machine's, or $IMPLANTPLAN_MEMORY_BUDGET_MB)")

@@ -64,3 +64,23 @@ def test_every_option_has_help_text():
         if action.help in (None, "") and not isinstance(action, argparse._HelpAction)
     ]
     assert missing == []
+
+
+def _parsers(parser: argparse.ArgumentParser, path: list[str]):
+    yield path, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, child in action.choices.items():
+                yield from _parsers(child, [*path, name])
+
+
+def test_every_command_prints_its_help(capsys):
+    """``--help`` of every command and subcommand formats (a bare % in a help string breaks
+    argparse's formatting with a traceback) and exits 0."""
+    paths = [p for p, _ in _parsers(build_parser(), [])]
+    assert len(paths) > len(COMMANDS)
+    for path in paths:
+        with pytest.raises(SystemExit) as e:
+            main([*path, "--help"])
+        assert e.value.code == 0, path
+        assert "usage: implantplan" in capsys.readouterr().out, path
