@@ -104,11 +104,14 @@ def placement_checks(site: str, placement, *, distance_to_tissue: float, toleran
                              upper=False, site=site))
     grid = placement.to_dict().get("grid_check") or {}
     if "x" in grid:
-        out.append(check("placement.grid_d_T", "PSO vs grid optimum, d_T",
-                         abs(placement.d_T - float(grid["x"][0])), GRID_TOL_D, unit="m",
-                         upper=True, site=site))
-        out.append(check("placement.grid_theta_T", "PSO vs grid optimum, theta_T",
-                         abs(wrap_angle(placement.theta_T - float(grid["x"][1]))),
+        # the PSO's optimum (of the FPSM objective) against the grid's; when the instrument
+        # search replaced it (verification.instrument_search), the placement is not the PSO's
+        d_d = grid.get("distance_d_T", abs(placement.d_T - float(grid["x"][0])))
+        d_th = grid.get("distance_theta_T",
+                        abs(wrap_angle(placement.theta_T - float(grid["x"][1]))))
+        out.append(check("placement.grid_d_T", "PSO vs grid optimum, d_T", d_d, GRID_TOL_D,
+                         unit="m", upper=True, site=site))
+        out.append(check("placement.grid_theta_T", "PSO vs grid optimum, theta_T", d_th,
                          GRID_TOL_THETA, unit="rad", upper=True, site=site))
     return out
 

@@ -499,6 +499,119 @@ def verify_placement(
     return out
 
 
+SEARCH_GRID = (101, 91)  # (d_T, theta_T) points of the coarse grid of :func:`search_for_instrument`
+SEARCH_FINE = (0.25e-3, np.radians(1.0))  # m, rad: the fine grid's largest spacing
+SEARCH_FINE_MAX = 161  # points per axis of the fine grid at most
+SEARCH_FEED_STEP = 0.5e-3  # m, the screen's pose spacing along the feed (costs <= half)
+SEARCH_SCREEN = 400  # feeds screened at most
+SEARCH_COARSE = 0.5e-3  # m, the scan bound's resolution in the screen's upper estimates
+SEARCH_VERIFY = 8  # full verifications at most (each screened candidate that passes gets one)
+
+
+def _grid_points(lo, hi, shape) -> np.ndarray:
+    a = np.linspace(lo[0], hi[0], int(shape[0]))
+    b = np.linspace(lo[1], hi[1], int(shape[1]))
+    return np.stack(np.meshgrid(a, b, indexing="ij"), axis=-1).reshape(-1, 2)
+
+
+def _lines_ok(problem: PlacementProblem, X: np.ndarray):
+    """The objective at placements X (K, 2) and whether each keeps :func:`_invalid_reasons`'s
+    rules (both FPSM lines collision-free, the feeding target in the mouth)."""
+    ev = problem.evaluate(X)
+    lines = feeding_lines(problem.X_CH, X[:, 0], X[:, 1], problem.rod_radius,
+                          problem.implant_length)
+    ok = (ev.f_safe_line1 > 0) & (ev.f_safe_line2 > 0) & (_height_above(lines, problem.fpsm) <= 0)
+    return ev.F, ok
+
+
+def search_for_instrument(problem: PlacementProblem, bounds: np.ndarray, tool: Instrument,
+                          safety: SafetySpec, exact) -> tuple[np.ndarray | None, dict | None,
+                                                              dict]:
+    """The best placement whose whole instrument clears the scan, when the FPSM optimum's does
+    not (the PSO objective is the paper's: it sees the rod and the implant's path, not the
+    instrument's head).
+
+    1. Candidates: the :data:`SEARCH_GRID` points of ``bounds`` whose FPSM lines are
+       collision-free with the feeding target in the mouth (:func:`_invalid_reasons`'s rules),
+       then a fine grid (spacing at most :data:`SEARCH_FINE`) over their bounding box, with the
+       same rules.
+    2. At the target pose, each solid's scan bound less its share of the fixture's region
+       (lateral + angle * reach) must reach the margin: the target is one pose of the feed, so a
+       candidate failing there cannot pass (a necessary test, batched).
+    3. In order of the objective F (best first), at most :data:`SEARCH_SCREEN` feeds are
+       screened by :func:`systems.placement.scan_clearance.feed_scan_clearance` every
+       :data:`SEARCH_FEED_STEP` (the verification's certified bound at a coarser spacing); the
+       first :data:`SEARCH_VERIFY` that pass get the full :func:`verify_placement` (the plan's
+       verdict), and the first it accepts is the placement.
+
+    Returns:
+        (x (2,) or None, its verification or None, the search record: ``grid``, ``fine``,
+        ``candidates``, ``clear_at_target``, ``screened``, ``verified``, ``F`` and ``F_loss``
+        (F minus the best F of all candidates) of the choice).
+    """
+    from dataclasses import replace
+
+    from implantplan.systems.placement.scan_clearance import (
+        FEED_STEP,
+        ScanClearance,
+        feed_scan_clearance,
+    )
+
+    lo, hi = np.asarray(bounds[0], float), np.asarray(bounds[1], float)
+    Xc = _grid_points(lo, hi, SEARCH_GRID)
+    _, ok = _lines_ok(problem, Xc)
+    record = {"grid": list(SEARCH_GRID), "fine": None, "candidates": 0, "clear_at_target": 0,
+              "screened": 0, "verified": 0, "feed_step": SEARCH_FEED_STEP, "F": None,
+              "F_loss": None}
+    if not ok.any():
+        return None, None, record
+    step = (hi - lo) / (np.asarray(SEARCH_GRID) - 1)
+    flo = np.maximum(Xc[ok].min(axis=0) - step, lo)
+    fhi = np.minimum(Xc[ok].max(axis=0) + step, hi)
+    shape = np.clip(np.ceil((fhi - flo) / np.asarray(SEARCH_FINE)).astype(int) + 1, 2,
+                    SEARCH_FINE_MAX)
+    X = np.concatenate([Xc[ok], _grid_points(flo, fhi, shape)])
+    F, ok = _lines_ok(problem, X)
+    X, F = X[ok], F[ok]
+    record["fine"] = {"shape": shape.tolist(), "d_T": [float(flo[0]), float(fhi[0])],
+                      "theta_T": [float(flo[1]), float(fhi[1])]}
+    record["candidates"] = int(X.shape[0])
+    scan = ScanClearance(exact, tool)
+    margin = safety.clearance_margin
+    loss = safety.lateral_tolerance + safety.angle_tolerance * tool.shape_reach_T()
+    X_CT = tool_frames(problem.X_CH, X[:, 0], X[:, 1])
+    clear = np.ones(X.shape[0], dtype=bool)
+    subs = [ScanClearance(exact, replace(tool, shapes=(s,)), grid=scan.grid) for s in tool.shapes]
+    for k, sub in enumerate(subs):
+        clear &= sub.bounds(X_CT, margin + loss[k])[0] - loss[k] >= margin
+    record["clear_at_target"] = int(clear.sum())
+    order = np.flatnonzero(clear)[np.argsort(F[clear], kind="stable")]
+    for k in order[:SEARCH_SCREEN]:
+        record["screened"] += 1
+        depth = feed_depth(problem.fpsm, X_CT[k], tool)
+        # an upper estimate below the margin at a feed pose (the verification's poses are within
+        # half its step of it) rules the candidate out before the certified screen
+        P = feed_poses(X_CT[k], depth, SEARCH_FEED_STEP)[0].reshape(-1, 4, 4)
+        if any((sub.bounds(P, margin + loss[j], resolution=SEARCH_COARSE)[1] - loss[j]).min()
+               + 0.5 * FEED_STEP < margin for j, sub in enumerate(subs)):
+            continue
+        screen = feed_scan_clearance(scan, X_CT[k], depth=depth,
+                                     lateral=safety.lateral_tolerance,
+                                     angle=safety.angle_tolerance, clearance=margin,
+                                     step=SEARCH_FEED_STEP)
+        if not screen["value"] >= margin:
+            continue
+        record["verified"] += 1
+        ver = verify_placement(problem.fpsm, X_CT[k], tool, safety=safety, exact=exact)
+        if not ver["reasons"]:
+            record["F"] = float(F[k])
+            record["F_loss"] = float(F[k] - F.min())
+            return X[k].copy(), ver, record
+        if record["verified"] >= SEARCH_VERIFY:
+            break
+    return None, None, record
+
+
 def _invalid_reasons(problem: PlacementProblem, x: np.ndarray) -> list[str]:
     """Why the placement x is not acceptable (empty when both lines are collision-free)."""
     ev = problem.evaluate(x[None])
@@ -675,10 +788,29 @@ def place_instrument(
         if not reasons:
             break
     res = best
-    ev = problem.evaluate(res.x[None])
+    x = res.x
+    verification = verify_placement(fpsm, tool_frames(X_CH, x[0], x[1]), tool, safety=safety,
+                                    exact=exact)
+    search = None
+    if (reasons or verification["reasons"]) and exact is not None:
+        # the FPSM optimum fails for the instrument (its head, the region): the best grid
+        # placement that the scan certifies for the whole instrument
+        found, ver, search = search_for_instrument(problem, bounds, tool, safety, exact)
+        search["rejected_optimum"] = {"d_T": float(x[0]), "theta_T": float(x[1]),
+                                      "reason": "; ".join(reasons + verification["reasons"])}
+        if found is not None:
+            x, verification, reasons = found, ver, []
+        else:
+            reasons = reasons + [
+                f"no placement clears the scan by the margin with the whole instrument "
+                f"({tool.name}) over the feed and the fixture's region ({search['candidates']} "
+                f"grid placements with collision-free FPSM lines, {search['clear_at_target']} "
+                f"clear at the target, {search['screened']} feeds screened)"]
+    verification["instrument_search"] = search
+    ev = problem.evaluate(x[None])
     f1, f2 = float(ev.f_safe_line1[0]), float(ev.f_safe_line2[0])
-    lines = feeding_lines(X_CH, res.x[0], res.x[1], rod_radius, implant_length)
-    X_CT = tool_frames(X_CH, res.x[0], res.x[1])
+    lines = feeding_lines(X_CH, x[0], x[1], rod_radius, implant_length)
+    X_CT = tool_frames(X_CH, x[0], x[1])
     grid = None
     if verify:
         g = verify_by_grid(problem, bounds[0], bounds[1])
@@ -691,12 +823,11 @@ def place_instrument(
             "distance_theta_T": float(abs(wrap_angle(g["x"][1] - res.x[1]))),
             "F_pso_minus_grid": float(res.F - g["F"]),
         }
-    verification = verify_placement(fpsm, X_CT, tool, safety=safety, exact=exact)
     reasons = reasons + verification["reasons"]
     placement = Placement(
-        d_T=float(res.x[0]),
-        theta_T=float(res.x[1]),
-        F_safe=float(res.F),
+        d_T=float(x[0]),
+        theta_T=float(x[1]),
+        F_safe=float(ev.F[0]),
         f_safe_line1=f1,
         f_safe_line2=f2,
         d_safe_min_line1=float(ev.d_safe_min_line1[0]),

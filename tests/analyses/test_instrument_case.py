@@ -43,3 +43,47 @@ def test_the_actuator_is_refused_on_the_default_case_with_its_reason():
         pipeline.placement_stage(case, fit.fpsm, mesh=fit.opened)
     paper = dataclasses.replace(case, instrument=load_case(default_case_path()).instrument)
     assert all(p.valid for p in pipeline.placement_stage(paper, fit.fpsm, mesh=fit.opened))
+
+
+def _actuator_case_30deg(sites: int = 2):
+    """The default case with the shipped actuator and the mouth opened by 30 deg (the incisors
+    about 46 mm apart), its sites moved down their axes to the tissue of that opening."""
+    data = read_yaml(default_case_path())
+    data["instrument"] = "actuator"
+    data["mesh"]["mouth_opening_deg"] = 30
+    moved = {"36": [14.7, -27.1, 37.1], "46": [-14.8, -27.4, 37.1]}
+    data["sites"] = [dict(s, position_mm=moved[s["name"]]) for s in data["sites"]][:sites]
+    return case_from_dict(data, source=default_case_path())
+
+
+@pytest.mark.sweep
+def test_the_actuator_is_placed_where_its_head_clears_the_scan():
+    """The PSO's optimum of the paper's objective puts the actuator's head in the tissue; the
+    instrument search (systems.placement.planner.search_for_instrument) places it where the
+    scan bound certifies the whole instrument over the feed and the fixture's region, and FCL
+    at the region's samples agrees (never below the certified value)."""
+    from implantplan.systems.placement.exact_clearance import ExactCavity
+    from implantplan.systems.placement.tool_clearance import feed_depth, feed_poses
+
+    case = _actuator_case_30deg(sites=1)
+    fit = pipeline.fit_stage(case)
+    (p,) = pipeline.placement_stage(case, fit.fpsm, mesh=fit.opened)
+    ver = p.verification
+    search = ver["instrument_search"]
+    margin = case.safety.clearance_margin
+    assert p.valid and ver["certified_against"] == "scan"
+    assert margin <= ver["clearance_certified"] <= ver["clearance_exact_min"]
+    assert search["verified"] >= 1 and search["F_loss"] >= 0
+    # the optimum it replaced: the actuator there is exactly in the tissue (FCL)
+    rejected = search["rejected_optimum"]
+    assert "below the clinical margin" in rejected["reason"]
+    from implantplan.systems.placement.planner import tool_frames
+
+    tool = case.instrument_at(case.sites[0])
+    exact = ExactCavity.from_scan(fit.opened, fit.fpsm, close_open_cuts=True)
+    X0 = tool_frames(p.X_CH, rejected["d_T"], rejected["theta_T"])
+    P0, _ = feed_poses(X0, feed_depth(fit.fpsm, X0, tool), 0.5e-3)
+    assert exact.tool_clearance(P0[0], tool).min() < 0
+    # the chosen feed, every 0.5 mm, by FCL: clear by the certified value
+    P, _ = feed_poses(p.X_CT, feed_depth(fit.fpsm, p.X_CT, tool), 0.5e-3)
+    assert exact.tool_clearance(P[0], tool).min() >= ver["clearance_certified"]
