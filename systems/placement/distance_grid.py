@@ -35,14 +35,20 @@ d(q) >= sqrt((z - z_g)^2 + d(q')^2) (the mouth opening is wide, the box distance
 below the band), plus a rounding allowance.
 
 :func:`distance_grid` builds one per mesh and keeps it (a weak cache keyed by the mesh object,
-as the plan keeps its :class:`systems.placement.exact_clearance.ExactCavity`).
+as the plan keeps its :class:`systems.placement.exact_clearance.ExactCavity`), and on disk in
+the user's cache folder keyed by the mesh's content (``$IMPLANTPLAN_CACHE``, ``off`` for none).
 """
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
+import os
+import tempfile
 import time
 import weakref
 from dataclasses import dataclass
+from pathlib import Path
 
 import igl
 import numba
@@ -167,14 +173,71 @@ def build_grid(mesh: trimesh.Trimesh, *, spacing: float = SPACING, band: float =
 
 
 _CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+CACHE_ENV = "IMPLANTPLAN_CACHE"  # a folder for built grids; "off": none (default ~/.cache)
+CACHE_VERSION = 1  # with this module's text, part of the cache key
+
+
+def cache_folder() -> Path | None:
+    """Where built grids are kept across processes: ``$IMPLANTPLAN_CACHE``, else
+    ``$XDG_CACHE_HOME/implantplan`` or ``~/.cache/implantplan``; None when the variable is
+    ``off``."""
+    env = os.environ.get(CACHE_ENV)
+    if env is not None:
+        return None if env.strip().lower() == "off" else Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "implantplan"
+
+
+def _cache_file(mesh: trimesh.Trimesh, options: dict) -> Path | None:
+    folder = cache_folder()
+    if folder is None:
+        return None
+    h = hashlib.sha256()
+    h.update(f"distance_grid {CACHE_VERSION} {sorted(options.items())!r}".encode())
+    h.update(Path(__file__).read_bytes())  # any change of this module is a new grid
+    h.update(np.ascontiguousarray(mesh.vertices, dtype=float).tobytes())
+    h.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
+    return folder / f"distance_grid_{h.hexdigest()[:32]}.npz"
+
+
+def _load(path: Path) -> DistanceGrid | None:
+    try:
+        with np.load(path) as z:
+            return DistanceGrid(z["values"].astype(np.float32, copy=False), z["origin"],
+                                float(z["spacing"]), float(z["band"]), z["box_lo"],
+                                z["box_hi"], int(z["exact_nodes"]), float(z["seconds"]))
+    except (OSError, KeyError, ValueError):  # absent, partial or foreign: build it again
+        return None
+
+
+def _save(path: Path, grid: DistanceGrid) -> None:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz.part")
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, values=grid.values, origin=grid.origin, spacing=grid.spacing,
+                     band=grid.band, box_lo=grid.box_lo, box_hi=grid.box_hi,
+                     exact_nodes=grid.exact_nodes, seconds=grid.seconds)
+        os.replace(tmp, path)  # atomic: a parallel reader sees the whole file or none
+    except OSError:  # a read-only home: the grid is rebuilt next time
+        with contextlib.suppress(OSError, UnboundLocalError):
+            os.unlink(tmp)
 
 
 def distance_grid(mesh: trimesh.Trimesh, **options) -> DistanceGrid:
-    """:func:`build_grid` of ``mesh``, kept while the mesh object lives (per options)."""
+    """:func:`build_grid` of ``mesh``, kept while the mesh object lives (per options) and on
+    disk across processes (:func:`cache_folder`, keyed by the mesh's vertices and faces, the
+    options and :data:`CACHE_VERSION`)."""
     per_mesh = _CACHE.setdefault(mesh, {})
     key = tuple(sorted(options.items()))
     if key not in per_mesh:
-        per_mesh[key] = build_grid(mesh, **options)
+        path = _cache_file(mesh, options)
+        grid = _load(path) if path is not None and path.exists() else None
+        if grid is None:
+            grid = build_grid(mesh, **options)
+            if path is not None:
+                _save(path, grid)
+        per_mesh[key] = grid
     return per_mesh[key]
 
 

@@ -110,7 +110,7 @@ def _segment_bound(G, lo, hi, ox, oy, oz, g, band, a, b, radius, target, res, st
             if upper <= 0.0:  # proven to touch: the solid's value is the reference's floor
                 return 0.0, upper
         goal = target if target < upper - TOLERANCE else upper - TOLERANCE
-        if lb >= goal or h <= res + RELATIVE * lb or top + 2 > stack.shape[0]:
+        if lb >= goal or h <= res + RELATIVE * max(lb, 0.0) or top + 2 > stack.shape[0]:
             if lb < lower:
                 lower = lb
             continue
@@ -170,7 +170,7 @@ def _cylinder_bound(G, lo, hi, ox, oy, oz, g, band, a, b, R, target, res, stack)
             if upper <= 0.0:  # proven to touch: the solid's value is the reference's floor
                 return 0.0, upper
         goal = target if target < upper - TOLERANCE else upper - TOLERANCE
-        if lb >= goal or rad <= res + RELATIVE * lb or top + 2 > stack.shape[0]:
+        if lb >= goal or rad <= res + RELATIVE * max(lb, 0.0) or top + 2 > stack.shape[0]:
             if lb < lower:
                 lower = lb
             continue

@@ -79,6 +79,31 @@ def test_grid_is_kept_per_mesh_and_checks_its_input(cavity):
         build_grid(cavity.mesh, spacing=1e-5)  # too many nodes
 
 
+def test_grid_is_kept_on_disk_by_content(cavity, tmp_path, monkeypatch):
+    """A built grid is written to $IMPLANTPLAN_CACHE and read back by another mesh object of
+    the same content (bit-identical); a damaged file is rebuilt; "off" writes nothing."""
+    import trimesh
+
+    from implantplan.systems.placement import distance_grid as dg
+
+    def copy():  # the same content in a new object (the memory cache is keyed by the object)
+        return trimesh.Trimesh(cavity.mesh.vertices.copy(), cavity.mesh.faces.copy(),
+                               process=False)
+
+    monkeypatch.setenv(dg.CACHE_ENV, str(tmp_path / "cache"))
+    a = distance_grid(copy(), spacing=2e-3)
+    (f,) = (tmp_path / "cache").iterdir()
+    b = distance_grid(copy(), spacing=2e-3)
+    assert b is not a and np.array_equal(a.values, b.values) and b.spacing == a.spacing
+    moved = trimesh.Trimesh(cavity.mesh.vertices + 1e-3, cavity.mesh.faces, process=False)
+    distance_grid(moved, spacing=2e-3)
+    assert len(list((tmp_path / "cache").iterdir())) == 2  # another mesh, another file
+    f.write_bytes(b"not a grid")
+    assert np.array_equal(distance_grid(copy(), spacing=2e-3).values, a.values)
+    monkeypatch.setenv(dg.CACHE_ENV, "off")
+    assert dg.cache_folder() is None
+
+
 def random_poses(n, rng, *, lateral=0.02, z=(0.035, 0.075)):
     """Tool poses in the cavity: the head centre anywhere within ``lateral`` of the axis, the
     rod rising out of the mouth at a random tilt, the implant pointing down-ish."""
