@@ -46,9 +46,11 @@ claims to be below the reference's -r floor too), the largest excess, ``undecide
 ``false_unsafe`` (UNSAFE where FCL >= c: a wrong upper estimate, not a safety defect but a
 defect), ``called_safe_share`` (of the poses FCL puts >= c + 0.2 mm clear, the share fast_verdict
 calls SAFE; target >= 0.9), the median gap FCL - bound where 0 < FCL <= 5 mm (the bound resolves
-values up to :data:`systems.placement.scan_clearance.VALUE_CAP`), and the time per pose of
-fast_verdict, of the bound's value and of FCL, side by side in one run, numba on one thread (FCL
-runs on one). The false-safe counts are also given per pose kind.
+values up to :data:`systems.placement.scan_clearance.VALUE_CAP`), ``fcl_below_its_floor`` (poses
+where FCL's value is below -r, impossible by its definition: FCL's distance query returns -1
+for a grazing cylinder its collide query calls free; left out of the excess), and the time per
+pose of fast_verdict, of the bound's value and of FCL, side by side in one run, numba on one
+thread (FCL runs on one). The false-safe counts are also given per pose kind.
 
 Writes ``scan_bound_check.json`` to ``--out`` (a new folder) when given.
 """
@@ -431,7 +433,10 @@ def measure(scan, exact: ExactCavity, inst: Instrument, X: np.ndarray, kinds: np
     truth = exact.tool_clearance(X, inst)
     t_fcl = time.perf_counter() - t0
     false_verdict = (verdict == SAFE) & (truth < margin)
-    excess = lower - truth
+    # FCL's distance query answers -1 (its "in collision") for a few grazing cylinders its
+    # collide query calls free: below the reference's own floor -r, not a value to compare
+    sentinel = truth < -max(s.radius for s in inst.shapes) - VALUE_TOL
+    excess = np.where(sentinel, -np.inf, lower - truth)
     false_value = (truth > 0) & (excess > VALUE_TOL)
     free = truth >= margin + FREE_BY
     gap_at = (truth > 0) & (truth <= GAP_CAP)
@@ -462,12 +467,15 @@ def measure(scan, exact: ExactCavity, inst: Instrument, X: np.ndarray, kinds: np
         "false_safe_verdict": int(false_verdict.sum()),
         "false_safe_value": int(false_value.sum()),
         "excess_anywhere": int((excess > VALUE_TOL).sum()),
+        "fcl_below_its_floor": int(sentinel.sum()),
+        "fcl_below_its_floor_min_m": float(truth[sentinel].min()) if sentinel.any() else None,
         "largest_excess_m_where_free": float(excess[truth > 0].max()) if (truth > 0).any()
         else None,
         "largest_excess_m": float(excess.max()),
         "worst_pose": worst,
         "safe": int((verdict == SAFE).sum()),
         "undecided": int((verdict == UNDECIDED).sum()),
+        "undecided_fcl_below_margin": int(((verdict == UNDECIDED) & (truth < margin)).sum()),
         "unsafe": int((verdict == UNSAFE).sum()),
         "false_unsafe": int(((verdict == UNSAFE) & (truth >= margin)).sum()),
         "fcl_below_margin": int((truth < margin).sum()),
