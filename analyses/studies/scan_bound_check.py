@@ -4,7 +4,9 @@ ScanClearance`) against its exact reference, FCL against the same opened scan
 case, transformed copies of its cavity and both instruments.
 
 Run: ``python -m implantplan.analyses.studies.scan_bound_check [--poses 10000] [--seed 0]
-[--out DIR]``.
+[--cavities default,mirror,scale0.9,scale1.1,rigid] [--out DIR]``; ``cohort-00``,
+``cohort-01`` are other subjects (cases of the default case's synthetic cohort,
+:func:`cohort_cavity`).
 
 **Cavities.** ``default``: the default case's opened scan as the plan takes it (Center frame,
 open cuts closed, cut at the mouth opening: :meth:`ExactCavity.from_scan`). Its copies, each a
@@ -86,6 +88,7 @@ from implantplan.systems.placement.scan_clearance import (
 
 MAX_POSES = 1_000_000  # per cavity x instrument
 CAVITIES = ("default", "mirror", "scale0.9", "scale1.1", "rigid")
+SUBJECTS = ("cohort-00", "cohort-01")  # other subjects: :func:`cohort_cavity`
 INSTRUMENTS = ("paper", "actuator")
 ADVERSARIAL_SHARE = 0.4
 BAND = 0.05e-3  # m: the margin and grazing poses are within this of their level
@@ -155,23 +158,45 @@ def transform_poses(X: np.ndarray, A: np.ndarray) -> np.ndarray:
     return out
 
 
-def default_cavity(progress: Progress) -> tuple[Cavity, float]:
-    """The default case's cavity and its feeds as ``implantplan plan`` places them, and the
-    case's margin (m)."""
+def planned_cavity(case_path, name: str, progress: Progress) -> tuple[Cavity, float]:
+    """A case's cavity and its feeds as ``implantplan plan`` places them (a site without a
+    valid placement keeps its best feed), and the case's margin (m)."""
     from implantplan.analyses import pipeline
-    from implantplan.analyses.case import default_case_path, load_case
+    from implantplan.analyses.case import load_case
     from implantplan.systems.placement.tool_clearance import feed_depth
 
-    case = load_case(default_case_path())
-    progress.say("default case: fit and placement")
+    case = load_case(case_path)
+    progress.say(f"{name}: fit and placement")
     fit = pipeline.fit_stage(case)
-    placements = pipeline.placement_stage(case, fit.fpsm, mesh=fit.opened)
+    placements = pipeline.placement_stage(case, fit.fpsm, mesh=fit.opened, require_valid=False)
     exact = ExactCavity.from_scan(fit.opened, fit.fpsm, close_open_cuts=case.mesh.close_open_cuts)
     feeds = []
     for site, p in zip(case.sites, placements, strict=True):
         depth = {n: float(feed_depth(fit.fpsm, p.X_CT, instrument(n))) for n in INSTRUMENTS}
         feeds.append((site.name, np.asarray(p.X_CT, dtype=float), depth))
-    return Cavity("default", exact, feeds), float(case.safety.clearance_margin)
+    return Cavity(name, exact, feeds), float(case.safety.clearance_margin)
+
+
+def default_cavity(progress: Progress) -> tuple[Cavity, float]:
+    """The bundled default case's cavity, feeds and margin (:func:`planned_cavity`)."""
+    from implantplan.analyses.case import default_case_path
+
+    return planned_cavity(default_case_path(), "default", progress)
+
+
+def cohort_cavity(name: str, progress: Progress) -> tuple[Cavity, float]:
+    """``cohort-NN``: case NN of the synthetic cohort of the default case
+    (:func:`analyses.cohort.make_cohort`, seed 0: the scan under a seeded similarity, the sites
+    jittered, fitted and placed afresh), another subject in the project's sense."""
+    import tempfile
+
+    from implantplan.analyses.case import default_case_path
+    from implantplan.analyses.cohort import load_cohort, make_cohort
+
+    i = int(name.split("-")[1])
+    with tempfile.TemporaryDirectory() as tmp:
+        _, files = load_cohort(make_cohort(default_case_path(), Path(tmp), i + 1, seed=0))
+        return planned_cavity(files[i], name, progress)
 
 
 def copy_cavity(base: Cavity, name: str) -> Cavity:
@@ -499,8 +524,9 @@ def study(*, poses: int = 10_000, seed: int = 0, cavities=CAVITIES, instruments=
     check_poses(poses)
     check_seed(seed)
     for name in cavities:
-        if name not in CAVITIES:
-            raise InputError("cavity", f"unknown cavity {name!r}; expected one of {CAVITIES}")
+        if name not in CAVITIES + SUBJECTS:
+            raise InputError("--cavities", f"unknown cavity {name!r}; expected some of "
+                             f"{CAVITIES + SUBJECTS}")
     for name in instruments:
         instrument(name)
     progress = progress or Progress("scan-bound-check", quiet=True)
@@ -508,10 +534,15 @@ def study(*, poses: int = 10_000, seed: int = 0, cavities=CAVITIES, instruments=
     if threads is not None:
         numba.set_num_threads(min(int(threads), numba.config.NUMBA_NUM_THREADS))
     try:
-        base, margin = default_cavity(progress)
+        base, margin = None, None
+        if any(name in CAVITIES for name in cavities):
+            base, margin = default_cavity(progress)
         rows = []
         for ci, name in enumerate(cavities):
-            cav = base if name == "default" else copy_cavity(base, name)
+            if name in SUBJECTS:
+                cav, margin = cohort_cavity(name, progress)
+            else:
+                cav = base if name == "default" else copy_cavity(base, name)
             for ii, iname in enumerate(instruments):
                 inst = instrument(iname)
                 t0 = time.perf_counter()
@@ -527,7 +558,7 @@ def study(*, poses: int = 10_000, seed: int = 0, cavities=CAVITIES, instruments=
                 progress.say(table_line(row))
     finally:
         numba.set_num_threads(before)
-    return {"case": "default", "seed": int(seed), "margin_m": margin,
+    return {"case": "default", "cavities": list(cavities), "seed": int(seed), "margin_m": margin,
             "poses_per_pair": int(poses), "poses_total": int(sum(r["poses"] for r in rows)),
             "numba_threads": threads, "band_m": BAND, "free_by_m": FREE_BY,
             "value_tolerance_m": VALUE_TOL, "adversarial_share": ADVERSARIAL_SHARE,
@@ -573,6 +604,9 @@ def _arguments(argv):
     ap.add_argument("--poses", default="10000",
                     help=f"poses per cavity x instrument (1..{MAX_POSES}; default 10000)")
     ap.add_argument("--seed", default="0", help="seed (integer >= 0; default 0)")
+    ap.add_argument("--cavities", default=",".join(CAVITIES),
+                    help=f"comma-separated, some of {', '.join(CAVITIES + SUBJECTS)} "
+                         "(default: the default case and its 4 copies)")
     ap.add_argument("--out", type=Path, default=None,
                     help="a new folder for scan_bound_check.json")
     return ap.parse_args(argv)
@@ -592,7 +626,11 @@ def main(argv=None) -> int:
         seed = check_seed(_integer(args.seed, "--seed"))
         if args.out is not None and args.out.exists():
             raise InputError("--out", f"{args.out} exists; expected a new folder")
-        res = study(poses=poses, seed=seed, progress=Progress("scan-bound-check"))
+        cavities = tuple(c.strip() for c in args.cavities.split(",") if c.strip())
+        if not cavities:
+            raise InputError("--cavities", "expected at least one cavity")
+        res = study(poses=poses, seed=seed, cavities=cavities,
+                    progress=Progress("scan-bound-check"))
         if args.out is not None:
             try:
                 args.out.mkdir(parents=True)
