@@ -627,6 +627,13 @@ class BlockStore:
         write_atomic(self._path(i), writer)
         self.written += 1
 
+    def remove_partial(self) -> None:
+        """Delete temporary files of blocks being written when the build stopped (a signal
+        that lands between creating the temporary file and its cleanup leaves one)."""
+        if self.folder.is_dir():
+            for tmp in self.folder.glob(".block-*"):
+                tmp.unlink(missing_ok=True)
+
     def remove(self) -> None:
         """Delete the folder (after the map file is written)."""
         shutil.rmtree(self.folder, ignore_errors=True)
@@ -665,6 +672,7 @@ def build(
         if len(store.blocks) != len(blocks) or store.poses_per_block != poses_per_block:
             raise InputError("store", f"{store.folder} holds blocks of another partition")
         store.open()
+        store.remove_partial()  # of a build killed before its cleanup ran
         for i in store.finished():
             results[i] = store.read(i)
     todo = [i for i, r in enumerate(results) if r is None]
@@ -681,21 +689,26 @@ def build(
         if progress:
             progress(done, len(blocks))
 
-    if executor is None and (workers == 1 or len(todo) <= 1):
-        for i in todo:
-            finish(i, build_block(params, blocks[i]))
-    else:
-        own = executor is None
-        ex = executor or ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1)
-        futures = {ex.submit(build_block, params, blocks[i]): i for i in todo}
-        try:
-            for f in as_completed(futures):
-                finish(futures[f], f.result())
-        finally:
-            for f in futures:
-                f.cancel()
-            if own:
-                ex.shutdown()
+    try:
+        if executor is None and (workers == 1 or len(todo) <= 1):
+            for i in todo:
+                finish(i, build_block(params, blocks[i]))
+        else:
+            own = executor is None
+            ex = executor or ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1)
+            futures = {ex.submit(build_block, params, blocks[i]): i for i in todo}
+            try:
+                for f in as_completed(futures):
+                    finish(futures[f], f.result())
+            finally:
+                for f in futures:
+                    f.cancel()
+                if own:
+                    ex.shutdown()
+    except BaseException:  # Ctrl-C, SIGTERM, a failed block: the finished blocks stay
+        if store is not None:
+            store.remove_partial()
+        raise
     if not results:
         return empty_map(params)
     return CapabilityMap(params, grid, *(np.concatenate([r[i] for r in results]) for i in range(4)))

@@ -100,9 +100,19 @@ def test_an_interrupted_build_resumes_with_only_the_missing_blocks(reference, tm
         if done == 5:
             raise KeyboardInterrupt
 
+    partial = store.folder / ".block-000006.npz.abc123.npz"  # as a signal mid-write leaves it
+
+    def stop_after_5_mid_write(done, total):
+        if done == 5:
+            partial.write_bytes(b"half a block")
+        stop_after_5(done, total)
+
     with pytest.raises(KeyboardInterrupt):
-        cm.build(PARAMS, workers=1, poses_per_block=PER_BLOCK, progress=stop_after_5, store=store)
+        cm.build(PARAMS, workers=1, poses_per_block=PER_BLOCK, progress=stop_after_5_mid_write,
+                 store=store)
     assert store.finished() == list(range(5))
+    assert not partial.exists()  # the stopped build removed its temporary file
+    partial.write_bytes(b"left by a killed build")  # SIGKILL: no cleanup ran
     # a block file that does not read back as its block is recomputed, not trusted
     (store.folder / "block-000003.npz").write_bytes(b"not a block")
     resumed = cm.BlockStore.beside(tmp_path / "m.h5", PARAMS, poses_per_block=PER_BLOCK)
@@ -116,6 +126,7 @@ def test_an_interrupted_build_resumes_with_only_the_missing_blocks(reference, tm
         progress=lambda done, total: computed.append(done),
     )
     _same(m, reference)
+    assert not partial.exists()  # the resumed build removed it
     assert resumed.reused == 4 and resumed.written == n - 4
     assert computed[0] == 4 and computed[-1] == n  # first call reports the 4 reused blocks
     # another map (different parameters or block size) gets another folder
