@@ -112,7 +112,12 @@ def _drive(studio, meshcat_url, status, x0, tmp_path, seen: dict) -> None:
         wait_for(lambda: studio.mode == "setup" and studio.saved)
         # the status page serves the numbers
         browser.open(status.url, settle=1.5)
-        seen["shown_mode"] = browser.evaluate("window.studioStatus && window.studioStatus.mode")
+        for _ in range(40):  # the page polls the status; on a loaded machine it takes longer
+            seen["shown_mode"] = browser.evaluate(
+                "window.studioStatus && window.studioStatus.mode")
+            if seen["shown_mode"] is not None:
+                break
+            time.sleep(0.25)
         seen["errors"] = list(browser.errors)
     except Exception as exc:  # noqa: BLE001 - reported by the test's assertions
         seen["exception"] = repr(exc)
