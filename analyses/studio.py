@@ -590,7 +590,7 @@ esc(c.verdict)+'</b><br>'+esc(c.next_step)+'<table>'+Object.entries(c.lines).map
 '<tr><td>'+esc(k)+'</td><td>'+esc(v)+'</td></tr>').join('')+'</table></div>';}
 async function tick(){try{const s=await (await fetch('status.json')).json();
 let h='<b>mode '+s.mode+'</b>, site '+s.site+', margin '+fmt(s.margin_mm)+' mm';
-if(s.card)h+='<h4>surgeon\'s card (plan)</h4>'+card(s.card);
+if(s.card)h+="<h4>surgeon's card (plan)</h4>"+card(s.card);
 if(s.setup)h+='<h4>setup</h4><table>'+rows(s.setup)+'</table>';
 if(s.teleop)h+='<h4>teleop</h4><table>'+rows(s.teleop)+'</table>';
 h+='<h4>messages</h4>'+s.messages.join('<br>');
