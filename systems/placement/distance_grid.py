@@ -254,20 +254,29 @@ def box_distance(lo, hi, x, y, z):
     return np.sqrt(dx * dx + dy * dy + dz * dz)
 
 
-@numba.njit(cache=True)
-def _cell_lower(V, ox, oy, oz, g, lo, hi, x, y, z):
-    """The bound at (x, y, z) from the grid's cell and the bounding box (module notes)."""
-    best = box_distance(lo, hi, x, y, z)
+@numba.njit(cache=True, inline="always")
+def _cell(V, ox, oy, oz, g, x, y, z):
+    """(inside, i, j, k, fx, fy, fz): the grid coordinates of (x, y, z), its cell's lower corner
+    and whether it lies in the grid."""
     nx, ny, nz = V.shape
     fx = (x - ox) / g
     fy = (y - oy) / g
     fz = (z - oz) / g
-    if not (fx >= 0.0 and fy >= 0.0 and fz >= 0.0 and fx <= nx - 1 and fy <= ny - 1
-            and fz <= nz - 1):
+    inside = (fx >= 0.0 and fy >= 0.0 and fz >= 0.0 and fx <= nx - 1 and fy <= ny - 1
+              and fz <= nz - 1)
+    i = min(int(fx), nx - 2) if inside else 0
+    j = min(int(fy), ny - 2) if inside else 0
+    k = min(int(fz), nz - 2) if inside else 0
+    return inside, i, j, k, fx, fy, fz
+
+
+@numba.njit(cache=True)
+def _cell_lower(V, ox, oy, oz, g, lo, hi, x, y, z):
+    """The bound at (x, y, z) from the grid's cell and the bounding box (module notes)."""
+    best = box_distance(lo, hi, x, y, z)
+    inside, i, j, k, fx, fy, fz = _cell(V, ox, oy, oz, g, x, y, z)
+    if not inside:
         return best
-    i = min(int(fx), nx - 2)
-    j = min(int(fy), ny - 2)
-    k = min(int(fz), nz - 2)
     tx = fx - i
     ty = fy - j
     tz = fz - k
@@ -313,16 +322,9 @@ def lower_at(V, ox, oy, oz, g, band, lo, hi, x, y, z):
 @numba.njit(cache=True)
 def upper_at(V, ox, oy, oz, g, band, lo, hi, x, y, z):
     """Upper bound of the distance at (x, y, z) from the cell's exact corners (inf if none)."""
-    nx, ny, nz = V.shape
-    fx = (x - ox) / g
-    fy = (y - oy) / g
-    fz = (z - oz) / g
-    if not (fx >= 0.0 and fy >= 0.0 and fz >= 0.0 and fx <= nx - 1 and fy <= ny - 1
-            and fz <= nz - 1):
+    inside, i, j, k, fx, fy, fz = _cell(V, ox, oy, oz, g, x, y, z)
+    if not inside:
         return np.inf
-    i = min(int(fx), nx - 2)
-    j = min(int(fy), ny - 2)
-    k = min(int(fz), nz - 2)
     best = np.inf
     for c in range(8):
         a = c & 1
