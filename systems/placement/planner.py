@@ -514,14 +514,20 @@ def _grid_points(lo, hi, shape) -> np.ndarray:
     return np.stack(np.meshgrid(a, b, indexing="ij"), axis=-1).reshape(-1, 2)
 
 
-def _lines_ok(problem: PlacementProblem, X: np.ndarray):
-    """The objective at placements X (K, 2) and whether each keeps :func:`_invalid_reasons`'s
-    rules (both FPSM lines collision-free, the feeding target in the mouth)."""
+def _feasibility(problem: PlacementProblem, X: np.ndarray) -> tuple[Evaluation, np.ndarray]:
+    """The evaluation at placements X (K, 2) and the feeding target's height above the mouth
+    opening (K,): what :func:`_invalid_reasons` and :func:`_lines_ok` judge."""
     ev = problem.evaluate(X)
     lines = feeding_lines(problem.X_CH, X[:, 0], X[:, 1], problem.rod_radius,
                           problem.implant_length)
-    ok = (ev.f_safe_line1 > 0) & (ev.f_safe_line2 > 0) & (_height_above(lines, problem.fpsm) <= 0)
-    return ev.F, ok
+    return ev, _height_above(lines, problem.fpsm)
+
+
+def _lines_ok(problem: PlacementProblem, X: np.ndarray):
+    """The objective at placements X (K, 2) and whether each keeps :func:`_invalid_reasons`'s
+    rules (both FPSM lines collision-free, the feeding target in the mouth)."""
+    ev, h = _feasibility(problem, X)
+    return ev.F, (ev.f_safe_line1 > 0) & (ev.f_safe_line2 > 0) & (h <= 0)
 
 
 def search_for_instrument(problem: PlacementProblem, bounds: np.ndarray, tool: Instrument,
@@ -614,10 +620,9 @@ def search_for_instrument(problem: PlacementProblem, bounds: np.ndarray, tool: I
 
 def _invalid_reasons(problem: PlacementProblem, x: np.ndarray) -> list[str]:
     """Why the placement x is not acceptable (empty when both lines are collision-free)."""
-    ev = problem.evaluate(x[None])
+    ev, hs = _feasibility(problem, np.asarray(x, dtype=float)[None])
     f1, f2 = float(ev.f_safe_line1[0]), float(ev.f_safe_line2[0])
-    lines = feeding_lines(problem.X_CH, x[0], x[1], problem.rod_radius, problem.implant_length)
-    h = float(_height_above(lines, problem.fpsm)[0])
+    h = float(hs[0])
     reasons = []
     if h > 0:
         reasons.append(
