@@ -29,6 +29,7 @@ Timings on a shared machine are noisy; the ratios in one run are what to compare
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 import timeit
 from collections import defaultdict
@@ -274,6 +275,11 @@ def main(argv=None) -> int:
     bare_fixture = T.build_teleop(case, vf_enabled=False)
     push_run = T.simulate(bare_fixture, push.duration + 0.5, motion=push)
     pushed = safety_layer_cost(bare_fixture, push_run, push)
+    # the same logged steps with the FPSM's bound in the supervisor and the estimator instead
+    # of the capped scan bound (the diagram without the plan's scan)
+    fpsm_case = dataclasses.replace(case, scan=None)
+    calm_fpsm = safety_layer_cost(T.build_teleop(fpsm_case), kin_run, motions[-1])
+    pushed_fpsm = safety_layer_cost(T.build_teleop(fpsm_case, vf_enabled=False), push_run, push)
     # the cost shares: the same kinematic feeds again on a diagram built with wrapped callbacks
     # (the wrapping adds its own overhead, so the realtime factors above come from plain ones)
     timer = ExclusiveTimer()
@@ -297,11 +303,13 @@ def main(argv=None) -> int:
     steps = T.simulate(timed_push, push.duration + 0.5, motion=push).t.size
     in_loop = 1e6 * push_timer.seconds["SafetySupervisor"] / steps
 
+    bound = "the capped scan bound" if case.scan is not None else "the FPSM bound"
     print(f"safety layer per 200 Hz step (us, best of 7 over 100 logged steps; {args.case} "
-          "case; target <= 50 us)")
+          f"case, {case.tool.name} instrument, {bound}; target <= 50 us)")
     print(f"{'feed':<22} {'limiter':>8} {'fixture':>8} {'supervisor':>11} {'estimator/4':>12} "
           f"{'total':>8}")
-    for name, c in (("calm scripted feed", calm), ("cheek push, no fixture", pushed)):
+    for name, c in (("calm scripted feed", calm), ("cheek push, no fixture", pushed),
+                    ("calm, FPSM bound", calm_fpsm), ("push, FPSM bound", pushed_fpsm)):
         print(f"{name:<22} {c['limiter']:>8.1f} {c['fixture']:>8.1f} {c['supervisor']:>11.1f} "
               f"{c['estimator']:>12.1f} {c['total']:>8.1f}")
     print(f"  in the loop on the push (its gradient reused over steps at the wall): supervisor "

@@ -67,6 +67,33 @@ class StudioPlan:
     pareto_xyz: np.ndarray  # (P, 3)
     pareto_F: np.ndarray  # (P, 3)
     seed: int
+    _exact: list = field(default_factory=list, repr=False)  # [ExactCavity or None] once read
+
+    @property
+    def exact(self):
+        """The plan's opened scan as FCL's exact reference in Center (read once from the case
+        file the plan names; None when it is gone)."""
+        if not self._exact:
+            from implantplan.analyses.case import load_case
+            from implantplan.systems.placement.exact_clearance import ExactCavity
+
+            source = Path(self.plan["case"]["source"])
+            mesh = opened_scan(self)
+            self._exact.append(None if mesh is None else ExactCavity.from_scan(
+                mesh, self.fpsm, close_open_cuts=load_case(source).mesh.close_open_cuts))
+        return self._exact[0]
+
+    def scan_clearance(self, instrument: Instrument):
+        """The scan bound of ``instrument`` against the plan's scan (one distance grid for
+        every instrument), or None without the scan (then the FPSM's bound guards)."""
+        from implantplan.systems.placement.scan_clearance import ScanClearance
+
+        if self.exact is None:
+            return None
+        grid = self._exact[1].grid if len(self._exact) > 1 else None
+        scan = ScanClearance(self.exact, instrument, grid=grid)
+        self._exact[1:] = [scan]
+        return scan
 
     @property
     def base_xyz(self) -> np.ndarray:
@@ -90,10 +117,13 @@ class StudioPlan:
         return out
 
     def teleop_case(self, site: int, xyz=None, branch: int | None = None,
-                    q_pre=None) -> TeleopCase:
+                    q_pre=None, *, scan: bool = True) -> TeleopCase:
         """Site ``site``'s feeding case in the room with the base at ``xyz`` (default: the
-        plan's), starting at ``q_pre`` (default: the plan's pre-feed configuration)."""
+        plan's), starting at ``q_pre`` (default: the plan's pre-feed configuration); with
+        ``scan`` (and the plan's scan there) the supervisor and the estimator bound the
+        instrument against the scan, as the plan's simulation does."""
         s = self.plan["sites"][site]
+        instrument = _planned_instrument(s)
         xyz = self.base_xyz if xyz is None else np.asarray(xyz, dtype=float)
         q0 = np.asarray(s["ik"]["q_pre"] if q_pre is None else q_pre, dtype=float)
         return TeleopCase(
@@ -108,8 +138,11 @@ class StudioPlan:
             implant_length=float(s["implant_length"]),
             limits=self.sc.limits,
             label=f"site {s['name']}",
-            instrument=_planned_instrument(s),
+            instrument=instrument,
             safety=self.safety,
+            scan=self.scan_clearance(instrument or Instrument.paper(
+                rod_radius=float(s["rod_radius"]), implant_length=float(s["implant_length"])))
+            if scan else None,
         )
 
     @property

@@ -45,6 +45,18 @@ class FitResult:
     fpsm: Fpsm  # its X_WC is the Center frame in the mesh frame
     seconds: float
     cbct: CbctScan | None = None  # the CBCT the scan was extracted from (mesh.path a volume)
+    _exact: dict = field(default_factory=dict, repr=False)
+
+    def exact(self, close_open_cuts: bool):
+        """The opened scan as FCL's exact reference in Center, cut at the mouth opening
+        (:meth:`ExactCavity.from_scan`), built once per fit."""
+        from implantplan.systems.placement.exact_clearance import ExactCavity
+
+        key = bool(close_open_cuts)
+        if key not in self._exact:
+            self._exact[key] = ExactCavity.from_scan(self.opened, self.fpsm,
+                                                     close_open_cuts=key)
+        return self._exact[key]
 
 
 # The FPSM core's field names and the `fpsm fit` command's flags in its messages -> the case's
@@ -424,7 +436,15 @@ def capability_stage(case: Case, robot: RobotResult, *, progress=None) -> Capabi
 
 def teleop_cases(case: Case, fit: FitResult, placements: list[Placement],
                  robot: RobotResult) -> list[TeleopCase]:
-    """Each site's feeding case in the room: layout, start pose, FPSM, fixture, target."""
+    """Each site's feeding case in the room: layout, start pose, FPSM, fixture, target, and the
+    scan bound of the site's instrument (what the supervisor and the estimator bound)."""
+    from implantplan.systems.placement.scan_clearance import ScanClearance
+
+    exact = fit.exact(case.mesh.close_open_cuts)
+    scans, grid = [], None
+    for site in case.sites:  # one distance grid of the scan for every site's instrument
+        scans.append(ScanClearance(exact, case.instrument_at(site), grid=grid))
+        grid = scans[-1].grid
     sc = robot.scenario
     X_WC = sc.X_WO @ robot.X_OC
     return [
@@ -442,6 +462,7 @@ def teleop_cases(case: Case, fit: FitResult, placements: list[Placement],
             label=f"site {site.name}",
             instrument=case.instrument_at(site),
             safety=case.safety,
+            scan=scans[k],
         )
         for k, (site, p) in enumerate(zip(case.sites, placements, strict=True))
     ]

@@ -109,6 +109,7 @@ from implantplan.systems.fpsm.model import Fpsm
 from implantplan.systems.frames import invert, transform
 from implantplan.systems.instrument import Instrument
 from implantplan.systems.placement.fixture import VirtualFixture
+from implantplan.systems.placement.scan_clearance import CappedScanClearance, ScanClearance
 from implantplan.systems.robot import kinematics as kin
 from implantplan.systems.robot.moprp import R_OE
 from implantplan.systems.safety import SafetySpec
@@ -123,6 +124,8 @@ from implantplan.systems.teleop.supervisor import Barrier, SafetySupervisor
 from implantplan.systems.teleop.tracker import Tracker, TrackerParams
 
 MODES = ("kinematic", "dynamic")
+CAP_BAND = 2e-3  # m: the scan clearance of the barrier and the alarm is resolved up to their
+# margin plus this (above it the value is the cap: the branch and bound stops there)
 X_ET = transform(R_OE.T, np.zeros(3))  # seed 000's Tool frame in the plant's TCP frame (End)
 
 
@@ -146,6 +149,10 @@ class TeleopCase:
             ``implant_length``.
         safety: the plan's safety spec: the barrier's margin and rate, the alarm margin and
             the command limits the diagram enforces (systems.safety; the plan's ``safety``).
+        scan: the scan bound of ``instrument`` against the plan's opened scan
+            (systems.placement.scan_clearance.ScanClearance): the clearance the supervisor's
+            barrier and the estimator take, capped above their margins (the bound the plan
+            certified the feed with); None: the FPSM's sound clearance.
     """
 
     scenario: str
@@ -161,6 +168,7 @@ class TeleopCase:
     label: str = ""
     instrument: Instrument | None = None
     safety: SafetySpec = field(default_factory=SafetySpec)
+    scan: ScanClearance | None = None
 
     @property
     def tool(self) -> Instrument:
@@ -461,6 +469,19 @@ def build_teleop(
     alarm_margin = spec.alarm_margin if alarm_margin is None else alarm_margin
     limiter = builder.AddSystem(CommandLimiter(limits, period=period))
     limiter.set_name("command_limiter")
+    params = tracker or TrackerParams()
+    barrier_clearance = alarm_clearance = None
+    if case.scan is not None:
+        if case.scan.instrument != case.tool:
+            raise InputError("scan", f"bounds the instrument {case.scan.instrument.name!r}, "
+                             f"not the case's {case.tool.name!r}")
+        # the cap above the margin: CAP_BAND, plus what the head guard adds to the margin
+        # while the head moves no faster than the arm follows (beyond, the guard retreats)
+        settings = guard or GuardSettings()
+        extra = (settings.follow_speed * (params.latency + params.period + period)
+                 + params.error_bound()) if tracking else 0.0
+        barrier_clearance = CappedScanClearance(case.scan, barrier.margin + CAP_BAND + extra)
+        alarm_clearance = CappedScanClearance(case.scan, alarm_margin + CAP_BAND)
     vf = builder.AddSystem(
         VirtualFixtureForceLaw(
             case.vf,
@@ -487,6 +508,7 @@ def build_teleop(
             margin_input=tracking,
             release_input=insertion is not None,
             limits=limits,
+            clearance=barrier_clearance,
         )
     )
     supervisor.set_name("safety_supervisor")
@@ -499,6 +521,7 @@ def build_teleop(
             lines,
             alarm_margin=alarm_margin,
             period=estimator_period,
+            clearance=alarm_clearance,
         )
     )
     estimator.set_name("fpsm_estimator")
@@ -538,7 +561,6 @@ def build_teleop(
         head = builder.AddSystem(HeadMotionSource(head_motion, case.X_WCenter))
         head.set_name("head_motion")
     if tracking:
-        params = tracker or TrackerParams()
         trk = builder.AddSystem(Tracker(params, case.X_WCenter))
         trk.set_name("tracker")
         builder.Connect(head.GetOutputPort("X_WHead"), trk.GetInputPort("X_WHead"))

@@ -365,6 +365,46 @@ class ScanClearance:
         return vals, und
 
 
+@numba.njit(cache=True)
+def capped_at(args, X) -> float:
+    """min(scan bound, cap) (m) at one pose X (4, 4); ``args`` is :attr:`CappedScanClearance.
+    at_args`. The loops' hook (the supervisor's slow path takes it as a compiled function)."""
+    G, lo, hi, ox, oy, oz, g, band, kind, A, B, r, cap, res, s2, s6 = args
+    v = pose_bound(G, lo, hi, ox, oy, oz, g, band, X, kind, A, B, r, cap, res, s2, s6,
+                   False)[0]
+    return v if v < cap else cap
+
+
+class CappedScanClearance:
+    """The scan bound resolved only up to ``cap`` (m): min(lower bound, cap), a lower bound of
+    FCL's clearance capped at ``cap``, for the control loops (supervisor, estimator).
+
+    A barrier needs the clearance only near its margin: above the cap the value is the cap
+    (h = min(d, cap) is itself a barrier of the same safe set while cap > margin), and the
+    branch and bound stops as soon as every piece is proven beyond it, so the cost per pose is
+    that of the pieces near the cap (docs/measurements.md, "The supervisor on the scan").
+
+    ``clear(X)`` -> (n,) for (n, 4, 4) or (4, 4) poses; ``one(X)`` -> float for one (4, 4)
+    pose without checks; ``at(at_args, X)``: the compiled one-pose hook.
+    """
+
+    def __init__(self, scan: ScanClearance, cap: float):
+        cap = float(cap)
+        if not (np.isfinite(cap) and cap > 0):
+            raise InputError("cap", f"expected a positive length (m), got {cap}")
+        self.scan, self.cap = scan, cap
+        self.instrument = scan.instrument
+        self.at = capped_at
+        self.at_args = (*scan._g, scan._kind, scan._A, scan._B, scan._r, cap, scan.resolution,
+                        np.empty((STACK, 2)), np.empty((STACK, 6)))
+
+    def __call__(self, X_CTool) -> np.ndarray:
+        return np.minimum(self.scan.bounds(X_CTool, self.cap)[0], self.cap)
+
+    def one(self, X_CTool: np.ndarray) -> float:
+        return capped_at(self.at_args, np.ascontiguousarray(X_CTool, dtype=float))
+
+
 FEED_STEP = 0.1e-3  # m, pose spacing of :func:`feed_scan_clearance` (costs at most half of it)
 COARSE_RESOLUTION = 0.5e-3  # m, the first pass of :func:`feed_scan_clearance`
 NEAR_MINIMUM = 0.3e-3  # m: poses within this of the feed's least upper estimate are refined

@@ -570,6 +570,14 @@ def tool_clearance_at(V, ox, oy, oz, g, z_top, cap, step, resolve, rho, slice_z,
 
 
 @numba.njit(cache=True)
+def fpsm_at(args, X) -> float:
+    """:func:`tool_clearance_at` at one pose X with ``args`` = :attr:`ToolClearance.at_args`
+    (the loops' hook: the supervisor's slow path takes it as a compiled function)."""
+    field, a, b, r = args
+    return tool_clearance_at(*field, X, a, b, r)
+
+
+@numba.njit(cache=True)
 def _tool_kernel(V, ox, oy, oz, g, z_top, cap, step, resolve, rho, slice_z, X, a, b, r, out):
     """out[k] = min over the tool's capsules (a, b (C, 3) in T, radii r (C,)) at pose X[k]."""
     for k in range(X.shape[0]):
@@ -735,7 +743,9 @@ class ToolClearance:
     compiled kernel: the path for the 200 Hz / 1 kHz loops.
 
     ``ToolClearance(fpsm, tool)(X_CTool)`` -> (n,) certified clearances (m) for (n, 4, 4) or
-    (4, 4) poses of T in Center; :meth:`one` takes one (4, 4) pose (no checks) -> float.
+    (4, 4) poses of T in Center; :meth:`one` takes one (4, 4) pose (no checks) -> float;
+    ``at(at_args, X)`` is the compiled one-pose hook (as
+    :class:`systems.placement.scan_clearance.CappedScanClearance`'s).
     """
 
     def __init__(self, fpsm: Fpsm, tool: Instrument | None = None, *, step=None):
@@ -745,6 +755,8 @@ class ToolClearance:
         self._args = _field_args(self.field, step, fpsm)
         a, b, r = self.tool.capsules_T()
         self._a, self._b, self._r = a, b, np.ascontiguousarray(r, dtype=float)
+        self.at, self.at_args = fpsm_at, (self._args, self._a, self._b, self._r)
+        self.instrument = self.tool
 
     def __call__(self, X_CTool) -> np.ndarray:
         X = np.ascontiguousarray(rigid_poses(X_CTool))

@@ -201,11 +201,16 @@ def tool_safety(
 _CLEARANCES: dict = {}
 
 
-def _sound(fpsm: Fpsm, lines: ToolLines):
-    """X_CenterA (K, 4, 4) -> (K,) certified whole-tool clearance, for lines given in frame A."""
+def _sound(fpsm: Fpsm, lines: ToolLines, clearance=None):
+    """X_CenterA (K, 4, 4) -> (K,) certified whole-tool clearance, for lines given in frame A
+    (``clearance``: a prepared one of the lines' tool; None: the FPSM's)."""
     tool = lines.tool or Instrument.paper(rod_radius=float(lines.radius[0]))
     X_AT = np.eye(4) if lines.X_AT is None else np.asarray(lines.X_AT, dtype=float)
-    clearance = _clearance(fpsm, tool)
+    if clearance is None:
+        clearance = _clearance(fpsm, tool)
+    elif clearance.instrument != tool:
+        raise InputError("clearance", f"bounds the instrument {clearance.instrument.name!r}, "
+                         f"not the estimator's {tool.name!r}")
     return lambda X: np.atleast_1d(clearance(np.asarray(X, dtype=float) @ X_AT))
 
 
@@ -240,6 +245,11 @@ class FpsmEstimator(LeafSystem):
     and the outputs read it: the sensible rate for the diagram (each estimate costs two batched
     line checks, ~0.1 ms each), and the alarm still fires before contact for any tool speed
     below alarm_margin / period (1 mm / 20 ms = 50 mm/s at the defaults).
+
+    ``clearance``: the prepared whole-instrument clearance ``min_d_safe`` takes (of the lines'
+    tool; the plan's scan bound capped above the alarm margin,
+    :class:`systems.placement.scan_clearance.CappedScanClearance`, so values above the cap read
+    as the cap); None: the FPSM's (:class:`ToolClearance`).
     """
 
     FAR = 1.0e3  # stand-in for +inf on the output ports (m)
@@ -253,6 +263,7 @@ class FpsmEstimator(LeafSystem):
         alarm_margin: float = SAFETY.alarm_margin,
         period: float | None = None,
         method: str = "sound",
+        clearance=None,
     ):
         super().__init__()
         self._fpsm = fpsm
@@ -263,7 +274,7 @@ class FpsmEstimator(LeafSystem):
         if method not in ("sound", "paper"):
             raise InputError("method", f"expected 'sound' or 'paper', got {method!r}")
         self._method = method
-        self._sound = _sound(fpsm, self._lines) if method == "sound" else None
+        self._sound = _sound(fpsm, self._lines, clearance) if method == "sound" else None
         self._X = self.DeclareAbstractInputPort("X_WT", AbstractValue.Make(RigidTransform()))
         if period is None:
             cache = self.DeclareCacheEntry(

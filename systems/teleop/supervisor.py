@@ -1,10 +1,11 @@
-"""Control-barrier safety supervisor of the tool against the FPSM (DESIGN.md section 7).
+"""Control-barrier safety supervisor of the instrument against the tissue (DESIGN.md section 7).
 
-The barrier is the clearance h(X) of the whole tool body (rod, head, implant) at its pose X: the
-sound FPSM clearance of systems.placement.tool_clearance (a certified lower bound of the body's
-distance to
-the FPSM boundary; :class:`~implantplan.systems.placement.tool_clearance.ToolClearance`, prepared
-once),
+The barrier is the clearance h(X) of the whole instrument (every solid: rod, head, implant) at
+its pose X, a certified lower bound of its distance to the tissue, prepared once: with the
+plan's scan, the scan bound resolved up to a cap above the margin
+(:class:`~implantplan.systems.placement.scan_clearance.CappedScanClearance`: h = min(bound, cap),
+the verdict the plan certifies its feed with); without it, the sound FPSM clearance
+(:class:`~implantplan.systems.placement.tool_clearance.ToolClearance`);
 and the safe set is h >= margin. A commanded tool twist V = [w; v] (w the angular velocity, v
 the TCP's velocity, both in Center) is filtered so that
 
@@ -39,9 +40,9 @@ and the scale tries:
    Stopping always meets it, so the guarantee does not rest on the gradient: the LeafSystem
    reuses one gradient over up to 4 consecutive steps at the wall.
 
-With the sound FPSM clearance (a certified lower bound of the exact clearance) h >= margin - a
-few tenths of a millimetre at every step thus bounds the exact distance of the tool to the
-tissue. The estimator's alarm stays as the second line of defence.
+h being a certified lower bound of the exact clearance, h >= margin - a few tenths of a
+millimetre at every step thus bounds the exact distance of the instrument to the tissue (the
+scan's, or the FPSM's without the scan). The estimator's alarm stays as the second line of defence.
 """
 
 from __future__ import annotations
@@ -59,7 +60,8 @@ from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm.model import Fpsm
 from implantplan.systems.frames import invert
 from implantplan.systems.instrument import Instrument
-from implantplan.systems.placement.tool_clearance import ToolClearance, tool_clearance_at
+from implantplan.systems.placement.scan_clearance import capped_at
+from implantplan.systems.placement.tool_clearance import ToolClearance, fpsm_at
 from implantplan.systems.safety import DEFAULT as SAFETY
 from implantplan.systems.safety import SafetySpec
 from implantplan.systems.teleop.command_limits import CommandLimits, clip_twist
@@ -209,16 +211,16 @@ def step_pose_into(X, V, dt, out):
         out[2, j] = r20 * x0 + r21 * x1 + r22 * x2
 
 
-@numba.njit(cache=True)
-def _filter_step(field, a, b, r,
+@numba.njit(inline="always")
+def _filter_step(h_at, h_args,
                  X, V, h, g, have_g, dt, margin, alpha, length_scale, eps_p, eps_w, scales,
                  V_out, X_next, g_out, work):
     """Steps 2-3 of the module docstring for one pose X (4, 4) and twist V (6,) in Center whose
     command failed the discrete condition at barrier h: the gradient (12 perturbed poses, unless
     ``have_g``: then ``g`` is used), the projection, the scales tried on h itself. Writes V_out,
     X_next, g_out (the gradient used); returns (h at X_next, |V_out|_M / |V|_M). ``work`` is a
-    (4, 4) buffer; ``field`` (the tuple of the field's kernel arguments) and the tool's
-    capsules are ToolClearance's."""
+    (4, 4) buffer; ``h_at(h_args, X)`` is the barrier's compiled one-pose hook (the clearance's
+    ``at`` and ``at_args``)."""
     if have_g:
         for i in range(6):
             g_out[i] = g[i]
@@ -229,11 +231,11 @@ def _filter_step(field, a, b, r,
                 e[:] = 0.0
                 e[i] = sign
                 step_pose_into(X, e, eps_w, work)  # rotated about the TCP by sign eps_w about x_i
-                hr = tool_clearance_at(*field, work, a, b, r)
+                hr = h_at(h_args, work)
                 e[i] = 0.0
                 e[3 + i] = sign
                 step_pose_into(X, e, eps_p, work)  # moved by sign eps_p along x_i
-                hp = tool_clearance_at(*field, work, a, b, r)
+                hp = h_at(h_args, work)
                 if sign > 0.0:
                     g_out[i], g_out[3 + i] = hr, hp
                 else:
@@ -253,7 +255,7 @@ def _filter_step(field, a, b, r,
         for i in range(6):
             Vs[i] = scales[k] * Vp[i]
         step_pose_into(X, Vs, dt, work)
-        hs = tool_clearance_at(*field, work, a, b, r)
+        hs = h_at(h_args, work)
         if hs >= limit:
             chosen, h_next = scales[k], hs
             X_next[:, :] = work
@@ -269,6 +271,36 @@ def _filter_step(field, a, b, r,
         num += V_out[i] * V_out[i] * m
         den += V[i] * V[i] * m
     return h_next, (np.sqrt(num / den) if den > 0.0 else 1.0)
+
+
+@numba.njit(cache=True)
+def _filter_step_fpsm(h_args, X, V, h, g, have_g, dt, margin, alpha, length_scale, eps_p,
+                      eps_w, scales, V_out, X_next, g_out, work):
+    """:func:`_filter_step` on the FPSM bound (an entry point with its hook fixed: numba
+    caches it on disk, which it does not for a hook passed in from Python)."""
+    return _filter_step(fpsm_at, h_args, X, V, h, g, have_g, dt, margin, alpha, length_scale,
+                        eps_p, eps_w, scales, V_out, X_next, g_out, work)
+
+
+@numba.njit(cache=True)
+def _filter_step_scan(h_args, X, V, h, g, have_g, dt, margin, alpha, length_scale, eps_p,
+                      eps_w, scales, V_out, X_next, g_out, work):
+    """:func:`_filter_step` on the capped scan bound (as :func:`_filter_step_fpsm`)."""
+    return _filter_step(capped_at, h_args, X, V, h, g, have_g, dt, margin, alpha, length_scale,
+                        eps_p, eps_w, scales, V_out, X_next, g_out, work)
+
+
+_FILTER_STEPS = {fpsm_at: _filter_step_fpsm, capped_at: _filter_step_scan}
+
+
+def _filter_step_of(clear):
+    """The compiled slow path for a prepared clearance (by its hook ``at``)."""
+    try:
+        return _FILTER_STEPS[clear.at]
+    except (KeyError, AttributeError):
+        raise InputError("clearance", "expected a ToolClearance or a CappedScanClearance "
+                         f"(a compiled hook the supervisor knows), got "
+                         f"{type(clear).__name__}") from None
 
 
 @dataclass(frozen=True)
@@ -322,17 +354,16 @@ def supervise(clear: ToolClearance, X_CT, V_C, barrier: Barrier, dt: float, *,
     V_out, X_next, h_next = V.copy(), X_cmd, h_cmd.copy()
     scale = np.ones(K)
     g_out = np.full((K, 6), np.nan)
-    args = clear._args
-    a, b_, r = clear._a, clear._b, clear._r
     work = np.empty((4, 4))
     have_g = g is not None
     g_in = (np.ascontiguousarray(g, dtype=float).reshape(K, 6) if have_g else np.zeros((K, 6)))
+    step = _filter_step_of(clear)
     for k in np.flatnonzero(~ok):
         Xk = np.ascontiguousarray(X[k])
         g_k = np.empty(6)
         Xn = np.empty((4, 4))
-        h_next[k], scale[k] = _filter_step(
-            args, a, b_, r, Xk, np.ascontiguousarray(V[k]), float(h[k]), g_in[k], have_g,
+        h_next[k], scale[k] = step(
+            clear.at_args, Xk, np.ascontiguousarray(V[k]), float(h[k]), g_in[k], have_g,
             float(dt), barrier.margin, barrier.alpha, barrier.length_scale, barrier.eps_p,
             barrier.eps_w, SCALES, V_out[k], Xn, g_k, work)
         X_next[k], g_out[k] = Xn, g_k
@@ -448,6 +479,10 @@ class SafetySupervisor(LeafSystem):
             the command is integrated without the barrier (speed limits kept), as with
             ``enabled`` False: the implant's insertion into the bone (systems.teleop.insertion),
             which the FPSM, the cavity's free space, calls a collision.
+        clearance: the barrier's clearance of ``tool``, prepared (``__call__``, ``one``, the
+            compiled hook ``at`` / ``at_args``): the scan bound capped above the margin
+            (:class:`systems.placement.scan_clearance.CappedScanClearance`) when the plan has
+            the scan; None: the FPSM bound (:class:`ToolClearance`).
     """
 
     def __init__(
@@ -464,12 +499,17 @@ class SafetySupervisor(LeafSystem):
         margin_input: bool = False,
         limits: CommandLimits | None = None,
         release_input: bool = False,
+        clearance=None,
     ):
         super().__init__()
         if not np.isfinite(period) or period <= 0:
             raise InputError("period", f"expected a period > 0 s, got {period}")
         self.limits = limits or CommandLimits()
-        self._clear = ToolClearance(fpsm, tool)
+        self._clear = ToolClearance(fpsm, tool) if clearance is None else clearance
+        self._filter_step = _filter_step_of(self._clear)
+        if clearance is not None and clearance.instrument != tool:
+            raise InputError("clearance", f"bounds the instrument {clearance.instrument.name!r},"
+                             f" not the supervisor's {tool.name!r}")
         self._barrier = barrier or Barrier()
         self._period = float(period)
         self._enabled = bool(enabled)
@@ -544,8 +584,8 @@ class SafetySupervisor(LeafSystem):
                 V[:3], V[3:] = w_C, self._R_CW @ V_W[3:]
                 age = int(x[39])
                 have_g = age < GRADIENT_REUSE
-                h, scale = _filter_step(
-                    self._clear._args, self._clear._a, self._clear._b, self._clear._r, X0, V,
+                h, scale = self._filter_step(
+                    self._clear.at_args, X0, V,
                     h0, x[33:39], have_g, self._period, bar.margin, bar.alpha,
                     bar.length_scale, bar.eps_p, bar.eps_w, SCALES, self._Vo, self._Xn,
                     self._g, self._work)

@@ -366,10 +366,12 @@ def test_turning_in_the_mouth_checked_against_the_exact_scan_clearance(studio_pl
     feed in and then roll and tilt about every axis (20 deg/s, 1 s each); FCL between the whole
     tool and the opened scan (analyses.studies.scan_reference, as the adversarial study) at every
     logged
-    pose never goes below the supervisor's margin, and no pose the barrier passed (h >= margin)
-    is closer than the margin exactly."""
+    pose never goes below the supervisor's margin less 0.1 mm (the arm's lag behind the desired
+    pose the barrier holds), and the barrier's bound is below FCL at every logged pose (no
+    false-safe)."""
     from implantplan.analyses.studies.scan_reference import exact_for
-    from implantplan.diagrams.teleop import X_ET
+    from implantplan.diagrams.teleop import CAP_BAND, X_ET
+    from implantplan.systems.placement.scan_clearance import CappedScanClearance
 
     sp = studio_plan
     mesh = ls.opened_scan(sp)
@@ -393,8 +395,16 @@ def test_turning_in_the_mouth_checked_against_the_exact_scan_clearance(studio_pl
             d = exact(case.fpsm.X_WC @ X_CT)
             assert len(d) == len(h) > 1900
             assert h.min() > margin - 1e-4
+            # the arm lags the desired pose the barrier holds: the measured poses keep the
+            # margin less 0.1 mm (the issue's criterion: margin - 0.2 mm)
             assert d.min() > margin - 1e-4, (sp.names[site], vf, d.min())
-            assert int(np.sum((h >= margin) & (d < margin))) == 0  # false-safe
+            # false-safe: the barrier's own bound (the capped scan bound) at the same poses
+            # against its exact reference, FCL of the same solids on the scan the plan cut
+            assert case.scan is not None
+            b = CappedScanClearance(case.scan, margin + CAP_BAND)(X_CT)
+            ref = case.scan.exact.tool_clearance(X_CT, case.tool)
+            assert int(np.sum((b >= margin) & (ref < margin))) == 0
+            assert np.all(b <= ref + 1e-9)
             assert not live.state()["alarm"]
 
 
