@@ -375,6 +375,14 @@ def capped_at(args, X) -> float:
     return v if v < cap else cap
 
 
+@numba.njit(cache=True)
+def _capped_many(args, X, out):
+    """out[k] = :func:`capped_at` at X[k] (serial: the loops call it with one pose, and a forked
+    worker must not start the parallel kernels' OpenMP pool)."""
+    for k in range(X.shape[0]):
+        out[k] = capped_at(args, X[k])
+
+
 class CappedScanClearance:
     """The scan bound resolved only up to ``cap`` (m): min(lower bound, cap), a lower bound of
     FCL's clearance capped at ``cap``, for the control loops (supervisor, estimator).
@@ -399,7 +407,12 @@ class CappedScanClearance:
                         np.empty((STACK, 2)), np.empty((STACK, 6)))
 
     def __call__(self, X_CTool) -> np.ndarray:
-        return np.minimum(self.scan.bounds(X_CTool, self.cap)[0], self.cap)
+        from implantplan.systems.placement.tool_clearance import rigid_poses
+
+        X = np.ascontiguousarray(rigid_poses(X_CTool))
+        out = np.empty(X.shape[0])
+        _capped_many(self.at_args, X, out)
+        return out
 
     def one(self, X_CTool: np.ndarray) -> float:
         return capped_at(self.at_args, np.ascontiguousarray(X_CTool, dtype=float))
