@@ -25,6 +25,7 @@ Everything is in SI units; the studio shows mm and deg.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -67,33 +68,33 @@ class StudioPlan:
     pareto_xyz: np.ndarray  # (P, 3)
     pareto_F: np.ndarray  # (P, 3)
     seed: int
-    _exact: list = field(default_factory=list, repr=False)  # [ExactCavity or None] once read
+    _scans: dict = field(default_factory=dict, repr=False)  # instrument -> ScanClearance
 
-    @property
+    @functools.cached_property
     def exact(self):
         """The plan's opened scan as FCL's exact reference in Center (read once from the case
         file the plan names; None when it is gone)."""
-        if not self._exact:
-            from implantplan.analyses.case import load_case
-            from implantplan.systems.placement.exact_clearance import ExactCavity
+        from implantplan.analyses.case import load_case
+        from implantplan.systems.placement.exact_clearance import ExactCavity
 
-            source = Path(self.plan["case"]["source"])
-            mesh = opened_scan(self)
-            self._exact.append(None if mesh is None else ExactCavity.from_scan(
-                mesh, self.fpsm, close_open_cuts=load_case(source).mesh.close_open_cuts))
-        return self._exact[0]
+        source = Path(self.plan["case"]["source"])
+        if not source.is_file():
+            return None
+        case = load_case(source)
+        return ExactCavity.from_scan(pipeline.fit_stage(case).opened, self.fpsm,
+                                     close_open_cuts=case.mesh.close_open_cuts)
 
     def scan_clearance(self, instrument: Instrument):
-        """The scan bound of ``instrument`` against the plan's scan (one distance grid for
-        every instrument), or None without the scan (then the FPSM's bound guards)."""
+        """The scan bound of ``instrument`` against the plan's scan, built once per instrument
+        (one distance grid for all), or None without the scan (then the FPSM's bound guards)."""
         from implantplan.systems.placement.scan_clearance import ScanClearance
 
         if self.exact is None:
             return None
-        grid = self._exact[1].grid if len(self._exact) > 1 else None
-        scan = ScanClearance(self.exact, instrument, grid=grid)
-        self._exact[1:] = [scan]
-        return scan
+        if instrument not in self._scans:
+            grid = next(iter(self._scans.values())).grid if self._scans else None
+            self._scans[instrument] = ScanClearance(self.exact, instrument, grid=grid)
+        return self._scans[instrument]
 
     @property
     def base_xyz(self) -> np.ndarray:

@@ -472,9 +472,6 @@ def build_teleop(
     params = tracker or TrackerParams()
     barrier_clearance = alarm_clearance = None
     if case.scan is not None:
-        if case.scan.instrument != case.tool:
-            raise InputError("scan", f"bounds the instrument {case.scan.instrument.name!r}, "
-                             f"not the case's {case.tool.name!r}")
         # the cap above the margin: CAP_BAND, plus what the head guard adds to the margin
         # while the head moves no faster than the arm follows (beyond, the guard retreats)
         settings = guard or GuardSettings()
