@@ -228,6 +228,7 @@ def registration_monte_carlo(
     safety: SafetySpec | None = None,
     seed: int = 0,
     depth_step: float = 0.004,
+    bound=None,
 ) -> dict:
     """The planned feed under registration error of the Center frame.
 
@@ -238,7 +239,11 @@ def registration_monte_carlo(
     relative to the true anatomy the tool is at E^-1 X(s) for every depth s of the feed (the
     planned pose backed out along the rod axis, 0..``depth`` every ``depth_step``). The exact
     (FCL) clearance of the whole tool at those poses, minimized over the feed, is the sample's
-    value. Vectorized over samples and depths; same seed, same result.
+    value, found with FCL where the scan bound ``bound`` (a
+    :class:`systems.placement.scan_clearance.ScanClearance` of ``exact`` and ``tool``; None:
+    built) cannot rule a pose out of a sample's minimum
+    (:meth:`~systems.placement.scan_clearance.ScanClearance.exact_minimum`: the same values as
+    FCL at every pose). Same seed, same result.
 
     Returns:
         dict: ``probability_clear`` (share of samples whose clearance stays > 0 along the whole
@@ -260,7 +265,13 @@ def registration_monte_carlo(
 
     P, _ = feed_poses(X_CT, depth, depth_step)  # (1, S, 4, 4)
     poses = E_inv[:, None] @ P[0][None]  # (samples, S, 4, 4)
-    c = exact.tool_clearance(poses.reshape(-1, 4, 4), tool).reshape(samples, -1).min(axis=1)
+    if bound is None:
+        from implantplan.systems.placement.scan_clearance import ScanClearance
+
+        bound = ScanClearance(exact, tool)
+    elif bound.exact is not exact or bound.instrument != tool:
+        raise InputError("bound", "expected the scan bound of this cavity and instrument")
+    c, queries = bound.exact_minimum(poses)
     return {
         "samples": samples,
         "seed": int(seed),
@@ -268,6 +279,8 @@ def registration_monte_carlo(
         "sigma_rotation": float(sigma_rotation),
         "depth": float(depth),
         "depth_step": float(depth_step),
+        "fcl_queries": int(queries),
+        "poses": int(poses.shape[0] * poses.shape[1]),
         "probability_clear": float(np.mean(c > 0)),
         "clearance_p01": float(np.percentile(c, 1)),
         "clearance_median": float(np.median(c)),

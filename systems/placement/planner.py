@@ -555,8 +555,6 @@ def search_for_instrument(problem: PlacementProblem, bounds: np.ndarray, tool: I
         ``candidates``, ``clear_at_target``, ``screened``, ``verified``, ``F`` and ``F_loss``
         (F minus the best F of all candidates) of the choice).
     """
-    from dataclasses import replace
-
     from implantplan.systems.placement.scan_clearance import (
         FEED_STEP,
         ScanClearance,
@@ -587,7 +585,7 @@ def search_for_instrument(problem: PlacementProblem, bounds: np.ndarray, tool: I
     loss = safety.lateral_tolerance + safety.angle_tolerance * tool.shape_reach_T()
     X_CT = tool_frames(problem.X_CH, X[:, 0], X[:, 1])
     clear = np.ones(X.shape[0], dtype=bool)
-    subs = [ScanClearance(exact, replace(tool, shapes=(s,)), grid=scan.grid) for s in tool.shapes]
+    subs = scan.solids
     for k, sub in enumerate(subs):
         clear &= sub.bounds(X_CT, margin + loss[k])[0] - loss[k] >= margin
     record["clear_at_target"] = int(clear.sum())

@@ -44,6 +44,9 @@ class holds an :class:`ExactCavity`).
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+
 import numba
 import numpy as np
 
@@ -62,6 +65,7 @@ VALUE_CAP = 0.005  # m: clearances above this are not resolved further (reported
 RELATIVE = 0.05  # a piece whose bound is b is not split below res + RELATIVE * b (far pieces
 # are resolved coarser: a clearance of 3 mm is not near the margin)
 TOLERANCE = 0.05e-3  # m: a piece within this of the best upper estimate is not split further
+PRUNE_SLACK = 1e-6  # m: FCL's own error; a pose is ruled out of a minimum only beyond it
 STACK = 4096  # pieces held per solid; past it the solid is undecided (sound)
 START_CLEARANCE = 1e-7  # m: the start segment must be at least this far from the mesh
 KIND = {"capsule": 0, "sphere": 0, "cylinder": 1}
@@ -311,6 +315,64 @@ class ScanClearance:
                       bool(decide), lower, upper)
         return lower, upper
 
+    @functools.cached_property
+    def solids(self) -> tuple[ScanClearance, ...]:
+        """One bound per solid of the instrument (the same cavity, grid and resolution)."""
+        if len(self.instrument.shapes) == 1:
+            return (self,)
+        cavity = self.exact if self.exact is not None else self.grid_mesh
+        return tuple(ScanClearance(cavity, dataclasses.replace(self.instrument, shapes=(s,)),
+                                   resolution=self.resolution, grid=self.grid)
+                     for s in self.instrument.shapes)
+
+    def exact_minimum(self, X_CTool, *, check_start: bool = True) -> tuple[np.ndarray, int]:
+        """(values (n,), FCL queries): FCL's clearance of the instrument
+        (:meth:`ExactCavity.tool_clearance`) minimized over the S poses of each row of
+        ``X_CTool`` (n, S, 4, 4), the same value as asking FCL at all n * S poses, with FCL
+        asked only for the (solid, pose) pairs that may hold a row's minimum.
+
+        Per solid the bound gives a lower bound L and an upper estimate U at every pose (a
+        coarse pass, then the candidates refined against the row's level). A solid's FCL value
+        is at most max(U, 0) (U bounds it where the solid is free, and where it is not the
+        value is <= 0), so a row's minimum is at most m = min max(U, 0) over its solids and
+        poses, and a pair whose L exceeds m (by more than :data:`PRUNE_SLACK`) cannot hold it.
+        """
+        from implantplan.systems.placement.tool_clearance import rigid_poses
+
+        if self.exact is None:
+            raise InputError("cavity", "the exact minimum needs the ExactCavity")
+        X = np.asarray(X_CTool, dtype=float)
+        if X.ndim != 4 or X.shape[2:] != (4, 4) or 0 in X.shape[:2]:
+            raise InputError("X_CTool", f"expected (n, S, 4, 4) poses, got shape {X.shape}")
+        n, S = X.shape[:2]
+        P = rigid_poses(X.reshape(-1, 4, 4))
+        subs = self.solids
+        L = np.empty((len(subs), n * S))
+        U = np.empty_like(L)
+        coarse = max(COARSE_RESOLUTION, self.resolution)
+        for k, sub in enumerate(subs):
+            L[k], U[k] = sub.bounds(P, resolution=coarse)
+
+        def candidates():
+            level = np.maximum(U, 0.0).reshape(len(subs), n, S).min(axis=(0, 2))
+            return L <= np.repeat(level, S)[None] + PRUNE_SLACK, np.repeat(level, S)
+
+        cand, level = candidates()
+        for k, sub in enumerate(subs):
+            idx = np.flatnonzero(cand[k])
+            if idx.size:
+                lb, ub = sub.bounds(P[idx], np.minimum(level[idx], VALUE_CAP))
+                L[k, idx] = np.maximum(L[k, idx], lb)
+                U[k, idx] = np.minimum(U[k, idx], ub)
+        cand, _ = candidates()
+        out = np.full(n, np.inf)
+        for k, sub in enumerate(subs):
+            idx = np.flatnonzero(cand[k])
+            if idx.size:
+                v = self.exact.tool_clearance(P[idx], sub.instrument, check_start=check_start)
+                np.minimum.at(out, idx // S, v)
+        return out, int(cand.sum())
+
     def check(self, X_CTool) -> np.ndarray:
         """(n,) proven lower bounds (m) of the reference clearance (resolved up to
         :data:`VALUE_CAP`)."""
@@ -445,8 +507,6 @@ def feed_scan_clearance(scan: ScanClearance, X_CTool, *, depth: float, lateral: 
         dict: ``value`` (m), ``poses``, ``resolved_poses`` (poses FCL resolved), ``step``,
         ``solid`` (the solid at the minimum).
     """
-    from dataclasses import replace
-
     from implantplan.systems.placement.tool_clearance import feed_poses
 
     for name, value in (("lateral", lateral), ("angle", angle)):
@@ -458,18 +518,14 @@ def feed_scan_clearance(scan: ScanClearance, X_CTool, *, depth: float, lateral: 
     loss = lateral + angle * inst.shape_reach_T()
     V = np.empty((len(inst.shapes), P.shape[0]))
     U = np.empty_like(V)
-    solids = []
-    for k, s in enumerate(inst.shapes):
-        sub = ScanClearance(scan.exact if scan.exact is not None else scan.grid_mesh,
-                            replace(inst, shapes=(s,)), resolution=scan.resolution,
-                            grid=scan.grid)
+    solids = scan.solids
+    for k, sub in enumerate(solids):
         lb, ub = sub.bounds(P, resolution=max(COARSE_RESOLUTION, scan.resolution))
         level = min(ub.min() - loss[k] + NEAR_MINIMUM, VALUE_CAP)
         V[k], U[k] = lb - loss[k], ub - loss[k]
         refine = V[k] < level
         if refine.any():
             V[k, refine] = sub.bounds(P[refine], level + loss[k])[0] - loss[k]
-        solids.append(sub)
     c_claim = -np.inf if clearance is None else float(clearance)
     # FCL can lift a pose above the claim only where no solid's upper estimate is below it
     low = (V.min(axis=0) < c_claim) & ~(U.min(axis=0) < c_claim)

@@ -173,3 +173,26 @@ def test_scan_clearance_checks_its_input(cavity, grid):
         v = sc.fast_verdict(X, 5e-3)
         assert (v == UNDECIDED).any()
         sc.verdict(X, 5e-3)
+
+
+@pytest.mark.parametrize("tool", ["actuator", "paper"])
+def test_exact_minimum_is_fcl_at_every_pose(cavity, grid, tool):
+    """The pruned minimum over rows of poses equals FCL asked at every pose, asking FCL for a
+    small share of the (solid, pose) pairs; rows with tissue contact included."""
+    inst = Instrument.actuator() if tool == "actuator" else Instrument.paper()
+    sc = ScanClearance(cavity, inst, grid=grid)
+    rng = np.random.default_rng(7)
+    base = random_poses(40, rng, lateral=0.02)  # rows: a pose moved by about 1 mm, 2 deg
+    X = np.repeat(base[:, None], 12, axis=1)
+    X[..., :3, :3] = rotations(rng.normal(0, 0.02, (40, 12, 3)).reshape(-1, 3)).reshape(
+        40, 12, 3, 3) @ X[..., :3, :3]
+    X[..., :3, 3] += rng.normal(0, 1e-3, (40, 12, 3))
+    every = cavity.tool_clearance(X.reshape(-1, 4, 4), inst).reshape(40, 12).min(axis=1)
+    assert (every < 0).any() and (every > 1e-3).any()  # rows in contact and free rows
+    values, queries = sc.exact_minimum(X)
+    assert np.array_equal(values, every)
+    assert queries < 0.5 * X.shape[0] * X.shape[1] * len(inst.shapes)
+    with pytest.raises(InputError, match="X_CTool"):
+        sc.exact_minimum(X[0])
+    with pytest.raises(InputError, match="cavity"):
+        ScanClearance(cavity.mesh, inst, grid=grid).exact_minimum(X)
