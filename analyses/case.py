@@ -293,6 +293,25 @@ def _instrument(value, where: str) -> InstrumentSection:
     return section
 
 
+PAPER_SITE_KEYS = ("rod_radius_mm", "head_to_tip_mm")  # the paper tool's shape, per site
+
+
+def _paper_keys_only_for_paper(data) -> None:
+    """A site's ``rod_radius_mm`` / ``head_to_tip_mm`` shape the paper's tool; with another
+    instrument its own shapes hold, so writing them is an error naming the key (not ignored)."""
+    if not isinstance(data, dict) or not isinstance(data.get("sites"), list):
+        return  # the typed parse names what is wrong
+    instrument = _instrument(data.get("instrument", "actuator"), "instrument")
+    if instrument.kind == "paper":
+        return
+    for k, site in enumerate(data["sites"]):
+        for key in (*PAPER_SITE_KEYS, "implant_length_mm"):
+            if isinstance(site, dict) and key in site:
+                raise InputError(f"sites[{k}].{key}", f"applies to instrument: paper only (seed "
+                                 f"000's thin tool); the {instrument.kind} instrument's rod and "
+                                 "d12 are its own shapes: remove the key or set instrument: paper")
+
+
 OLD_D12_KEY = "implant_length_mm"
 notes_printed: set[str] = set()  # the notes printed in this process (once each)
 
@@ -342,7 +361,7 @@ class Case:
     capability: CapabilitySection = v.spec(v.section(CapabilitySection), {})
     simulation: SimulationSection = v.spec(v.section(SimulationSection), {})
     safety: SafetySpec = v.spec(v.section(SafetySpec), {})
-    instrument: InstrumentSection = v.spec(_instrument, "paper")
+    instrument: InstrumentSection = v.spec(_instrument, "actuator")
     anatomy: AnatomySection | None = v.spec(_anatomy, None)
     source: Path | None = None
 
@@ -386,6 +405,7 @@ def case_from_dict(data: dict, *, source: Path) -> Case:
     """Validate a case mapping (:class:`Case`'s sections) and resolve it: paths against the case
     file's folder, default names, the scenario (read and validated now, so a bad scenario file
     stops the plan before any stage runs), the cross-field rules."""
+    _paper_keys_only_for_paper(data)
     case = v.parse(Case, data, "")
     base_dir = source.resolve().parent
     mesh = case.mesh

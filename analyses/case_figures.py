@@ -205,9 +205,9 @@ def main(argv=None) -> int:
     for f in out["figures"]:
         print(f"wrote {f}")
     if args.scan:
-        site0 = out["case"].sites[0]
+        tool0 = out["case"].instrument_at(out["case"].sites[0])
         ranked = scan_sites(
-            out["fpsm"], rod_radius=site0.rod_radius, implant_length=site0.implant_length,
+            out["fpsm"], rod_radius=tool0.rod_radius, implant_length=tool0.implant_length,
             mesh=out["opened"], X_WC=out["X_WC"],
         )
         print(f"scan: {sum(c['valid'] for c in ranked)} of {len(ranked)} candidates valid")

@@ -174,7 +174,8 @@ def placement_stage(case: Case, fpsm: Fpsm, *, progress=None, require_valid: boo
     margin (``case.safety``, passed whole): certified on the FPSM and, with the scan ``mesh``
     (mesh frame, as fitted), exactly with FCL; then the registration Monte Carlo of the exact
     clearance along the feed (``placement.verification["registration"]``)."""
-    from implantplan.systems.placement.exact_clearance import ExactCavity, registration_monte_carlo
+    from implantplan.systems.placement.exact_clearance import ExactCavity
+    from implantplan.systems.placement.scan_clearance import registration_monte_carlo
 
     exact = None
     if mesh is not None:

@@ -289,9 +289,9 @@ def plan_dict(case: Case, fit, placements, robot, cap, sims, sites_checked) -> d
         sites.append({
             "name": site.name,
             "hole": {"position": site.position, "axis": site.axis, "frame": "Center"},
-            "implant_length": site.implant_length,
+            "implant_length": p.implant_length,
             "placed_implant_length": site.placed_length,
-            "rod_radius": site.rod_radius,
+            "rod_radius": p.rod_radius,
             "site_check": {"distance_to_tissue": float(sites_checked.distance[k]),
                            "tolerance": sites_checked.tolerance,
                            "axis_into_cavity": bool(sites_checked.axis_into_cavity[k])},

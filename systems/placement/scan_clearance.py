@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
@@ -58,6 +59,7 @@ from implantplan.systems.placement.distance_grid import (
     lower_at,
     upper_at,
 )
+from implantplan.systems.safety import SafetySpec
 
 SAFE, UNDECIDED, UNSAFE = 1, 0, -1
 RESOLUTION = 0.1e-3  # m: a piece whose ball radius is below this is not split further
@@ -68,6 +70,9 @@ TOLERANCE = 0.05e-3  # m: a piece within this of the best upper estimate is not 
 PRUNE_SLACK = 1e-6  # m: FCL's own error; a pose is ruled out of a minimum only beyond it
 STACK = 4096  # pieces held per solid; past it the solid is undecided (sound)
 START_CLEARANCE = 1e-7  # m: the start segment must be at least this far from the mesh
+if TYPE_CHECKING:
+    from implantplan.systems.placement.exact_clearance import ExactCavity
+
 KIND = {"capsule": 0, "sphere": 0, "cylinder": 1}
 
 
@@ -540,3 +545,74 @@ def feed_scan_clearance(scan: ScanClearance, X_CTool, *, depth: float, lateral: 
     return {"value": value, "poses": int(c.size), "resolved_poses": resolved if scan.exact
             is not None else 0, "step": float(t), "solid": inst.shapes[int(
                 np.unravel_index(np.argmin(V), V.shape)[0])].name}
+
+
+def registration_monte_carlo(
+    exact: ExactCavity,
+    X_CT,
+    tool,
+    *,
+    depth: float,
+    safety: SafetySpec | None = None,
+    seed: int = 0,
+    depth_step: float = 0.004,
+    bound=None,
+) -> dict:
+    """The planned feed under registration error of the Center frame.
+
+    Each of ``safety.registration_samples`` samples (None: ``SafetySpec()``) draws an error E
+    of Center's pose (translation ~ N(0, sigma_translation^2) per axis, rotation vector
+    ~ N(0, sigma_rotation^2) per axis, about Center's origin; the sigmas are
+    ``safety.registration_sigma_*``): the robot executes the plan in the registered frame, so
+    relative to the true anatomy the tool is at E^-1 X(s) for every depth s of the feed (the
+    planned pose backed out along the rod axis, 0..``depth`` every ``depth_step``). The exact
+    (FCL) clearance of the whole tool at those poses, minimized over the feed, is the sample's
+    value, found with FCL where the scan bound ``bound`` (a
+    :class:`systems.placement.scan_clearance.ScanClearance` of ``exact`` and ``tool``; None:
+    built) cannot rule a pose out of a sample's minimum
+    (:meth:`~systems.placement.scan_clearance.ScanClearance.exact_minimum`: the same values as
+    FCL at every pose). Same seed, same result.
+
+    Returns:
+        dict: ``probability_clear`` (share of samples whose clearance stays > 0 along the whole
+        feed), ``clearance_p01`` (1st percentile, m), ``clearance_median``, ``clearance_min``,
+        the settings (SI units).
+    """
+
+    safety = SafetySpec() if safety is None else safety
+    if not isinstance(safety, SafetySpec):
+        raise InputError("safety", f"expected a SafetySpec, got {type(safety).__name__}")
+    samples = int(safety.registration_samples)
+    if samples < 1:
+        raise InputError("safety.registration_samples",
+                         f"expected at least 1 sample, got {samples}")
+    sigma_translation = safety.registration_sigma_translation
+    sigma_rotation = safety.registration_sigma_rotation
+    from implantplan.systems.placement.exact_clearance import registration_errors
+    from implantplan.systems.placement.tool_clearance import feed_poses
+
+    E_inv = registration_errors(safety, np.random.default_rng(seed), samples)
+
+    P, _ = feed_poses(X_CT, depth, depth_step)  # (1, S, 4, 4)
+    poses = E_inv[:, None] @ P[0][None]  # (samples, S, 4, 4)
+    if bound is None:
+        bound = ScanClearance(exact, tool)
+    elif bound.exact is not exact or bound.instrument != tool:
+        raise InputError("bound", "expected the scan bound of this cavity and instrument")
+    c, queries = bound.exact_minimum(poses)
+    return {
+        "samples": samples,
+        "seed": int(seed),
+        "sigma_translation": float(sigma_translation),
+        "sigma_rotation": float(sigma_rotation),
+        "depth": float(depth),
+        "depth_step": float(depth_step),
+        "fcl_queries": int(queries),
+        "poses": int(poses.shape[0] * poses.shape[1]),
+        "probability_clear": float(np.mean(c > 0)),
+        "clearance_p01": float(np.percentile(c, 1)),
+        "clearance_median": float(np.median(c)),
+        "clearance_min": float(c.min()),
+        "units": "m, rad",
+        "reference": "exact (FCL) clearance of the whole tool to the scan, min over the feed",
+    }

@@ -42,7 +42,8 @@ def _make_cohort(root: Path, cases: int) -> list[Path]:
     path = root / "cases" / "cohort.yaml"
     files = load_cohort(path)[1]
     broken = yaml.safe_load(files[min(BROKEN, cases - 1)].read_text())
-    broken["sites"][0]["rod_radius_mm"] = 20.0  # a handle too thick for this mouth
+    broken["instrument"] = "paper"
+    broken["sites"][0]["rod_radius_mm"] = 20.0  # a paper tool's handle too thick for this mouth
     files[min(BROKEN, cases - 1)].write_text(yaml.safe_dump(broken))
     return path, files
 

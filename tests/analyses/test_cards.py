@@ -38,11 +38,14 @@ def test_every_site_has_a_card_in_plan_json_matching_its_sources(plan):
         tissue = card["instrument_to_tissue"]
         assert tissue["value"] == s["placement"]["verification"]["clearance_exact_min"]
         assert tissue["value"] == exact["value"] and tissue["margin"] == exact["margin"]
-        assert card["instrument"] == plan["case"]["instrument"]["kind"] == "paper"
+        assert card["instrument"] == plan["case"]["instrument"]["kind"] == "actuator"
         feed = s["ik"]["feed_clearance"]
         arm = card["arm_to_patient"]
-        assert arm["value"] == feed["patient_distance_m"] >= feed["distance_m"]
-        assert "patient::" in arm["pair"]
+        assert arm["value"] == feed["patient_distance_m"]
+        if arm["value"] is None:  # nothing of the patient within the distance SceneGraph reports
+            assert arm["pair"] == "" and arm["reported_within"] == feed["reported_within_m"]
+        else:
+            assert arm["value"] >= feed["distance_m"] and "patient::" in arm["pair"]
         assert card["p_clear_under_registration"] == s["registration"]["probability_clear"]
         assert card["feed_duration"] == max(r["sim_seconds"] for r in s["simulation"]["runs"])
         assert card["joint_headroom"] == s["ik"]["joint_headroom"]["min_rad"]
@@ -71,7 +74,9 @@ def test_the_report_opens_with_each_card_showing_plan_json_values(plan, demo_pla
             assert "(" + ", ".join(f"{1e3 * x:.1f}" for x in card[key]) + ") mm" in text
         assert f"{1e3 * card['instrument_to_tissue']['value']:.2f} mm exact (FCL)" in text
         assert f"instrument: {card['instrument']}" in text
-        assert f"{1e3 * card['arm_to_patient']['value']:.1f} mm" in text
+        arm = card["arm_to_patient"]
+        assert (f"> {1e3 * arm['reported_within']:.0f} mm" if arm["value"] is None
+                else f"{1e3 * arm['value']:.1f} mm ({arm['pair']})") in text
         assert f"{100 * card['p_clear_under_registration']:.1f} %" in text
         assert f"{card['feed_duration']:.1f} s" in text
         assert f"{1e3 * card['depth']:.1f} mm" in text

@@ -202,11 +202,15 @@ CATALOGUE = {
     "--runs 1e6": (lambda c: c.plan(c.case(), "--runs", "1000000"), 2,
                    "--runs: expected a number <= 100"),
     "rod radius 1e308 mm": (
-        lambda c: c.plan(c.case(small_case(**{"sites.0.rod_radius_mm": 1e308}))), 2,
+        lambda c: c.plan(c.case(small_case(**{"instrument": "paper",
+                                               "sites.0.rod_radius_mm": 1e308}))), 2,
         "sites[0].rod_radius_mm: expected a number <= 20"),
     "implant length 1 km": (
         lambda c: c.plan(c.case(small_case(**{"sites.0.implant_length_mm": 1e6}))), 2,
-        "sites[0].implant_length_mm"),
+        "sites[0].implant_length_mm: applies to instrument: paper only"),
+    "a paper key on the actuator": (
+        lambda c: c.plan(c.case(small_case(**{"sites.1.rod_radius_mm": 3.0}))), 2,
+        "sites[1].rod_radius_mm: applies to instrument: paper only"),
     "site 1e300 mm away": (
         lambda c: c.plan(c.case(small_case(**{"sites.0.position_mm": [1e300, 0, 0]}))), 2,
         "sites[0].position_mm: expected 3 numbers within +-300"),

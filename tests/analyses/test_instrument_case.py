@@ -19,10 +19,24 @@ def _case(**changes):
 
 
 def test_the_instrument_key():
-    assert load_case(default_case_path()).instrument.kind == "paper"
+    default = load_case(default_case_path())
+    assert default.instrument.kind == "actuator"  # the shipped actuator, not the paper's tool
+    data = read_yaml(default_case_path())
+    data.pop("instrument")
+    assert case_from_dict(data, source=default_case_path()).instrument.kind == "actuator"
     case = _case(instrument="actuator")
     inst = case.instrument_at(case.sites[0])
     assert inst.name == "actuator" and inst.head == pytest.approx(0.008)
+    assert inst.shapes == default.instrument_at(default.sites[1]).shapes
+    # the paper tool takes each site's rod and d12; on another instrument they are an error
+    sites = [{**s, "rod_radius_mm": 4.0, "head_to_tip_mm": 28.0} for s in data["sites"]]
+    paper = _case(instrument="paper", sites=sites)
+    tool = paper.instrument_at(paper.sites[0])
+    assert (tool.name, tool.rod_radius, tool.implant_length) == ("paper", 0.004, 0.028)
+    for kind in ("actuator", {"urdf": "package://implantplan/tools/implanting_actuator.urdf"}):
+        with pytest.raises(InputError, match=r"sites\[0\]\.rod_radius_mm: applies to "
+                           "instrument: paper only"):
+            _case(instrument=kind, sites=sites)
     with pytest.raises(InputError, match="instrument.kind"):
         _case(instrument="thin")
     with pytest.raises(InputError, match="instrument.urdf"):
@@ -43,7 +57,7 @@ def test_an_instrument_that_cannot_clear_the_margin_is_refused_with_its_reason()
     fit = pipeline.fit_stage(case)
     with pytest.raises(PlanningFailure, match="no placement clears the scan by the margin"):
         pipeline.placement_stage(case, fit.fpsm, mesh=fit.opened)
-    paper = load_case(default_case_path())
+    paper = _case(instrument="paper")
     assert all(p.valid for p in pipeline.placement_stage(paper, fit.fpsm, mesh=fit.opened))
 
 

@@ -345,7 +345,10 @@ def test_without_the_fixture_a_turn_passes_and_the_supervisor_still_filters(stud
     for _ in range(10):
         kb.press("roll-", live.time)
         live.advance(0.05)
-    while live.time < 5.0:
+    kb.press("pause", live.time)  # the key's hold ends: the roll stops back at the plan's
+    kb.press("pause", live.time)
+    assert abs(np.rad2deg(live.state()["roll"])) < 0.5
+    while live.time < 8.0 and live.state()["to_target"] > 0.5e-3:
         kb.press("feed_in", live.time)
         live.advance(0.05)
     assert live.state()["to_target"] < 0.001

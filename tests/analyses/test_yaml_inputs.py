@@ -47,8 +47,9 @@ CASE_EDITS = {
     "typo in a section": ("safety: {clearance_mm: 1.0,", "safety: {clearence_mm: 1.0,",
                           "safety.clearence_mm: unknown key"),
     "typo at the top": ("seed: 0\n", "sede: 0\n", "sede: unknown key"),
-    "typo in a site": ("rod_radius_mm: 6.0}\n  - {name: \"46\"",
-                       "rod_radius: 6.0}\n  - {name: \"46\"", "sites[0].rod_radius: unknown key"),
+    "typo in a site": ("placed_implant_length_mm: 10.0}\n  - {name: \"46\"",
+                       "placed_implant_lenght_mm: 10.0}\n  - {name: \"46\"",
+                       "sites[0].placed_implant_lenght_mm: unknown key"),
     "duplicate in a section": ("fpsm: {slices: 15,", "fpsm: {slices: 15, slices: 16,",
                                "fpsm.slices: duplicate key"),
     "duplicate at the top": ("seed: 0\n", "seed: 0\nseed: 3\n", "seed: duplicate key"),
@@ -238,12 +239,15 @@ def test_the_old_name_of_d12_is_still_read_with_a_note_once(monkeypatch, capsys)
 
     monkeypatch.setattr(case_module, "notes_printed", set())
     data = yaml.safe_load(default_case_path().read_text())
+    data["instrument"] = "paper"  # d12 per site is the paper tool's
     for s in data["sites"]:
-        s["implant_length_mm"] = s.pop("head_to_tip_mm") + 1.0
+        s["implant_length_mm"] = 32.0
     old = case_from_dict(data, source=default_case_path())
     assert [s.implant_length for s in old.sites] == pytest.approx([0.032, 0.032])
+    assert old.instrument_at(old.sites[0]).implant_length == pytest.approx(0.032)
     new = load_case(default_case_path())
-    assert [s.implant_length for s in new.sites] == pytest.approx([0.031, 0.031])
+    assert [new.instrument_at(s).implant_length for s in new.sites] == pytest.approx(
+        [0.031, 0.031])  # the actuator's own
     err = capsys.readouterr().err
     assert err.count("note: sites[0].implant_length_mm is read as head_to_tip_mm") == 1
     assert "sites[1]" not in err  # once per run, not per site

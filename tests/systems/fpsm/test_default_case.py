@@ -185,6 +185,9 @@ def test_default_case_opens_the_real_mesh_cleanly():
     assert 35e-3 < 2 * L * np.sin(np.deg2rad(case["mesh"]["mouth_opening_deg"]) / 2) < 50e-3
 
 
+PAPER_ROD_MM, PAPER_D12_MM = 6.0, 31.0  # seed 000 Sec. 5.2's tool (the actuator's rod and d12 too)
+
+
 @pytest.fixture(scope="module")
 def default_plan():
     """The default case opened, fitted (exact, 15 x 15 x 150) and both sites placed."""
@@ -220,8 +223,8 @@ def default_plan():
             fpsm,
             np.asarray(site["position_mm"]) * MM,
             site["axis"],
-            rod_radius=site["rod_radius_mm"] * MM,
-            implant_length=site["head_to_tip_mm"] * MM,
+            rod_radius=PAPER_ROD_MM * MM,
+            implant_length=PAPER_D12_MM * MM,
             objective=case["placement"]["objective"],
             seed=case["seed"],
         )
@@ -240,11 +243,11 @@ def test_default_case_sites_have_a_safe_placement_for_the_papers_tool(default_pl
         assert (p[0] > 0) == (site["name"] == "36")  # Center +X is the patient's left
         # on the scanned tissue (the case's site_check), just outside the conservative FPSM wall
         assert -2e-3 < float(fpsm.d_safe(p)) <= 0
-        assert (site["rod_radius_mm"], site["head_to_tip_mm"]) == (6.0, 31.0)  # Sec. 5.2
+        assert "rod_radius_mm" not in site  # the case's actuator carries its own shapes
         assert placement.valid, placement.reason
         assert placement.f_safe_line1 > 3e-3 and placement.f_safe_line2 > 3e-3
         # the tool stays above the implant (d_T >= d12) and the grid finds no better placement
-        assert placement.d_T >= site["head_to_tip_mm"] * MM
+        assert placement.d_T >= PAPER_D12_MM * MM
         assert placement.grid["F_pso_minus_grid"] < 1e-6
         assert placement.grid["distance_d_T"] < 1e-3
 
@@ -294,3 +297,12 @@ def test_site_scan_finds_the_default_sites_valid(default_plan):
         assert c["valid"]
         # a coarse grid cannot beat the PSO + fine grid optimum, and is close to it
         assert placement.F_safe - 1e-9 <= c["F"] < placement.F_safe + 0.005
+
+
+def test_the_paper_tool_here_has_the_actuators_rod_and_d12():
+    from implantplan.analyses.case import default_case_path, load_case
+
+    case = load_case(default_case_path())
+    inst = case.instrument_at(case.sites[0])
+    assert (inst.rod_radius, inst.implant_length) == pytest.approx(
+        (PAPER_ROD_MM * MM, PAPER_D12_MM * MM))
