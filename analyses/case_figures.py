@@ -49,7 +49,7 @@ def build_case(case_path):
     case = load_case(case_path)
     fit = fit_stage(case)
     t = time.perf_counter()
-    placements = placement_stage(case, fit.fpsm, require_valid=False)
+    placements = placement_stage(case, fit, require_valid=False)
     place_s = time.perf_counter() - t
     return {
         "case": case,

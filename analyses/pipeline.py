@@ -165,21 +165,21 @@ def site_stage(case: Case, fit: FitResult) -> SiteCheck:
     return check
 
 
-def placement_stage(case: Case, fpsm: Fpsm, *, progress=None, require_valid: bool = True,
-                    mesh: trimesh.Trimesh | None = None) -> list[Placement]:
+def placement_stage(case: Case, fit: FitResult, *, progress=None,
+                    require_valid: bool = True) -> list[Placement]:
     """Stage 2 for every site; with ``require_valid`` a site without a collision-free placement
     is a planning failure that names the site and the reason.
 
     Every placement is verified over the fixture's admissible region against the clinical
-    margin (``case.safety``, passed whole): certified on the FPSM and, with the scan ``mesh``
-    (mesh frame, as fitted), exactly with FCL; then the registration Monte Carlo of the exact
-    clearance along the feed (``placement.verification["registration"]``)."""
-    from implantplan.systems.placement.exact_clearance import ExactCavity
+    margin (``case.safety``, passed whole): certified on the FPSM and exactly with FCL against
+    the fit's opened scan (one exact cavity per fit, :meth:`FitResult.exact`, shared with the
+    feeding stage); then the registration Monte Carlo of the exact clearance along the feed
+    (``placement.verification["registration"]``). The fit is passed whole so that no caller
+    plans without the scan's verification."""
     from implantplan.systems.placement.scan_clearance import registration_monte_carlo
 
-    exact = None
-    if mesh is not None:
-        exact = ExactCavity.from_scan(mesh, fpsm, close_open_cuts=case.mesh.close_open_cuts)
+    fpsm = fit.fpsm
+    exact = fit.exact(case.mesh.close_open_cuts)
     safety = case.safety
     out = []
     for k, site in enumerate(case.sites):

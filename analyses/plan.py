@@ -188,7 +188,7 @@ def _plan_into(case: Case, out: Path, *, runs, html_scene: bool, quiet: bool,
                                                     strict=True)))
 
     prog = Progress("2/5 placement", quiet=quiet)
-    placements = pipeline.placement_stage(case, fit.fpsm, progress=prog, mesh=fit.opened)
+    placements = pipeline.placement_stage(case, fit, progress=prog)
     timing["placement"] = prog.elapsed
 
     prog = Progress("3/5 robot base", quiet=quiet)

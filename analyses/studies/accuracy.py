@@ -204,7 +204,7 @@ def sites_of(*, plan=None, approach: float | None = None, progress=None) -> list
             progress.say("planning the bundled default case (scan, sites 36 and 46)")
         case = load_case(default_case_path())
         fit = pipeline.fit_stage(case)
-        placements = pipeline.placement_stage(case, fit.fpsm)
+        placements = pipeline.placement_stage(case, fit)
         cases = pipeline.teleop_cases(case, fit, placements,
                                       pipeline.robot_stage(case, placements))
         d_T = [p.d_T for p in placements]

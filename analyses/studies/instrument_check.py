@@ -108,7 +108,7 @@ def study(*, poses: int = 20_000, seed: int = 0, progress: Progress | None = Non
     progress = progress or Progress("instrument-check", quiet=True)
     case = load_case(default_case_path())
     fit = pipeline.fit_stage(case)
-    placements = pipeline.placement_stage(case, fit.fpsm, mesh=fit.opened)
+    placements = pipeline.placement_stage(case, fit)
     exact = ExactCavity.from_scan(fit.opened, fit.fpsm, close_open_cuts=case.mesh.close_open_cuts)
     sites = {}
     for k, (site, p) in enumerate(zip(case.sites, placements, strict=True)):

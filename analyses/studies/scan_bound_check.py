@@ -168,7 +168,7 @@ def planned_cavity(case_path, name: str, progress: Progress) -> tuple[Cavity, fl
     case = load_case(case_path)
     progress.say(f"{name}: fit and placement")
     fit = pipeline.fit_stage(case)
-    placements = pipeline.placement_stage(case, fit.fpsm, mesh=fit.opened, require_valid=False)
+    placements = pipeline.placement_stage(case, fit, require_valid=False)
     exact = ExactCavity.from_scan(fit.opened, fit.fpsm, close_open_cuts=case.mesh.close_open_cuts)
     feeds = []
     for site, p in zip(case.sites, placements, strict=True):

@@ -85,7 +85,7 @@ def default_case_sites(*, progress=None):
     ``implantplan plan`` does."""
     case = load_case(default_case_path())
     fit = pipeline.fit_stage(case)
-    placements = pipeline.placement_stage(case, fit.fpsm)
+    placements = pipeline.placement_stage(case, fit)
     robot = pipeline.robot_stage(case, placements)
     return pipeline.teleop_cases(case, fit, placements, robot), fit.opened
 
