@@ -48,6 +48,9 @@ _HEX = np.vstack([[0.0, 0.0], np.sqrt(3) / 2 * np.c_[np.cos(np.arange(6) * np.pi
                                                    np.sin(np.arange(6) * np.pi / 3)]])
 
 
+REACH_SAMPLES = 3600  # rim angles of :meth:`Instrument.shape_reach_T`'s cylinder maximum
+
+
 @dataclass(frozen=True, eq=False)
 class Shape:
     """One solid of the instrument in T: a cylinder or capsule of axis a-b and ``radius``, or a
@@ -250,10 +253,25 @@ class Instrument:
 
     def shape_reach_T(self) -> np.ndarray:
         """(S,) per shape the largest distance of a point of the solid from the rod axis (Tool
-        x) (m): its axis ends' distance plus its radius (the solid lies within its radius of
-        its axis, and the distance to a line is convex along the axis)."""
-        return np.array([max(np.hypot(s.a[1], s.a[2]), np.hypot(s.b[1], s.b[2])) + s.radius
-                         for s in self.shapes])
+        x) (m), an upper bound within 0.01 mm. The distance to a line is convex, so its maximum
+        over a convex solid sits at an extreme point: for a capsule or sphere an end of its axis
+        plus its radius (exact); for a cylinder a point of a cap's rim, c + R (cos p e1 +
+        sin p e2), maximized over p at :data:`REACH_SAMPLES` angles plus the most the distance
+        can grow between two of them (it changes by at most R per radian)."""
+        p = np.linspace(0.0, 2 * np.pi, REACH_SAMPLES, endpoint=False)
+        out = []
+        for s in self.shapes:
+            if s.kind != "cylinder":
+                out.append(max(np.hypot(s.a[1], s.a[2]), np.hypot(s.b[1], s.b[2])) + s.radius)
+                continue
+            u = (s.b - s.a) / s.length
+            e1 = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
+            e1 /= np.linalg.norm(e1)
+            e2 = np.cross(u, e1)
+            rim = s.radius * (np.cos(p)[:, None] * e1 + np.sin(p)[:, None] * e2)
+            far = max(np.hypot(*(c + rim)[:, 1:].T).max() for c in (s.a, s.b))
+            out.append(far + s.radius * np.pi / REACH_SAMPLES)
+        return np.array(out)
 
     def lines_T(self) -> tuple[np.ndarray, np.ndarray]:
         """Eq. 19's lines in T: the starts P1 = [o, 0, 0] (line1, the rod) and P2 = [o, 0, -d12]

@@ -433,8 +433,9 @@ def verify_placement(
        :func:`systems.placement.tool_clearance.feed_clearance` (a lower bound over the whole
        region, no sampling gaps). The FPSM's value is kept as ``clearance_certified_fpsm``.
     2. Exact, against the scan mesh when ``exact`` is given: FCL at the planned pose, 8 lateral
-       offsets and 4 turns (:func:`systems.placement.tool_clearance.admissible_poses`), each
-       every ``depth_step`` along the feed; the smallest value (exact at the samples).
+       offsets, 18 turns (tilts, roll, diagonals) and their combinations
+       (:func:`systems.placement.tool_clearance.admissible_poses`) about each pose of the feed
+       (every ``depth_step``); the smallest value (exact at the samples).
 
     Returns:
         dict (SI units) with ``clearance_certified``, ``certified_against`` ("scan" or
@@ -455,8 +456,9 @@ def verify_placement(
             feed_scan_clearance,
         )
 
-        scan = feed_scan_clearance(ScanClearance(exact, tool), X, depth=depth, lateral=lateral,
-                                   angle=angle, clearance=margin)
+        bound = ScanClearance(exact, tool)
+        scan = feed_scan_clearance(bound, X, depth=depth, lateral=lateral, angle=angle,
+                                   clearance=margin)
         certified, against = scan["value"], "scan"
     out = {
         "clearance_certified": certified,
@@ -485,14 +487,16 @@ def verify_placement(
             f"{margin * 1e3:.3f} mm"
         )
     if exact is not None:
-        P, _ = feed_poses(admissible_poses(X, lateral, angle), depth, depth_step)
-        c = exact.tool_clearance(P.reshape(-1, 4, 4), tool)
-        out["clearance_exact_min"] = float(c.min())
-        out["exact_poses"] = int(c.size)
-        if not c.min() >= margin:
+        # FCL's minimum over the samples, asked only where the bound cannot rule a sample out
+        feed = feed_poses(X, depth, depth_step)[0][0]
+        samples = admissible_poses(feed, lateral, angle).reshape(1, -1, 4, 4)
+        c, out["exact_fcl_queries"] = bound.exact_minimum(samples)
+        out["clearance_exact_min"] = float(c[0])
+        out["exact_poses"] = int(samples.shape[1])
+        if not c[0] >= margin:
             reasons.append(
                 f"the tool's exact clearance to the scan (FCL) over the feed and the admissible "
-                f"region {region} is {c.min() * 1e3:.3f} mm, below the clinical margin "
+                f"region {region} is {c[0] * 1e3:.3f} mm, below the clinical margin "
                 f"{margin * 1e3:.3f} mm"
             )
     out["reasons"] = reasons
@@ -506,6 +510,8 @@ SEARCH_FEED_STEP = 0.5e-3  # m, the screen's pose spacing along the feed (costs 
 SEARCH_SCREEN = 400  # feeds screened at most
 SEARCH_COARSE = 0.5e-3  # m, the scan bound's resolution in the screen's upper estimates
 SEARCH_VERIFY = 8  # full verifications at most (each screened candidate that passes gets one)
+EXACT_BEST_STEP = 1e-3  # m, the feed's pose spacing of :func:`exact_best` (a refusal's reference)
+EXACT_REGION_EVERY = 2  # :func:`exact_best` samples the region about every 2nd feed pose
 
 
 def _grid_points(lo, hi, shape) -> np.ndarray:
@@ -613,7 +619,99 @@ def search_for_instrument(problem: PlacementProblem, bounds: np.ndarray, tool: I
             return X[k].copy(), ver, record
         if record["verified"] >= SEARCH_VERIFY:
             break
+    if X.shape[0] == 0:
+        return None, None, record
+    best = exact_best(problem, X, tool, safety, scan)
+    record["exact_best"] = best
+    k = best["index"]
+    if best["value"] >= margin:  # FCL finds room the bound did not certify: the plan's verdict
+        ver = verify_placement(problem.fpsm, X_CT[k], tool, safety=safety, exact=exact)
+        record["verified"] += 1
+        best["certified"] = ver["clearance_certified"]
+        if not ver["reasons"]:
+            record["F"] = float(F[k])
+            record["F_loss"] = float(F[k] - F.min())
+            return X[k].copy(), ver, record
     return None, None, record
+
+
+def refusal(tool: Instrument, safety: SafetySpec, search: dict) -> str:
+    """Why no placement passes, measured: the search's counts and :func:`exact_best`'s FCL
+    reference, which tells the site's geometry (FCL finds no candidate keeping the margin) from
+    the certified bound's slack (FCL's samples keep it, the bound cannot prove it)."""
+    text = (f"no placement clears the scan by the margin with the whole instrument ({tool.name})"
+            f" over the feed and the fixture's region ({search['candidates']} grid placements "
+            f"with collision-free FPSM lines, {search['clear_at_target']} clear at the target, "
+            f"{search['screened']} feeds screened)")
+    best = search.get("exact_best")
+    if not best:
+        return text
+    margin = safety.clearance_margin
+    where = (f"d_T {best['d_T'] * 1e3:.1f} mm, theta_T {np.degrees(best['theta_T']):.1f} deg, "
+             f"limited by the {best['limiting_solid']}")
+    text += (f"; FCL at sampled poses of every candidate's feed and region: the best keeps at "
+             f"most {best['value'] * 1e3:.3f} mm ({where})")
+    if best["value"] < margin:
+        return text + (f", below the margin {margin * 1e3:.3f} mm: the site's geometry refuses "
+                       f"this instrument and safety spec, not the bound")
+    return text + (f", but the certified bound there is {best['certified'] * 1e3:.3f} mm: not "
+                   f"proven to keep the margin {margin * 1e3:.3f} mm (the true clearance lies "
+                   f"between the two)")
+
+
+def exact_best(problem: PlacementProblem, X: np.ndarray, tool: Instrument, safety: SafetySpec,
+               scan) -> dict:
+    """The reference for a refusal: FCL's clearance of the whole instrument (``scan``, a
+    :class:`systems.placement.scan_clearance.ScanClearance` with its ExactCavity) over each
+    candidate placement's feed (poses every :data:`EXACT_BEST_STEP`) and, where the feed alone
+    keeps the margin, over the fixture's region about every :data:`EXACT_REGION_EVERY`-th feed
+    pose too
+    (:func:`admissible_poses`, as :func:`verify_placement` samples it); the best over the
+    candidates X (K, 2).
+
+    FCL at sampled poses is each candidate's clearance or more, so a best below the margin
+    proves that no candidate keeps it, whatever bound the search used: the refusal is the site's
+    geometry with this instrument and safety spec, not the bound's slack.
+
+    Returns:
+        dict (SI units): ``value`` (the best), ``index`` (into X), ``d_T``, ``theta_T``,
+        ``feed_only`` (the best over the feed alone), ``limiting_solid`` (the instrument's solid
+        that holds the best candidate's minimum), ``per_solid``, ``candidates``,
+        ``region_checked`` (candidates whose region FCL sampled: in order of their feed's value
+        until no later one can beat the best), ``fcl_queries``.
+    """
+    margin = safety.clearance_margin
+    lateral, angle = safety.lateral_tolerance, safety.angle_tolerance
+    X_CT = tool_frames(problem.X_CH, X[:, 0], X[:, 1])
+    depths = [feed_depth(problem.fpsm, x, tool) for x in X_CT]
+    feeds = [feed_poses(x, d, EXACT_BEST_STEP)[0][0] for x, d in zip(X_CT, depths, strict=True)]
+    S = max(f.shape[0] for f in feeds)
+    P = np.stack([np.concatenate([f, np.repeat(f[-1:], S - f.shape[0], axis=0)])
+                  for f in feeds])  # each feed padded with its last pose: one (K, S) batch
+    feed_only, queries = scan.exact_minimum(P)
+    value = feed_only.copy()  # an upper bound of each candidate's clearance; exact where seen
+    region = {}
+    best = -np.inf
+    for k in np.argsort(-feed_only, kind="stable"):
+        # the region's value is at most the feed's: once the best region value found reaches
+        # the next feed value (or the margin is out of reach), no later candidate can beat it
+        if feed_only[k] < margin or feed_only[k] <= best:
+            break
+        region[k] = admissible_poses(feeds[k][::EXACT_REGION_EVERY], lateral,
+                                     angle).reshape(1, -1, 4, 4)
+        v, q = scan.exact_minimum(region[k])
+        value[k], queries = float(v[0]), queries + q
+        best = max(best, value[k])
+    b = int(max(region, key=lambda k: value[k]) if region else np.argmax(value))
+    poses = region.get(b, P[b:b + 1])
+    per_solid = [float(sub.exact_minimum(poses)[0][0]) for sub in scan.solids]
+    return {"value": float(value[b]), "index": b, "d_T": float(X[b, 0]),
+            "theta_T": float(X[b, 1]), "feed_only": float(feed_only.max()),
+            "limiting_solid": tool.shapes[int(np.argmin(per_solid))].name,
+            "per_solid": dict(zip((s.name for s in tool.shapes), per_solid, strict=True)),
+            "candidates": int(X.shape[0]), "region_checked": len(region),
+            "fcl_queries": int(queries),
+            "step": EXACT_BEST_STEP, "units": "m, rad"}
 
 
 def _invalid_reasons(problem: PlacementProblem, x: np.ndarray) -> list[str]:
@@ -804,11 +902,8 @@ def place_instrument(
         if found is not None:
             x, verification, reasons = found, ver, []
         else:
-            reasons = reasons + [
-                f"no placement clears the scan by the margin with the whole instrument "
-                f"({tool.name}) over the feed and the fixture's region ({search['candidates']} "
-                f"grid placements with collision-free FPSM lines, {search['clear_at_target']} "
-                f"clear at the target, {search['screened']} feeds screened)"]
+            reasons = [refusal(tool, safety, search)] + [
+                f"at the FPSM optimum: {r}" for r in reasons + verification["reasons"]]
     verification["instrument_search"] = search
     ev = problem.evaluate(x[None])
     f1, f2 = float(ev.f_safe_line1[0]), float(ev.f_safe_line2[0])
@@ -826,7 +921,8 @@ def place_instrument(
             "distance_theta_T": float(abs(wrap_angle(g["x"][1] - res.x[1]))),
             "F_pso_minus_grid": float(res.F - g["F"]),
         }
-    reasons = reasons + verification["reasons"]
+    if search is None or search["F"] is not None:  # a refusal has named the optimum's reasons
+        reasons = reasons + verification["reasons"]
     placement = Placement(
         d_T=float(x[0]),
         theta_T=float(x[1]),

@@ -537,7 +537,8 @@ def feed_scan_clearance(scan: ScanClearance, X_CTool, *, depth: float, lateral: 
     resolved = int(low.sum())
     if resolved and scan.exact is not None:
         for k, sub in enumerate(solids):
-            V[k, low] = scan.exact.tool_clearance(P[low], sub.instrument) - loss[k]
+            V[k, low] = np.maximum(V[k, low],
+                                   scan.exact.tool_clearance(P[low], sub.instrument) - loss[k])
     c = V.min(axis=0)
     value = float(c.min())
     if c.size > 1:

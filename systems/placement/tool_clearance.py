@@ -60,6 +60,7 @@ import numpy as np
 from implantplan.systems import validate
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm.model import SPLINE_BASIS, TWO_PI, Fpsm, point_d_safe
+from implantplan.systems.frames import rotations
 from implantplan.systems.instrument import Instrument
 
 METHODS = ("sound", "paper")
@@ -799,29 +800,38 @@ def feed_depth(fpsm: Fpsm, X_CTool, tool: Instrument) -> float:
     return min(depth, MAX_FEED)
 
 
+def _turn_axes(directions: int) -> np.ndarray:
+    """Unit rotation axes (Tool) sampling the fixture's turns: ``directions`` in the y-z plane
+    (tilts of the rod), +-x (roll about the rod) and the 8 cube diagonals."""
+    a = np.arange(directions) * (2 * np.pi / directions)
+    ring = np.column_stack([np.zeros(directions), np.cos(a), np.sin(a)])
+    diag = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij")).reshape(3, -1).T
+    return np.concatenate([ring, [[1.0, 0, 0], [-1.0, 0, 0]], diag / np.sqrt(3.0)])
+
+
 def admissible_poses(X_CTool, lateral: float, angle: float, *, directions: int = 8) -> np.ndarray:
-    """Sample poses of the fixture's admissible region about one planned pose (4, 4): the pose
-    itself, the axis moved by ``lateral`` in ``directions`` directions across it, and the pose
-    turned by +-``angle`` about Tool y and Tool z at the origin: (1 + directions + 4, 4, 4).
-    For the exact (FCL) check; the certified bound of :func:`feed_clearance` covers the whole
-    region without sampling."""
-    X = rigid_poses(X_CTool)[0]
-    R = X[:3, :3]
-    out = [X]
-    for a in np.arange(directions) * (2 * np.pi / directions):
-        Y = X.copy()
-        Y[:3, 3] += lateral * (np.cos(a) * R[:, 1] + np.sin(a) * R[:, 2])
-        out.append(Y)
-    for axis in (1, 2):
-        for sign in (-1.0, 1.0):
-            k = R[:, axis]
-            K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-            th = sign * angle
-            Rot = np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
-            Y = X.copy()
-            Y[:3, :3] = Rot @ R
-            out.append(Y)
-    return np.stack(out)
+    """Sample poses of the fixture's admissible region about planned poses (n, 4, 4) or (4, 4):
+    every combination of the tool origin moved by ``lateral`` across the rod axis (none, or one
+    of ``directions`` directions in Tool y-z) and the pose turned by ``angle`` at its origin
+    (none, or about one of :func:`_turn_axes`: tilts, roll and diagonals), the region being
+    both at once: (n, (1 + directions) (11 + directions), 4, 4), each planned pose first. For
+    the exact (FCL) check: every sample is in the region, so FCL's minimum over them bounds the
+    region's from above (along a feed, sample about each feed pose: a turned pose fed along its
+    own axis would leave the region); the certified bounds cover the whole region without
+    sampling."""
+    X = rigid_poses(X_CTool)
+    R, p = X[:, :3, :3], X[:, :3, 3]
+    a = np.arange(directions) * (2 * np.pi / directions)
+    shift = lateral * np.column_stack([np.zeros(directions + 1),
+                                       np.concatenate([[0.0], np.cos(a)]),
+                                       np.concatenate([[0.0], np.sin(a)])])  # (m, 3) in Tool
+    axes = np.concatenate([np.zeros((1, 3)), _turn_axes(directions)])
+    turn = rotations(angle * axes)  # (t, 3, 3) in Tool
+    m, t = len(shift), len(turn)
+    out = np.repeat(X[:, None], m * t, axis=1)
+    out[:, :, :3, :3] = np.einsum("nij,tjk->ntik", R, np.repeat(turn, m, axis=0))
+    out[:, :, :3, 3] = p[:, None] + np.einsum("nij,tj->nti", R, np.tile(shift, (t, 1)))
+    return out
 
 
 def feed_clearance(

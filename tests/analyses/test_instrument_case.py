@@ -56,9 +56,9 @@ def test_an_instrument_that_cannot_clear_the_margin_is_refused_with_its_reason()
                                                 "clearance_mm": 6.0})
     fit = pipeline.fit_stage(case)
     with pytest.raises(PlanningFailure, match="no placement clears the scan by the margin"):
-        pipeline.placement_stage(case, fit.fpsm, mesh=fit.opened)
+        pipeline.placement_stage(case, fit)
     paper = _case(instrument="paper")
-    assert all(p.valid for p in pipeline.placement_stage(paper, fit.fpsm, mesh=fit.opened))
+    assert all(p.valid for p in pipeline.placement_stage(paper, fit))
 
 
 def _actuator_case(sites: int = 2):
@@ -80,7 +80,7 @@ def test_the_actuator_is_placed_where_its_head_clears_the_scan():
 
     case = _actuator_case(sites=1)
     fit = pipeline.fit_stage(case)
-    (p,) = pipeline.placement_stage(case, fit.fpsm, mesh=fit.opened)
+    (p,) = pipeline.placement_stage(case, fit)
     ver = p.verification
     search = ver["instrument_search"]
     margin = case.safety.clearance_margin
@@ -100,3 +100,31 @@ def test_the_actuator_is_placed_where_its_head_clears_the_scan():
     # the chosen feed, every 0.5 mm, by FCL: clear by the certified value
     P, _ = feed_poses(p.X_CT, feed_depth(fit.fpsm, p.X_CT, tool), 0.5e-3)
     assert exact.tool_clearance(P[0], tool).min() >= ver["clearance_certified"]
+
+
+@pytest.mark.sweep
+@pytest.mark.parametrize("margin_mm", [1.7, 2.0])
+def test_a_refusal_says_whether_the_site_or_the_bound_refuses(margin_mm):
+    """Site 36 with the actuator under a margin the certified bound cannot reach: the refusal
+    carries FCL's best over every candidate's feed and region samples (an upper bound of what
+    any candidate keeps). At 2 mm FCL finds none that keeps it: the site's geometry. At 1.7 mm
+    FCL's samples keep it where the certified bound does not: named as not proven, with both
+    values, the true clearance between them (measured: 1.92 mm by FCL, 1.64 certified)."""
+    data = read_yaml(default_case_path())
+    case = _case(sites=data["sites"][:1], safety={**data["safety"], "clearance_mm": margin_mm,
+                                                  "registration_samples": 0})
+    fit = pipeline.fit_stage(case)
+    with pytest.raises(PlanningFailure) as info:
+        pipeline.placement_stage(case, fit)
+    message = str(info.value)
+    best = info.value.result["verification"]["instrument_search"]["exact_best"]
+    margin = margin_mm * 1e-3
+    assert best["value"] <= best["feed_only"] and best["limiting_solid"] in {"head", "implant"}
+    assert best["region_checked"] >= 1 and best["candidates"] > 100
+    assert f"the best keeps at most {best['value'] * 1e3:.3f} mm" in message
+    if margin_mm == 2.0:
+        assert best["value"] < margin and "the site's geometry refuses" in message
+    else:
+        assert best["certified"] < margin <= best["value"]
+        assert best["value"] - best["certified"] < 0.4e-3  # the slack where it decides
+        assert "not proven to keep the margin" in message

@@ -132,3 +132,36 @@ def test_the_fast_bound_of_the_actuator_is_sound_against_fcl_on_the_fpsm_boundar
     assert np.all(bound[free] <= truth[free] + 2e-6)  # never above exact (+ chord sag)
     assert not np.any((bound > 0) & ~free)  # never "free" where a solid touches
     assert np.any(bound[free] > 0)  # and not vacuous: it certifies free poses
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_reach_from_the_rod_axis_bounds_every_point_of_each_solid_tightly(seed):
+    """shape_reach_T (the region's rotation loss per solid) is at least the distance of every
+    point of the solid from Tool x and within 0.02 mm of the farthest one: random cylinders
+    and capsules, dense interior samples and the rims (a rim point is where a cylinder's
+    maximum sits)."""
+    rng = np.random.default_rng(seed)
+    shapes = []
+    for kind in ("cylinder", "capsule", "cylinder"):
+        a = rng.uniform(-0.02, 0.02, 3)
+        b = a + rng.normal(size=3) * 0.01
+        shapes.append(Shape(kind, kind, a, b, float(rng.uniform(1, 9)) * MM))
+    tool = Instrument("random", tuple(shapes), rod_radius=0.003, implant_length=0.02,
+                      rod_length=0.1)
+    reach = tool.shape_reach_T()
+    for s, r in zip(shapes, reach, strict=True):
+        u = (s.b - s.a) / s.length
+        e1 = np.cross(u, [1, 0, 0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(u, e1)
+        ang = rng.uniform(0, 2 * np.pi, 20_000)
+        rim = s.radius * (np.cos(ang)[:, None] * e1 + np.sin(ang)[:, None] * e2)
+        if s.kind == "cylinder":
+            P = np.vstack([s.a + rim, s.b + rim])
+        else:  # the end spheres
+            d = rng.normal(size=(40_000, 3))
+            d /= np.linalg.norm(d, axis=1)[:, None]
+            P = np.vstack([s.a + s.radius * d[:20_000], s.b + s.radius * d[20_000:]])
+        far = np.hypot(P[:, 1], P[:, 2]).max()
+        assert far <= r + 1e-12
+        assert r - far < 0.02 * MM
