@@ -6,12 +6,12 @@
   parser (``implantplan ...``) or names a module that exists (``python -m ...``).
 - Every such command that writes under ``out/`` runs, in a fresh folder holding a copy of
   ``models/``, after the earlier commands that write the ``out/`` files it reads, and exits 0
-  leaving the files it names. Commands of seconds run by default (grouped into chains of
-  commands that need each other's files); commands of minutes are marked ``sweep`` and the
-  paper-scale runs ``slow`` (:data:`SWEEP`, :data:`SLOW`); a studio command serves until it
-  prints its address and is then interrupted; the cluster block starts its own Dask scheduler
-  and workers on 127.0.0.1. ``implantplan demo`` is run once per session by ``demo_run`` (the
-  transcript test).
+  (or the code its line documents, ``# exits N: why``) leaving the files it names. Commands of
+  seconds run by default (grouped into chains of commands that need each other's files);
+  commands of minutes are marked ``sweep`` and the paper-scale runs ``slow`` (:data:`SWEEP`,
+  :data:`SLOW`); a studio command serves until it prints its address and is then interrupted;
+  the cluster block starts its own Dask scheduler and workers on 127.0.0.1. ``implantplan
+  demo`` is run once per session by ``demo_run`` (the transcript test).
 - docs/commands.md lists every command and exactly its options (compared with the parser),
   every repository path and module the docs name exists, every link and anchor resolves, and no
   text cites an issue number.
@@ -83,6 +83,7 @@ class Command:
     line: int
     block: int  # index of its fenced block in the doc
     argv: tuple[str, ...]
+    exit: int = 0  # the exit code its line documents ("# exits N: why"), else 0
 
     @property
     def text(self) -> str:
@@ -131,10 +132,12 @@ def fenced_commands(path: Path) -> list[Command]:
                 joined = joined[:-1] + " " + lines[i]
             i += 1
             words = shlex.split(joined, comments=True)
+            documented = re.search(r"#\s*exits (\d):", joined)
             while words:
                 cut = words.index("&&") if "&&" in words else len(words)
                 out.append(Command(str(path.relative_to(ROOT)), first + start, block,
-                                   tuple(words[:cut])))
+                                   tuple(words[:cut]),
+                                   int(documented.group(1)) if documented else 0))
                 words = words[cut + 1:]
     return out
 
@@ -308,7 +311,8 @@ def _run(c: Command, cwd: Path, monkeypatch) -> None:
         with contextlib.redirect_stdout(buf), contextlib.redirect_stderr(buf):
             code = main(list(c.argv[1:]))
         printed = buf.getvalue()
-    assert code == 0, f"{c.where} exited {code}:\n{printed[-3000:]}"
+    assert code == c.exit, (f"{c.where} exited {code} (documented: {c.exit}):\n"
+                            f"{printed[-3000:]}")
     missing = [o for o in c.outputs if not (cwd / o).exists()]
     assert missing == [], f"{c.where} did not write {missing}"
     print(f"{time.perf_counter() - t0:6.1f} s  {c.text}")
@@ -348,7 +352,8 @@ def _free_port() -> int:
 def _run_cluster(cmds: list[Command], cwd: Path, monkeypatch) -> None:
     port = str(_free_port())
     local = [Command(c.doc, c.line, c.block, tuple(
-        a.replace("HOST", "127.0.0.1").replace("8786", port) for a in c.argv)) for c in cmds]
+        a.replace("HOST", "127.0.0.1").replace("8786", port) for a in c.argv), c.exit)
+             for c in cmds]
     background = []
     try:
         for c in local:
