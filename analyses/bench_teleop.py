@@ -261,9 +261,10 @@ def main(argv=None) -> int:
         seconds = sim / len(motions)
         rows.append((mode, sim / wall, bare_loop(case, mode, seconds)))
     if args.head_motion:  # the awake patient: tracker, guard, moving patient (kinematic only)
-        from implantplan.systems.teleop.head_motion import HeadMotion
+        from implantplan.systems.teleop.head_motion import HeadMotion, neck_of
 
-        hm = HeadMotion.make(args.head_motion, seed=args.seed, pivot=case.X_WCenter[:3, 3])
+        hm = HeadMotion.make(args.head_motion, seed=args.seed, pivot=case.X_WCenter[:3, 3],
+                             neck=neck_of(case.X_WCenter))
         head = T.build_teleop(case, head_motion=hm)
         runs = [T.simulate(head, m.duration + S.FINISH_SECONDS, motion=m) for m in motions]
         rows.append((f"kin+{args.head_motion}", sum(r.sim_seconds for r in runs)

@@ -260,9 +260,10 @@ def register(subparsers) -> None:
     p.add_argument("--meshcat-html", type=Path, help="write a static HTML replay of run 0")
     p.add_argument("--csv", type=Path, help="replay a studio recording (MasterDevice CSV with "
                    "its <name>.json case beside it) instead of scripted feeds")
-    p.add_argument("--head-motion", help="the awake patient: breathing|swallow|startle|drift or "
-                   "a CSV of head displacements (t_s,x_m,y_m,z_m,rx_rad,ry_rad,rz_rad); seeded "
-                   "by --seed; kinematic or dynamic mode; the arm follows the tracked mouth")
+    p.add_argument("--head-motion", help="the awake patient: breathing|swallow|startle|drift|"
+                   "turn or a CSV of head displacements (t_s,x_m,y_m,z_m,rx_rad,ry_rad,"
+                   "rz_rad); seeded by --seed; kinematic or dynamic mode; the arm follows the "
+                   "tracked mouth")
     _operator_options(p)
     p.set_defaults(func=cmd_feeding)
     p = sub.add_parser("circle", help="circle r 25 mm at 10 mm/s with injected joint error")
@@ -361,7 +362,10 @@ def cmd_feeding(args) -> int:
     inst, sc, sc_plant, xyz, branch, source = _layout(args, progress)
     case = make_case(_scene_name(sc), sc_plant, xyz, branch, inst, label="selected")
     if head is not None:
-        head = dataclasses.replace(head, pivot=np.array(case.X_WCenter[:3, 3], dtype=float))
+        from implantplan.systems.teleop.head_motion import neck_of
+
+        head = HeadMotion.make(args.head_motion, seed=args.seed, pivot=case.X_WCenter[:3, 3],
+                               neck=neck_of(case.X_WCenter))  # about the case's head
     meshcat = None
     if args.meshcat_html is not None:
         from pydrake.geometry import Meshcat

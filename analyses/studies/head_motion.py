@@ -50,11 +50,11 @@ from implantplan.systems import seeds
 from implantplan.systems.errors import InputError
 from implantplan.systems.placement.exact_clearance import ExactCavity
 from implantplan.systems.teleop.head_guard import GuardSettings
-from implantplan.systems.teleop.head_motion import PROFILES, HeadMotion
+from implantplan.systems.teleop.head_motion import PROFILES, HeadMotion, neck_of
 from implantplan.systems.teleop.master_device import feeding_runs
 from implantplan.systems.teleop.tracker import TrackerParams
 
-STUDY_PROFILES = PROFILES[1:]  # breathing, swallow, startle, drift
+STUDY_PROFILES = PROFILES[1:]  # breathing, swallow, startle, drift, turn
 BACKED_OUT_SHARE = 0.9  # the back-out counts as done when the tool moved 90% of the distance
 
 
@@ -201,6 +201,7 @@ def head_study(case: TeleopCase, inst, *, profiles=STUDY_PROFILES, runs: int = 5
     start = case.X_WE(case.q_start)[:3, 3]
     motions = feeding_runs(start, case.X_WTarget[:3, 3], runs=runs, seed=seed)
     pivot = case.X_WCenter[:3, 3]
+    neck = neck_of(case.X_WCenter)
     still_tel = build_teleop(case)
     stills = []
     t0 = time.perf_counter()
@@ -213,24 +214,24 @@ def head_study(case: TeleopCase, inst, *, profiles=STUDY_PROFILES, runs: int = 5
     for prof in profiles:
         rows = []
         for i, m in enumerate(motions):
-            hm = HeadMotion.make(prof, seed=seeds.seed(seed, i, 0), pivot=pivot)
+            hm = HeadMotion.make(prof, seed=seeds.seed(seed, i, 0), pivot=pivot, neck=neck)
             T = m.duration + F.FINISH_SECONDS
             trk = dataclasses.replace(base, seed=seeds.seed(seed, i, 1))
             fol = simulate(build_teleop(case, head_motion=hm, tracker=trk), T, motion=m)
             ign = simulate(build_teleop(case, head_motion=hm, follow=False), T, motion=m)
-            on = hm.params.get("onset_s") if prof == "startle" else None
+            on = hm.params.get("onset_s") if prof in ("startle", "turn") else None
             a = measure(fol, stills[i], case, cavity, event_time=on)
             b = measure(ign, stills[i], case, cavity)
             row = {"head": {k: (v.tolist() if isinstance(v, np.ndarray) else v)
                             for k, v in hm.params.items()},
                    "following": _public(a), "ignoring": _public(b)}
-            if prof in ("swallow", "startle"):
+            if prof in ("swallow", "startle", "turn"):
                 on = hm.params["onset_s"]
-                dur = 0.2 if prof == "startle" else 1.0
+                dur = hm.params.get("seconds", 0.2 if prof == "startle" else 1.0)
                 outside = (fol.t < on) | (fol.t > on + dur + 0.5)
                 row["following"]["exact_clearance_min_outside_event"] = float(
                     a["_clearance"][outside].min())
-                if prof == "startle" and a["trigger_time"] >= 0:
+                if prof in ("startle", "turn") and a["trigger_time"] >= 0:
                     row["following"]["stop_after_onset_s"] = a["trigger_time"] - on
                     if a.get("backed_out_time", -1) >= 0:
                         row["following"]["backed_out_after_onset_s"] = a["backed_out_time"] - on
@@ -285,7 +286,7 @@ def summarize(rows: list, prof: str, margin: float) -> dict:
         "guard_triggered_following": int(sum(r["trigger_time"] >= 0 for r in fol)),
         "realtime_factor_min_following": float(min(r["realtime_factor"] for r in fol)),
     }
-    if prof == "startle":
+    if prof in ("startle", "turn"):
         stops = [r["stop_after_onset_s"] for r in fol if "stop_after_onset_s" in r]
         backs = [r["backed_out_after_onset_s"] for r in fol if "backed_out_after_onset_s" in r]
         s["stop_after_onset_max_s"] = float(max(stops)) if stops else None
@@ -325,7 +326,7 @@ def _print_summary(result: dict, prefix: str = "") -> None:
                 f"{mm['exact_clearance_min_following']:.2f} mm "
                 f"({s['runs_below_zero_following']} runs < 0); reached "
                 f"{s['reached_target_following']}; guard {s['guard_triggered_following']}")
-        if prof == "startle" and s["stop_after_onset_max_s"] is not None:
+        if prof in ("startle", "turn") and s["stop_after_onset_max_s"] is not None:
             back = s["backed_out_after_onset_max_s"]
             line += (f"; stop <= {s['stop_after_onset_max_s']:.3f} s after onset, backed out "
                      f"{s['backed_out_runs']}/{s['runs']} runs"

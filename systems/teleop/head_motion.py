@@ -16,6 +16,9 @@ Profiles (all amplitudes and times drawn from ``seed``):
 - ``startle``: a minimum-jerk step of A in [5, 10] mm and a rotation of [2, 4] deg within 0.2 s
   at t0 in [1, 3] s; the head then stays where it went;
 - ``drift``: a constant velocity of [2, 5] mm/min and [0.5, 1] deg/min;
+- ``turn``: the head turned about the neck (the cranial axis through the dens of C2, ``neck``:
+  :func:`neck_of` the Center frame) by A in [10, 15] deg, either way, a minimum-jerk step whose
+  peak rate is drawn in [30, 60] deg/s (a quick look aside), at t0 in [1, 3] s; it stays turned;
 - a CSV file (``t_s,x_m,y_m,z_m,rx_rad,ry_rad,rz_rad``: the displacement against time, rotation
   vector about the pivot), linearly interpolated and held outside its time range.
 
@@ -36,11 +39,22 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 from implantplan.systems.errors import InputError
 from implantplan.systems.frames import rotations
 
-PROFILES = ("still", "breathing", "swallow", "startle", "drift")
+PROFILES = ("still", "breathing", "swallow", "startle", "drift", "turn")
 CSV_HEADER = "t_s,x_m,y_m,z_m,rx_rad,ry_rad,rz_rad"
 STARTLE_SECONDS = 0.2
 SWALLOW_SECONDS = 1.0  # the whole bump: up within 0.5 s, back within the next 0.5 s
 _FD = 1e-5  # s: central-difference step of the velocities
+MIN_JERK_PEAK = 1.875  # the minimum-jerk step's peak rate, in units of its size / duration
+NECK_BEHIND_CENTER = 0.04  # m: the neck's axis behind Center's origin (the back of the mouth):
+# the oropharynx (about 15 mm deep) and the atlas' arch to the dens of C2 (about 25 mm)
+
+
+def neck_of(X_WCenter) -> tuple[np.ndarray, np.ndarray]:
+    """(a point, a unit axis) in World of the neck's turning axis for a head whose Center frame
+    is ``X_WCenter``: along Center +Y (cranial), :data:`NECK_BEHIND_CENTER` behind Center's
+    origin (Center -Z, away from the mouth)."""
+    X = np.asarray(X_WCenter, dtype=float)
+    return X[:3, 3] - NECK_BEHIND_CENTER * X[:3, 2], X[:3, 1] / np.linalg.norm(X[:3, 1])
 
 
 def _min_jerk(tau):
@@ -77,9 +91,10 @@ class HeadMotion:
 
     @classmethod
     def make(cls, profile: str, *, seed: int = 0, pivot=None, start: float = 1.0,
-             window: float = 2.0) -> HeadMotion:
-        """Draw a profile's parameters from ``seed``; ``start``/``window``: the swallow's or the
-        startle's onset is uniform in [start, start + window] s."""
+             window: float = 2.0, neck=None) -> HeadMotion:
+        """Draw a profile's parameters from ``seed``; ``start``/``window``: the swallow's,
+        startle's or turn's onset is uniform in [start, start + window] s; ``neck``: (point,
+        axis) in World of the turn's axis (default: World Z through the pivot)."""
         pivot = np.zeros(3) if pivot is None else np.asarray(pivot, dtype=float).reshape(3)
         if profile not in PROFILES:
             path = Path(profile)
@@ -107,6 +122,15 @@ class HeadMotion:
             p = {"speed_m_s": rng.uniform(0.002, 0.005) / 60.0, "direction": _direction(rng, 0.0),
                  "rate_rad_s": np.deg2rad(rng.uniform(0.5, 1.0)) / 60.0,
                  "axis": axis / np.linalg.norm(axis)}
+        elif profile == "turn":
+            point, axis = (pivot, np.array([0.0, 0.0, 1.0])) if neck is None else neck
+            axis = np.asarray(axis, dtype=float).reshape(3)
+            angle = np.deg2rad(rng.uniform(10.0, 15.0))
+            rate = np.deg2rad(rng.uniform(30.0, 60.0))
+            p = {"onset_s": rng.uniform(start, start + window), "angle_rad": angle,
+                 "peak_rate_rad_s": rate, "seconds": MIN_JERK_PEAK * angle / rate,
+                 "axis": rng.choice([-1.0, 1.0]) * axis / np.linalg.norm(axis),
+                 "neck_point": np.asarray(point, dtype=float).reshape(3)}
         return cls(profile=profile, seed=int(seed), pivot=pivot, params=p)
 
     @classmethod
@@ -155,6 +179,12 @@ class HeadMotion:
             s = _min_jerk((t - p["onset_s"]) / STARTLE_SECONDS)
             u = (p["amplitude_m"] * s)[:, None] * p["direction"]
             w = (p["angle_rad"] * s)[:, None] * p["axis"]
+        elif self.profile == "turn":
+            s = _min_jerk((t - p["onset_s"]) / p["seconds"])
+            w = (p["angle_rad"] * s)[:, None] * p["axis"]
+            # about the neck, not the pivot: x -> R (x - c) + c = R (x - pivot) + pivot + u
+            c = p["neck_point"] - self.pivot
+            u = c - rotations(np.atleast_2d(w)) @ c
         elif self.profile == "drift":
             tt = np.maximum(t, 0.0)
             u = (p["speed_m_s"] * tt)[:, None] * p["direction"]

@@ -3,7 +3,7 @@ import pytest
 from pydrake.systems.framework import DiagramBuilder
 
 from implantplan.systems.errors import InputError
-from implantplan.systems.frames import rotation_angle
+from implantplan.systems.frames import rotation_angle, rotations
 from implantplan.systems.teleop.head_motion import HeadMotion, HeadMotionSource
 
 T = np.linspace(0.0, 6.0, 6001)
@@ -93,3 +93,37 @@ def test_source_outputs_the_moved_head_frame():
     np.testing.assert_allclose(X, m.D(t)[0] @ X0, atol=1e-12)
     V = src.GetOutputPort("V_WHead").Eval(sc)
     np.testing.assert_allclose(V, m.velocity(t, X0[:3, 3])[0], atol=1e-12)
+
+
+def test_a_turn_is_about_the_neck_at_its_drawn_rate():
+    """The turn profile: points on the neck's axis stay put, the head turns by its drawn angle
+    about that axis (either way over seeds), the peak angular rate is the drawn one."""
+    from implantplan.systems.teleop.head_motion import NECK_BEHIND_CENTER, neck_of
+
+    X_WC = np.eye(4)
+    X_WC[:3, :3] = rotations(np.array([[0.3, -0.2, 1.1]]))[0]
+    X_WC[:3, 3] = [0.4, -0.1, 0.9]
+    point, axis = neck_of(X_WC)
+    assert np.allclose(point, X_WC[:3, 3] - NECK_BEHIND_CENTER * X_WC[:3, 2])
+    signs = set()
+    for seed in range(12):
+        hm = HeadMotion.make("turn", seed=seed, pivot=X_WC[:3, 3], neck=(point, axis))
+        p = hm.params
+        assert np.deg2rad(10) <= p["angle_rad"] <= np.deg2rad(15)
+        assert np.deg2rad(30) <= p["peak_rate_rad_s"] <= np.deg2rad(60)
+        signs.add(float(np.sign(p["axis"] @ axis)))
+        t = np.linspace(0.0, 5.0, 5001)
+        D = hm.D(t)
+        on_axis = np.array([point, point + 0.05 * axis, point - 0.1 * axis])
+        moved = np.einsum("nij,kj->nki", D[:, :3, :3], on_axis) + D[:, None, :3, 3]
+        assert np.abs(moved - on_axis).max() < 1e-12
+        end = D[-1, :3, :3]
+        assert np.rad2deg(np.arccos((np.trace(end) - 1) / 2)) == pytest.approx(
+            np.rad2deg(p["angle_rad"]), abs=1e-9)
+        rate = np.linalg.norm(hm.velocity(t)[:, :3], axis=1)
+        assert rate.max() == pytest.approx(p["peak_rate_rad_s"], rel=1e-4)
+        assert np.all(rate[t < p["onset_s"]] < 1e-9)
+        # the mouth (Center's origin) moves at the lever arm's speed
+        v = np.linalg.norm(hm.velocity(t, point=X_WC[:3, 3])[:, 3:], axis=1)
+        assert v.max() == pytest.approx(p["peak_rate_rad_s"] * NECK_BEHIND_CENTER, rel=1e-3)
+    assert signs == {-1.0, 1.0}
