@@ -357,7 +357,8 @@ def cmd_feeding(args) -> int:
 
         if args.mode != "kinematic":
             raise InputError("--head-motion", "expected --mode kinematic with a head motion")
-        head = HeadMotion.make(args.head_motion, seed=args.seed)  # its pivot: the case's below
+        head = HeadMotion.make(args.head_motion, seed=args.seed)  # checks the flag; made
+        # again about the case's head once the layout is known (below)
     progress = Progress("simulate feeding", quiet=args.quiet)
     inst, sc, sc_plant, xyz, branch, source = _layout(args, progress)
     case = make_case(_scene_name(sc), sc_plant, xyz, branch, inst, label="selected")

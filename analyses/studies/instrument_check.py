@@ -109,7 +109,7 @@ def study(*, poses: int = 20_000, seed: int = 0, progress: Progress | None = Non
     case = load_case(default_case_path())
     fit = pipeline.fit_stage(case)
     placements = pipeline.placement_stage(case, fit)
-    exact = ExactCavity.from_scan(fit.opened, fit.fpsm, close_open_cuts=case.mesh.close_open_cuts)
+    exact = fit.exact(case.mesh.close_open_cuts)  # the one the placement verified against
     sites = {}
     for k, (site, p) in enumerate(zip(case.sites, placements, strict=True)):
         progress.say(f"site {site.name}: {poses} poses")

@@ -169,7 +169,7 @@ def planned_cavity(case_path, name: str, progress: Progress) -> tuple[Cavity, fl
     progress.say(f"{name}: fit and placement")
     fit = pipeline.fit_stage(case)
     placements = pipeline.placement_stage(case, fit, require_valid=False)
-    exact = ExactCavity.from_scan(fit.opened, fit.fpsm, close_open_cuts=case.mesh.close_open_cuts)
+    exact = fit.exact(case.mesh.close_open_cuts)  # the one the placement verified against
     feeds = []
     for site, p in zip(case.sites, placements, strict=True):
         depth = {n: float(feed_depth(fit.fpsm, p.X_CT, instrument(n))) for n in INSTRUMENTS}

@@ -665,9 +665,8 @@ def exact_best(problem: PlacementProblem, X: np.ndarray, tool: Instrument, safet
     :class:`systems.placement.scan_clearance.ScanClearance` with its ExactCavity) over each
     candidate placement's feed (poses every :data:`EXACT_BEST_STEP`) and, where the feed alone
     keeps the margin, over the fixture's region about every :data:`EXACT_REGION_EVERY`-th feed
-    pose too
-    (:func:`admissible_poses`, as :func:`verify_placement` samples it); the best over the
-    candidates X (K, 2).
+    pose too (:func:`admissible_poses`, as :func:`verify_placement` samples it); the best over
+    the candidates X (K, 2).
 
     FCL at sampled poses is each candidate's clearance or more, so a best below the margin
     proves that no candidate keeps it, whatever bound the search used: the refusal is the site's
