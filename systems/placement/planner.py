@@ -458,7 +458,7 @@ def verify_placement(
 
         bound = ScanClearance(exact, tool)
         scan = feed_scan_clearance(bound, X, depth=depth, lateral=lateral, angle=angle,
-                                   clearance=margin)
+                                   clearance=margin, resolve_region=True)
         certified, against = scan["value"], "scan"
     out = {
         "clearance_certified": certified,
@@ -628,6 +628,7 @@ def search_for_instrument(problem: PlacementProblem, bounds: np.ndarray, tool: I
         ver = verify_placement(problem.fpsm, X_CT[k], tool, safety=safety, exact=exact)
         record["verified"] += 1
         best["certified"] = ver["clearance_certified"]
+        best["region"] = (ver["scan_bound"] or {}).get("region")
         if not ver["reasons"]:
             record["F"] = float(F[k])
             record["F_loss"] = float(F[k] - F.min())
@@ -654,9 +655,12 @@ def refusal(tool: Instrument, safety: SafetySpec, search: dict) -> str:
     if best["value"] < margin:
         return text + (f", below the margin {margin * 1e3:.3f} mm: the site's geometry refuses "
                        f"this instrument and safety spec, not the bound")
-    return text + (f", but the certified bound there is {best['certified'] * 1e3:.3f} mm: not "
-                   f"proven to keep the margin {margin * 1e3:.3f} mm (the true clearance lies "
-                   f"between the two)")
+    region = best.get("region") or {}
+    tried = (f", the fixture's region resolved with FCL until its budget of "
+             f"{region['fcl_queries']} queries" if region and not region["decided"] else "")
+    return text + (f", but the certified bound there is {best['certified'] * 1e3:.3f} mm{tried}: "
+                   f"not proven to keep the margin {margin * 1e3:.3f} mm (the true clearance "
+                   f"lies between the two)")
 
 
 def exact_best(problem: PlacementProblem, X: np.ndarray, tool: Instrument, safety: SafetySpec,

@@ -485,6 +485,121 @@ class CappedScanClearance:
         return capped_at(self.at_args, np.ascontiguousarray(X_CTool, dtype=float))
 
 
+REGION_BUDGET = 60_000  # FCL queries of one feed's region resolution at most (about 40 s)
+REGION_BATCH = 64  # cells split per round of :func:`region_branch_and_bound` (one FCL batch)
+
+
+def _region_poses(P: np.ndarray, index: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """(m, 4, 4) the poses at cell centres (m, 6) = (s, t_y, t_z, w) about feed poses P[index]:
+    the TCP moved by R0 (s, t_y, t_z) (along the rod: the feed; across it: the lateral
+    offset) and the frame turned by exp(w) at the TCP."""
+    from implantplan.systems.frames import rotations
+
+    X0 = P[index]
+    out = X0.copy()
+    out[:, :3, :3] = X0[:, :3, :3] @ rotations(centre[:, 3:])
+    out[:, :3, 3] = X0[:, :3, 3] + np.einsum("nij,nj->ni", X0[:, :3, :3], centre[:, :3])
+    return out
+
+
+def region_branch_and_bound(scan: ScanClearance, P: np.ndarray, lower: np.ndarray, *,
+                            half_step: float, lateral: float, angle: float, claim: float,
+                            budget: int = REGION_BUDGET) -> tuple[np.ndarray, int, bool]:
+    """Branch and bound over the fixture's region about feed poses, where the bound minus the
+    region's worst-case loss leaves a pose below the claimed clearance; the scan bound and FCL
+    at the cells' centres.
+
+    The region about feed pose P_i (the cell): the feed offset s in [-half_step, half_step]
+    along the rod, the TCP's lateral offset t in the disc |t| <= ``lateral`` across it, and a
+    turn w (rotation vector) in the ball |w| <= ``angle`` at the TCP (the fixture holds the TCP
+    within the lateral tolerance and the orientation within the angle: this set contains the
+    fixture's region). A box cell of half-widths h about (s, t, w) moves no point of the solid
+    by more than rho = |h_s,t| + |h_w| Q from where it is at the centre, Q the solid's largest
+    distance from the TCP (:meth:`Instrument.origin_reach_T`): translations move every point by
+    their length and |exp(w) q - exp(w') q| <= |w - w'| |q| (the right Jacobian of SO(3) has
+    norm <= 1). So the cell keeps v - rho for any lower bound v of the clearance at its centre,
+    and its parent's bound. At each new centre the scan bound (its lower bound and upper
+    estimate, resolved against claim + rho) comes first; FCL is asked only where the lower bound
+    leaves the cell below the claim and the upper estimate says FCL can lift it. Cells are split
+    in two along the half-width that costs most (turns weighted by Q) while their bound is below
+    ``claim``; cells wholly outside the disc or the ball are dropped.
+
+    Stops when every cell reaches ``claim`` (proven), when a centre inside the region is closer
+    than it (an upper estimate or FCL below it: disproved, the region holds such a pose), or
+    after ``budget`` FCL queries (undecided: the bounds so far are returned, still sound).
+
+    Args:
+        scan: the :class:`ScanClearance` of one solid, with its ExactCavity.
+        P: (n, 4, 4) feed poses; lower: (n,) each cell's lower bound so far (m).
+
+    Returns:
+        ((n,) the cells' lower bounds (m), FCL queries, decided: proven or disproved).
+    """
+    exact, solid = scan.exact, scan.instrument
+    Q = float(solid.origin_reach_T()[0])
+    n = P.shape[0]
+    weight = np.array([1.0, 1.0, 1.0, Q, Q, Q])
+    index = np.arange(n)
+    centre = np.zeros((n, 6))
+    half = np.tile([half_step, lateral, lateral, angle, angle, angle], (n, 1))
+    lb = lower.astype(float).copy()
+    queries = 0
+    first = True
+    while True:
+        if first:  # the feed poses themselves (centres of the root cells, in the region)
+            pick = np.arange(n)
+            c, h, i, parent = centre, half, index, lb
+        else:
+            open_ = np.flatnonzero(lb < claim)
+            if open_.size == 0:
+                break
+            if queries >= budget:
+                return _cell_minimum(index, lb, n), queries, False
+            pick = open_[np.argsort(lb[open_], kind="stable")[:REGION_BATCH]]
+            d = np.argmax(half[pick] * weight, axis=1)
+            rows = np.arange(pick.size)
+            hk = half[pick].copy()
+            hk[rows, d] *= 0.5
+            low_c, high_c = centre[pick].copy(), centre[pick].copy()
+            low_c[rows, d] -= hk[rows, d]
+            high_c[rows, d] += hk[rows, d]
+            c, h = np.concatenate([low_c, high_c]), np.concatenate([hk, hk])
+            i, parent = np.tile(index[pick], 2), np.tile(lb[pick], 2)
+            gap_t = np.linalg.norm(np.maximum(np.abs(c[:, 1:3]) - h[:, 1:3], 0.0), axis=1)
+            gap_w = np.linalg.norm(np.maximum(np.abs(c[:, 3:]) - h[:, 3:], 0.0), axis=1)
+            keep = (gap_t <= lateral) & (gap_w <= angle)
+            c, h, i, parent = c[keep], h[keep], i[keep], parent[keep]
+        rho = np.linalg.norm(h[:, :3], axis=1) + Q * np.linalg.norm(h[:, 3:], axis=1)
+        X = _region_poses(P, i, c)
+        v, up = scan.bounds(X, np.minimum(claim + rho, VALUE_CAP))
+        ask = (v - rho < claim) & ~(up - rho < claim)
+        if ask.any():
+            v[ask] = np.maximum(v[ask], exact.tool_clearance(X[ask], solid))
+            up[ask] = np.minimum(up[ask], v[ask])
+            queries += int(ask.sum())
+        child = np.maximum(parent, v - rho)
+        if first:
+            lb, first = child, False
+        else:
+            rest = np.ones(lb.size, dtype=bool)
+            rest[pick] = False
+            centre = np.concatenate([centre[rest], c])
+            half = np.concatenate([half[rest], h])
+            index = np.concatenate([index[rest], i])
+            lb = np.concatenate([lb[rest], child])
+        inside = (np.linalg.norm(c[:, 1:3], axis=1) <= lateral) & (
+            np.linalg.norm(c[:, 3:], axis=1) <= angle) & (np.abs(c[:, 0]) <= half_step)
+        if (up[inside] < claim).any():
+            return _cell_minimum(index, lb, n), queries, True
+    return _cell_minimum(index, lb, n), queries, True
+
+
+def _cell_minimum(index: np.ndarray, lb: np.ndarray, n: int) -> np.ndarray:
+    out = np.full(n, np.inf)
+    np.minimum.at(out, index, lb)
+    return out
+
+
 FEED_STEP = 0.1e-3  # m, pose spacing of :func:`feed_scan_clearance` (costs at most half of it)
 COARSE_RESOLUTION = 0.5e-3  # m, the first pass of :func:`feed_scan_clearance`
 NEAR_MINIMUM = 0.3e-3  # m: poses within this of the feed's least upper estimate are refined
@@ -492,7 +607,7 @@ NEAR_MINIMUM = 0.3e-3  # m: poses within this of the feed's least upper estimate
 
 def feed_scan_clearance(scan: ScanClearance, X_CTool, *, depth: float, lateral: float = 0.0,
                         angle: float = 0.0, clearance: float | None = None,
-                        step: float = FEED_STEP) -> dict:
+                        step: float = FEED_STEP, resolve_region: bool = False) -> dict:
     """Certified clearance (m) of the instrument against the scan over its whole feed (the pose
     ``X_CTool`` (4, 4) backed out along the rod by 0..``depth``) and the fixture's admissible
     region (the rod axis within ``lateral`` of the planned line, the orientation within
@@ -508,9 +623,18 @@ def feed_scan_clearance(scan: ScanClearance, X_CTool, *, depth: float, lateral: 
     (:meth:`Instrument.shape_reach_T`), so c_i = min_s (v_si - loss_s); between poses at spacing
     t (a translation along the rod, 1-Lipschitz) the feed keeps min(c_i, (c_i + c_{i+1} - t) / 2).
 
+    With ``resolve_region`` (and an ExactCavity and a ``clearance``), where that value is below
+    the claim the worst-case loss is replaced by FCL over the region itself: each solid's feed
+    cells (pose i +- t / 2) whose bound v_si - loss_s - t / 2 is below the claim go through
+    :func:`region_branch_and_bound` (branch and bound of the region, FCL at the cells' centres),
+    for the solids whose turn about the TCP is the region's (origin reach = rod-axis reach:
+    the head and the implant, not the long rod the fixture holds by its axis). The value is
+    then the larger of the two sound bounds.
+
     Returns:
         dict: ``value`` (m), ``poses``, ``resolved_poses`` (poses FCL resolved), ``step``,
-        ``solid`` (the solid at the minimum).
+        ``solid`` (the solid at the minimum), ``region`` (None, or what the region's
+        resolution did: ``cells`` resolved, ``fcl_queries``, ``decided``, ``value``).
     """
     from implantplan.systems.placement.tool_clearance import feed_poses
 
@@ -543,9 +667,32 @@ def feed_scan_clearance(scan: ScanClearance, X_CTool, *, depth: float, lateral: 
     value = float(c.min())
     if c.size > 1:
         value = min(value, float((0.5 * (c[:-1] + c[1:] - t)).min()))
+    solid = inst.shapes[int(np.unravel_index(np.argmin(V), V.shape)[0])].name
+    region = None
+    if resolve_region and scan.exact is not None and value < c_claim and (lateral or angle):
+        # each feed cell (pose +- t / 2) keeps v - loss - t / 2; FCL resolves the region where
+        # that is below the claim
+        cells = V - 0.5 * t
+        turn_about_tcp = np.abs(inst.origin_reach_T() - inst.shape_reach_T()) <= 1e-9
+        region = {"cells": 0, "fcl_queries": 0, "decided": True}
+        for k, sub in enumerate(solids):
+            low = np.flatnonzero(cells[k] < c_claim)
+            if low.size == 0 or not turn_about_tcp[k]:
+                continue
+            budget = REGION_BUDGET - region["fcl_queries"]
+            lb, q, decided = region_branch_and_bound(
+                sub, P[low], cells[k, low], half_step=0.5 * t,
+                lateral=lateral, angle=angle, claim=c_claim, budget=max(budget, 0))
+            cells[k, low] = lb
+            region["cells"] += int(low.size)
+            region["fcl_queries"] += int(q)
+            region["decided"] &= bool(decided)
+        region["value"] = float(cells.min())
+        if region["value"] > value:
+            value = region["value"]
+            solid = inst.shapes[int(np.unravel_index(np.argmin(cells), cells.shape)[0])].name
     return {"value": value, "poses": int(c.size), "resolved_poses": resolved if scan.exact
-            is not None else 0, "step": float(t), "solid": inst.shapes[int(
-                np.unravel_index(np.argmin(V), V.shape)[0])].name}
+            is not None else 0, "step": float(t), "solid": solid, "region": region}
 
 
 def registration_monte_carlo(

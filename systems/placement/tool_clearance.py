@@ -834,6 +834,29 @@ def admissible_poses(X_CTool, lateral: float, angle: float, *, directions: int =
     return out
 
 
+def random_region_poses(feed, lateral: float, angle: float, n: int,
+                        rng: np.random.Generator) -> np.ndarray:
+    """(n, 4, 4) uniform random poses of the fixture's region about a feed (S, 4, 4) poses
+    along the rod: a feed pose drawn at random and moved along the rod by up to half the
+    feed's spacing, the TCP moved uniformly in the disc of ``lateral`` across the rod and the
+    frame turned uniformly in the ball of ``angle`` at the TCP (the region of
+    :func:`systems.placement.scan_clearance.region_branch_and_bound`; the in-mouth rod axis may
+    leave the lateral disc at these samples, which the fixture does not allow). For independent
+    checks of the certified region against FCL."""
+    feed = rigid_poses(feed)
+    S = feed.shape[0]
+    half = 0.5 * np.linalg.norm(feed[1, :3, 3] - feed[0, :3, 3]) if S > 1 else 0.0
+    r, a = lateral * np.sqrt(rng.uniform(0, 1, n)), rng.uniform(0, 2 * np.pi, n)
+    shift = np.c_[rng.uniform(-half, half, n), r * np.cos(a), r * np.sin(a)]
+    w = rng.normal(size=(n, 3))
+    w *= (angle * np.cbrt(rng.uniform(0, 1, n)) / np.linalg.norm(w, axis=1))[:, None]
+    X0 = feed[rng.integers(0, S, n)]
+    out = X0.copy()
+    out[:, :3, :3] = X0[:, :3, :3] @ rotations(w)
+    out[:, :3, 3] += np.einsum("nij,nj->ni", X0[:, :3, :3], shift)
+    return out
+
+
 def feed_clearance(
     fpsm: Fpsm,
     X_CTool,
