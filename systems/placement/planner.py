@@ -420,6 +420,7 @@ def verify_placement(
     safety: SafetySpec | None = None,
     exact=None,
     depth_step: float = 0.002,
+    region_budget: int | None = None,
 ) -> dict:
     """Verify the whole admissible region of a placement: the tool at every lateral offset up
     to ``safety.lateral_tolerance`` and turn up to ``safety.angle_tolerance`` from the planned
@@ -429,7 +430,9 @@ def verify_placement(
     1. Certified, against the scan when ``exact`` (a :class:`systems.placement.exact_clearance.
        ExactCavity`) is given: :func:`systems.placement.scan_clearance.feed_scan_clearance` (the
        scan bound of every solid over the feed and the whole region, FCL resolving the poses the
-       bound leaves below the margin); without a mesh, against the FPSM:
+       bound leaves below the margin, and where the region's worst-case loss leaves it below,
+       the region itself by branch and bound with FCL, at most ``region_budget`` queries, None:
+       :data:`systems.placement.scan_clearance.REGION_BUDGET`); without a mesh, against the FPSM:
        :func:`systems.placement.tool_clearance.feed_clearance` (a lower bound over the whole
        region, no sampling gaps). The FPSM's value is kept as ``clearance_certified_fpsm``.
     2. Exact, against the scan mesh when ``exact`` is given: FCL at the planned pose, 8 lateral
@@ -458,7 +461,8 @@ def verify_placement(
 
         bound = ScanClearance(exact, tool)
         scan = feed_scan_clearance(bound, X, depth=depth, lateral=lateral, angle=angle,
-                                   clearance=margin, resolve_region=True)
+                                   clearance=margin, resolve_region=True,
+                                   region_budget=region_budget)
         certified, against = scan["value"], "scan"
     out = {
         "clearance_certified": certified,
@@ -512,6 +516,7 @@ SEARCH_COARSE = 0.5e-3  # m, the scan bound's resolution in the screen's upper e
 SEARCH_VERIFY = 8  # full verifications at most (each screened candidate that passes gets one)
 EXACT_BEST_STEP = 1e-3  # m, the feed's pose spacing of :func:`exact_best` (a refusal's reference)
 EXACT_REGION_EVERY = 2  # :func:`exact_best` samples the region about every 2nd feed pose
+EXACT_VERIFY = 3  # candidates FCL's samples keep at the margin that get the full verification
 
 
 def _grid_points(lo, hi, shape) -> np.ndarray:
@@ -623,15 +628,25 @@ def search_for_instrument(problem: PlacementProblem, bounds: np.ndarray, tool: I
         return None, None, record
     best = exact_best(problem, X, tool, safety, scan)
     record["exact_best"] = best
-    k = best["index"]
-    if best["value"] >= margin:  # FCL finds room the bound did not certify: the plan's verdict
-        ver = verify_placement(problem.fpsm, X_CT[k], tool, safety=safety, exact=exact)
+    # FCL finds room the bound did not certify: the plan's verdict (the region resolved with
+    # FCL) for the candidates FCL's samples rank best, at most EXACT_VERIFY
+    from implantplan.systems.placement import scan_clearance
+
+    budget = scan_clearance.REGION_BUDGET  # shared by the candidates
+    for rank, (k, value) in enumerate(best["ranked"][:EXACT_VERIFY]):
+        if value < margin or budget <= 0:
+            break
+        ver = verify_placement(problem.fpsm, X_CT[k], tool, safety=safety, exact=exact,
+                               region_budget=budget)
+        budget -= ((ver["scan_bound"] or {}).get("region") or {}).get("fcl_queries", 0)
         record["verified"] += 1
-        best["certified"] = ver["clearance_certified"]
-        best["region"] = (ver["scan_bound"] or {}).get("region")
+        if rank == 0:
+            best["certified"] = ver["clearance_certified"]
+            best["region"] = (ver["scan_bound"] or {}).get("region")
         if not ver["reasons"]:
             record["F"] = float(F[k])
             record["F_loss"] = float(F[k] - F.min())
+            record["exact_rank"] = rank
             return X[k].copy(), ver, record
     return None, None, record
 
@@ -681,7 +696,8 @@ def exact_best(problem: PlacementProblem, X: np.ndarray, tool: Instrument, safet
         ``feed_only`` (the best over the feed alone), ``limiting_solid`` (the instrument's solid
         that holds the best candidate's minimum), ``per_solid``, ``candidates``,
         ``region_checked`` (candidates whose region FCL sampled: in order of their feed's value
-        until no later one can beat the best), ``fcl_queries``.
+        until no later one can enter the best :data:`EXACT_VERIFY`), ``fcl_queries``,
+        ``ranked`` ((index, value) of those, best first).
     """
     margin = safety.clearance_margin
     lateral, angle = safety.lateral_tolerance, safety.angle_tolerance
@@ -694,18 +710,20 @@ def exact_best(problem: PlacementProblem, X: np.ndarray, tool: Instrument, safet
     feed_only, queries = scan.exact_minimum(P)
     value = feed_only.copy()  # an upper bound of each candidate's clearance; exact where seen
     region = {}
-    best = -np.inf
     for k in np.argsort(-feed_only, kind="stable"):
-        # the region's value is at most the feed's: once the best region value found reaches
-        # the next feed value (or the margin is out of reach), no later candidate can beat it
-        if feed_only[k] < margin or feed_only[k] <= best:
+        # the region's value is at most the feed's: once the EXACT_VERIFY-th best region value
+        # found reaches the next feed value (or the margin is out of reach), no later candidate
+        # can enter the ranking
+        found = sorted((value[j] for j in region), reverse=True)
+        if feed_only[k] < margin or (len(found) >= EXACT_VERIFY
+                                     and feed_only[k] <= found[EXACT_VERIFY - 1]):
             break
         region[k] = admissible_poses(feeds[k][::EXACT_REGION_EVERY], lateral,
                                      angle).reshape(1, -1, 4, 4)
         v, q = scan.exact_minimum(region[k])
         value[k], queries = float(v[0]), queries + q
-        best = max(best, value[k])
-    b = int(max(region, key=lambda k: value[k]) if region else np.argmax(value))
+    ranked = sorted(region, key=lambda k: -value[k])
+    b = int(ranked[0] if region else np.argmax(value))
     poses = region.get(b, P[b:b + 1])
     per_solid = [float(sub.exact_minimum(poses)[0][0]) for sub in scan.solids]
     return {"value": float(value[b]), "index": b, "d_T": float(X[b, 0]),
@@ -714,6 +732,7 @@ def exact_best(problem: PlacementProblem, X: np.ndarray, tool: Instrument, safet
             "per_solid": dict(zip((s.name for s in tool.shapes), per_solid, strict=True)),
             "candidates": int(X.shape[0]), "region_checked": len(region),
             "fcl_queries": int(queries),
+            "ranked": [(int(k), float(value[k])) for k in ranked],
             "step": EXACT_BEST_STEP, "units": "m, rad"}
 
 

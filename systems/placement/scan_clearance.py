@@ -485,7 +485,7 @@ class CappedScanClearance:
         return capped_at(self.at_args, np.ascontiguousarray(X_CTool, dtype=float))
 
 
-REGION_BUDGET = 60_000  # FCL queries of one feed's region resolution at most (about 40 s)
+REGION_BUDGET = 250_000  # FCL queries of one placement search's region resolution (~75 s)
 REGION_BATCH = 64  # cells split per round of :func:`region_branch_and_bound` (one FCL batch)
 
 
@@ -607,7 +607,8 @@ NEAR_MINIMUM = 0.3e-3  # m: poses within this of the feed's least upper estimate
 
 def feed_scan_clearance(scan: ScanClearance, X_CTool, *, depth: float, lateral: float = 0.0,
                         angle: float = 0.0, clearance: float | None = None,
-                        step: float = FEED_STEP, resolve_region: bool = False) -> dict:
+                        step: float = FEED_STEP, resolve_region: bool = False,
+                        region_budget: int | None = None) -> dict:
     """Certified clearance (m) of the instrument against the scan over its whole feed (the pose
     ``X_CTool`` (4, 4) backed out along the rod by 0..``depth``) and the fixture's admissible
     region (the rod axis within ``lateral`` of the planned line, the orientation within
@@ -624,7 +625,8 @@ def feed_scan_clearance(scan: ScanClearance, X_CTool, *, depth: float, lateral: 
     t (a translation along the rod, 1-Lipschitz) the feed keeps min(c_i, (c_i + c_{i+1} - t) / 2).
 
     With ``resolve_region`` (and an ExactCavity and a ``clearance``), where that value is below
-    the claim the worst-case loss is replaced by FCL over the region itself: each solid's feed
+    the claim the worst-case loss is replaced by FCL over the region itself (at most
+    ``region_budget`` FCL queries, None: :data:`REGION_BUDGET`): each solid's feed
     cells (pose i +- t / 2) whose bound v_si - loss_s - t / 2 is below the claim go through
     :func:`region_branch_and_bound` (branch and bound of the region, FCL at the cells' centres),
     for the solids whose turn about the TCP is the region's (origin reach = rod-axis reach:
@@ -679,7 +681,8 @@ def feed_scan_clearance(scan: ScanClearance, X_CTool, *, depth: float, lateral: 
             low = np.flatnonzero(cells[k] < c_claim)
             if low.size == 0 or not turn_about_tcp[k]:
                 continue
-            budget = REGION_BUDGET - region["fcl_queries"]
+            budget = (REGION_BUDGET if region_budget is None else int(region_budget)) \
+                - region["fcl_queries"]
             lb, q, decided = region_branch_and_bound(
                 sub, P[low], cells[k, low], half_step=0.5 * t,
                 lateral=lateral, angle=angle, claim=c_claim, budget=max(budget, 0))
