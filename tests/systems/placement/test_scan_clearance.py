@@ -252,7 +252,9 @@ def test_the_certified_feed_and_region_is_never_above_fcl_at_its_samples(cavity,
     assert len(gaps) >= 5 and max(gaps) < 1e-3, gaps
 
 
-def test_the_region_resolved_with_fcl_is_sound_and_proves_what_the_loss_cannot(cavity, grid):
+@pytest.mark.parametrize("feeds", [6, pytest.param(30, marks=pytest.mark.sweep)])
+def test_the_region_resolved_with_fcl_is_sound_and_proves_what_the_loss_cannot(cavity, grid,
+                                                                              feeds):
     """Where the worst-case loss leaves a feed below the claim, the branch and bound over the
     region with FCL (``resolve_region``) lifts the certified value, never above FCL at uniform
     random poses of the region (ones the branch and bound never saw: 4,000 per feed, the
@@ -271,7 +273,7 @@ def test_the_region_resolved_with_fcl_is_sound_and_proves_what_the_loss_cannot(c
     rng = np.random.default_rng(21)
     lateral, angle, depth = 0.5e-3, np.radians(1.0), 0.002
     tried = near = proven = 0
-    for X in random_poses(300, rng, lateral=0.012, z=(0.03, 0.05)):
+    for X in random_poses(1500, rng, lateral=0.012, z=(0.03, 0.05)):
         base = feed_scan_clearance(sc, X, depth=depth, lateral=lateral, angle=angle)
         if not 0.3e-3 <= base["value"] <= 4e-3:
             continue
@@ -286,9 +288,9 @@ def test_the_region_resolved_with_fcl_is_sound_and_proves_what_the_loss_cannot(c
         if fcl.min() >= claim + 0.15e-3:
             near += 1
             proven += res["value"] >= claim
-        if tried == 10:
+        if tried == feeds:
             break
-    assert tried == 10 and near >= 5 and proven >= 0.8 * near, (tried, near, proven)
+    assert tried == feeds and near >= feeds // 2 and proven >= 0.8 * near, (tried, near, proven)
     # a claim above FCL at the target pose itself: disproved at the root, one query per pose
     at = float(cavity.tool_clearance(X, inst)[0])
     res = feed_scan_clearance(sc, X, depth=depth, lateral=lateral, angle=angle,
