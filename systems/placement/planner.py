@@ -59,6 +59,7 @@ from implantplan.systems.placement.tool_clearance import (
     feed_clearance,
     feed_depth,
     feed_poses,
+    fixture_admits,
 )
 from implantplan.systems.safety import SafetySpec
 
@@ -684,8 +685,9 @@ def exact_best(problem: PlacementProblem, X: np.ndarray, tool: Instrument, safet
     :class:`systems.placement.scan_clearance.ScanClearance` with its ExactCavity) over each
     candidate placement's feed (poses every :data:`EXACT_BEST_STEP`) and, where the feed alone
     keeps the margin, over the fixture's region about every :data:`EXACT_REGION_EVERY`-th feed
-    pose too (:func:`admissible_poses`, as :func:`verify_placement` samples it); the best over
-    the candidates X (K, 2).
+    pose too (:func:`admissible_poses`, as :func:`verify_placement` samples it, less the
+    samples the fixture does not admit, :func:`fixture_admits`: a pose outside its region
+    could read below the region's minimum); the best over the candidates X (K, 2).
 
     FCL at sampled poses is each candidate's clearance or more, so a best below the margin
     proves that no candidate keeps it, whatever bound the search used: the refusal is the site's
@@ -718,8 +720,10 @@ def exact_best(problem: PlacementProblem, X: np.ndarray, tool: Instrument, safet
         if feed_only[k] < margin or (len(found) >= EXACT_VERIFY
                                      and feed_only[k] <= found[EXACT_VERIFY - 1]):
             break
-        region[k] = admissible_poses(feeds[k][::EXACT_REGION_EVERY], lateral,
-                                     angle).reshape(1, -1, 4, 4)
+        # the samples the fixture admits: FCL's minimum over them bounds the region's above
+        feed = feeds[k][::EXACT_REGION_EVERY]
+        R = admissible_poses(feed, lateral, angle)
+        region[k] = R[fixture_admits(R, feed, problem.fpsm.z_range[1], lateral)][None]
         v, q = scan.exact_minimum(region[k])
         value[k], queries = float(v[0]), queries + q
     ranked = sorted(region, key=lambda k: -value[k])

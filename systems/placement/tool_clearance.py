@@ -834,6 +834,25 @@ def admissible_poses(X_CTool, lateral: float, angle: float, *, directions: int =
     return out
 
 
+def fixture_admits(samples, planned, z_top: float, lateral: float) -> np.ndarray:
+    """(n, M) whether the fixture admits each sample (n, M, 4, 4) of the region about planned
+    poses (n, 4, 4) on line1 (the planned rod axis): besides the TCP, the fixture holds the rod
+    axis where it crosses the mouth opening (z = ``z_top``) within ``lateral`` of line1 while
+    the TCP is below it (systems.placement.fixture). A turn at the TCP on top of the full
+    lateral offset can move that point farther (the turn times the TCP's depth along the rod):
+    such a sample is outside the fixture's region."""
+    S = np.asarray(samples, dtype=float)
+    X = rigid_poses(planned)
+    p, x = S[..., :3, 3], S[..., :3, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(x[..., 2] > 1e-9, (z_top - p[..., 2]) / x[..., 2], 0.0)
+    s = np.maximum(s, 0.0)  # a TCP above the opening: only the TCP is held
+    e = p + s[..., None] * x - X[:, None, :3, 3]
+    x0 = X[:, None, :3, 0]
+    off = np.linalg.norm(e - np.sum(e * x0, axis=-1, keepdims=True) * x0, axis=-1)
+    return off <= lateral * (1 + 1e-9) + 1e-12
+
+
 def random_region_poses(feed, lateral: float, angle: float, n: int,
                         rng: np.random.Generator) -> np.ndarray:
     """(n, 4, 4) uniform random poses of the fixture's region about a feed (S, 4, 4) poses

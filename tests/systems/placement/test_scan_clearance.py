@@ -297,3 +297,27 @@ def test_the_region_resolved_with_fcl_is_sound_and_proves_what_the_loss_cannot(c
                               clearance=at + 1e-3, resolve_region=True)
     assert res["value"] < at + 1e-3 and res["region"]["decided"]
     assert res["region"]["fcl_queries"] <= 2 * res["poses"]
+
+
+def test_the_fixture_admits_the_samples_that_keep_the_rod_at_the_opening():
+    """A sample turned at a deep TCP on top of the full lateral offset moves the rod axis at the
+    mouth opening by the offset plus the turn times the depth: outside the fixture's region
+    (dropped); the planned pose, pure offsets and a TCP above the opening are admitted."""
+    from implantplan.systems.placement.tool_clearance import admissible_poses, fixture_admits
+
+    rng = np.random.default_rng(5)
+    X = random_poses(6, rng, z=(0.02, 0.03))
+    lateral, angle, z_top = 0.5e-3, np.radians(1.0), 0.06
+    A = admissible_poses(X, lateral, angle)
+    ok = fixture_admits(A, X, z_top, lateral)
+    assert ok[:, 0].all() and ok[:, :9].all()  # the planned pose and the pure lateral offsets
+    # by hand: the rod axis where it crosses z_top, its distance from line1
+    p, x = A[..., :3, 3], A[..., :3, 0]
+    e = p + ((z_top - p[..., 2]) / x[..., 2])[..., None] * x - X[:, None, :3, 3]
+    x0 = X[:, None, :3, 0]
+    off = np.linalg.norm(np.cross(e, x0), axis=-1)
+    assert np.array_equal(ok, off <= lateral * (1 + 1e-9) + 1e-12)
+    assert 0 < ok.sum() < ok.size  # depths 30-40 mm: a 1 deg tilt moves it 0.5-0.7 mm
+    above = X.copy()
+    above[:, 2, 3] = z_top + 0.01
+    assert fixture_admits(admissible_poses(above, lateral, angle), above, z_top, lateral).all()
