@@ -267,6 +267,12 @@ class Instrument:
         than a times it."""
         return self._reach(lambda P: np.linalg.norm(P, axis=-1))
 
+    def turns_about_tcp(self) -> np.ndarray:
+        """(S,) per shape whether the fixture's turns reach it as turns about the TCP: its
+        farthest point from the TCP is as far from the rod axis (the head and the implant, not
+        the long rod, which the fixture holds by its axis at the mouth opening)."""
+        return np.abs(self.origin_reach_T() - self.shape_reach_T()) <= 1e-9
+
     def _reach(self, distance) -> np.ndarray:
         p = np.linspace(0.0, 2 * np.pi, REACH_SAMPLES, endpoint=False)
         out = []

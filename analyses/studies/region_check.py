@@ -38,9 +38,8 @@ def check_site(exact, instrument, placement, safety, samples: int,
                rng: np.random.Generator) -> dict:
     """FCL at ``samples`` random poses of a placement's region vs its certified value."""
     ver = placement.verification
-    turns = tuple(s for s, q, r in zip(instrument.shapes, instrument.origin_reach_T(),
-                                       instrument.shape_reach_T(), strict=True)
-                  if abs(q - r) <= 1e-9)
+    turns = tuple(s for s, t in zip(instrument.shapes, instrument.turns_about_tcp(),
+                                    strict=True) if t)
     solids = dataclasses.replace(instrument, shapes=turns)
     feed, _ = feed_poses(placement.X_CT, ver["feed_depth"], FEED_STEP)
     X = random_region_poses(feed[0], safety.lateral_tolerance, safety.angle_tolerance, samples,

@@ -567,6 +567,7 @@ def search_for_instrument(problem: PlacementProblem, bounds: np.ndarray, tool: I
         ``candidates``, ``clear_at_target``, ``screened``, ``verified``, ``F`` and ``F_loss``
         (F minus the best F of all candidates) of the choice).
     """
+    from implantplan.systems.placement import scan_clearance
     from implantplan.systems.placement.scan_clearance import (
         FEED_STEP,
         ScanClearance,
@@ -631,9 +632,7 @@ def search_for_instrument(problem: PlacementProblem, bounds: np.ndarray, tool: I
     record["exact_best"] = best
     # FCL finds room the bound did not certify: the plan's verdict (the region resolved with
     # FCL) for the candidates FCL's samples rank best, at most EXACT_VERIFY
-    from implantplan.systems.placement import scan_clearance
-
-    budget = scan_clearance.REGION_BUDGET  # shared by the candidates
+    budget = scan_clearance.REGION_BUDGET  # shared by the candidates (read at call time)
     for rank, (k, value) in enumerate(best["ranked"][:EXACT_VERIFY]):
         if value < margin or budget <= 0:
             break

@@ -490,16 +490,12 @@ REGION_BATCH = 64  # cells split per round of :func:`region_branch_and_bound` (o
 
 
 def _region_poses(P: np.ndarray, index: np.ndarray, centre: np.ndarray) -> np.ndarray:
-    """(m, 4, 4) the poses at cell centres (m, 6) = (s, t_y, t_z, w) about feed poses P[index]:
-    the TCP moved by R0 (s, t_y, t_z) (along the rod: the feed; across it: the lateral
-    offset) and the frame turned by exp(w) at the TCP."""
-    from implantplan.systems.frames import rotations
+    """(m, 4, 4) the poses at cell centres (m, 6) = (s, t_y, t_z, w) about feed poses P[index]
+    (:func:`systems.placement.tool_clearance.moved_poses`: the TCP moved along the rod by s and
+    across it by t, the frame turned by exp(w) at the TCP)."""
+    from implantplan.systems.placement.tool_clearance import moved_poses
 
-    X0 = P[index]
-    out = X0.copy()
-    out[:, :3, :3] = X0[:, :3, :3] @ rotations(centre[:, 3:])
-    out[:, :3, 3] = X0[:, :3, 3] + np.einsum("nij,nj->ni", X0[:, :3, :3], centre[:, :3])
-    return out
+    return moved_poses(P[index], centre[:, :3], centre[:, 3:])
 
 
 def region_branch_and_bound(scan: ScanClearance, P: np.ndarray, lower: np.ndarray, *,
@@ -675,7 +671,7 @@ def feed_scan_clearance(scan: ScanClearance, X_CTool, *, depth: float, lateral: 
         # each feed cell (pose +- t / 2) keeps v - loss - t / 2; FCL resolves the region where
         # that is below the claim
         cells = V - 0.5 * t
-        turn_about_tcp = np.abs(inst.origin_reach_T() - inst.shape_reach_T()) <= 1e-9
+        turn_about_tcp = inst.turns_about_tcp()
         region = {"cells": 0, "fcl_queries": 0, "decided": True}
         for k, sub in enumerate(solids):
             low = np.flatnonzero(cells[k] < c_claim)

@@ -869,10 +869,16 @@ def random_region_poses(feed, lateral: float, angle: float, n: int,
     shift = np.c_[rng.uniform(-half, half, n), r * np.cos(a), r * np.sin(a)]
     w = rng.normal(size=(n, 3))
     w *= (angle * np.cbrt(rng.uniform(0, 1, n)) / np.linalg.norm(w, axis=1))[:, None]
-    X0 = feed[rng.integers(0, S, n)]
+    return moved_poses(feed[rng.integers(0, S, n)], shift, w)
+
+
+def moved_poses(X0: np.ndarray, shift: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """(n, 4, 4) poses X0 (n, 4, 4) with the TCP moved by R0 ``shift`` (n, 3) (Tool: x along
+    the rod, y-z across it) and the frame turned by exp(``w``) (n, 3) at the TCP: a pose of the
+    fixture's region about X0."""
     out = X0.copy()
     out[:, :3, :3] = X0[:, :3, :3] @ rotations(w)
-    out[:, :3, 3] += np.einsum("nij,nj->ni", X0[:, :3, :3], shift)
+    out[:, :3, 3] = X0[:, :3, 3] + np.einsum("nij,nj->ni", X0[:, :3, :3], shift)
     return out
 
 

@@ -17,6 +17,9 @@ from implantplan.systems.placement.scan_clearance import (
     UNSAFE,
     ScanClearance,
 )
+from implantplan.systems.safety import SafetySpec
+
+SPEC = SafetySpec()  # the spec's defaults: the fixture's region every layer checks
 
 R_CAVITY = 0.03  # m
 H_CAVITY = 0.08  # m
@@ -207,7 +210,7 @@ def test_admissible_samples_lie_in_the_region_and_cover_its_extremes():
 
     rng = np.random.default_rng(3)
     X = random_poses(5, rng)
-    lateral, angle = 0.5e-3, np.radians(1.0)
+    lateral, angle = SPEC.lateral_tolerance, SPEC.angle_tolerance  # 0.5 mm, 1 deg
     A = admissible_poses(X, lateral, angle)
     assert A.shape == (5, 9 * 19, 4, 4)
     assert np.array_equal(A[:, 0], X)
@@ -238,11 +241,11 @@ def test_the_certified_feed_and_region_is_never_above_fcl_at_its_samples(cavity,
     inst = Instrument.actuator() if tool == "actuator" else Instrument.paper()
     sc = ScanClearance(cavity, inst, grid=grid)
     rng = np.random.default_rng(11)
-    lateral, angle, depth = 0.5e-3, np.radians(1.0), 0.02
+    lateral, angle, depth = SPEC.lateral_tolerance, SPEC.angle_tolerance, 0.02
     gaps = []
     for X in random_poses(40, rng, lateral=0.012, z=(0.03, 0.05)):
         cert = feed_scan_clearance(sc, X, depth=depth, lateral=lateral, angle=angle,
-                                   clearance=1e-3)["value"]
+                                   clearance=SPEC.clearance_margin)["value"]
         feed = feed_poses(X, depth, 1e-3)[0][0]
         # FCL's minimum over the samples (exact_minimum: the same value, checked above)
         fcl = sc.exact_minimum(admissible_poses(feed, lateral, angle).reshape(1, -1, 4, 4))[0][0]
@@ -271,7 +274,7 @@ def test_the_region_resolved_with_fcl_is_sound_and_proves_what_the_loss_cannot(c
     inst = dataclasses.replace(full, shapes=tuple(s for s in full.shapes if s.name != "rod"))
     sc = ScanClearance(cavity, inst, grid=grid)
     rng = np.random.default_rng(21)
-    lateral, angle, depth = 0.5e-3, np.radians(1.0), 0.002
+    lateral, angle, depth = SPEC.lateral_tolerance, SPEC.angle_tolerance, 0.002
     tried = near = proven = 0
     for X in random_poses(1500, rng, lateral=0.012, z=(0.03, 0.05)):
         base = feed_scan_clearance(sc, X, depth=depth, lateral=lateral, angle=angle)
@@ -307,7 +310,7 @@ def test_the_fixture_admits_the_samples_that_keep_the_rod_at_the_opening():
 
     rng = np.random.default_rng(5)
     X = random_poses(6, rng, z=(0.02, 0.03))
-    lateral, angle, z_top = 0.5e-3, np.radians(1.0), 0.06
+    lateral, angle, z_top = SPEC.lateral_tolerance, SPEC.angle_tolerance, 0.06
     A = admissible_poses(X, lateral, angle)
     ok = fixture_admits(A, X, z_top, lateral)
     assert ok[:, 0].all() and ok[:, :9].all()  # the planned pose and the pure lateral offsets
