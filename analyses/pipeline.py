@@ -30,7 +30,13 @@ from implantplan.systems.capability import maps as cm
 from implantplan.systems.errors import InputError, PlanningFailure, fields_renamed
 from implantplan.systems.fpsm.fit import fit_fpsm
 from implantplan.systems.fpsm.model import Fpsm
-from implantplan.systems.fpsm.oral_mesh import center_frame, load_oral_mesh, open_mouth
+from implantplan.systems.fpsm.oral_mesh import (
+    center_frame,
+    load_oral_mesh,
+    open_mouth,
+    opening_map,
+    rotate_about_axis,
+)
 from implantplan.systems.fpsm.sites import SiteCheck, check_sites, site_problems
 from implantplan.systems.frames import apply, invert, transform
 from implantplan.systems.placement.planner import Placement, place_instrument
@@ -185,18 +191,7 @@ def placement_stage(case: Case, fit: FitResult, *, progress=None,
     for k, site in enumerate(case.sites):
         tool = case.instrument_at(site)
         try:
-            p = place_instrument(
-                fpsm,
-                site.position,
-                site.axis,
-                rod_radius=tool.rod_radius,
-                implant_length=tool.implant_length,
-                objective=case.placement.objective,
-                seed=seeds.seed(case.seed, seeds.PLACEMENT, k),
-                tool=tool,
-                safety=safety,
-                exact=exact,
-            )
+            p = _place_site(case, fpsm, exact, site, k)
         except InputError as exc:  # name the case's field, not the placement's argument
             message = str(exc)
             if exc.field == "hole" and "outside the model" in exc.message:
@@ -221,10 +216,118 @@ def placement_stage(case: Case, fit: FitResult, *, progress=None,
                 depth=p.verification["feed_depth"], safety=safety,
                 seed=seeds.seed(case.seed, seeds.PLACEMENT, k, 1))
         if require_valid and not p.valid:
+            result = {"site": site.name, **p.to_dict()}
+            reason = p.reason
+            if refused_by_geometry(p, safety):  # not the bound's slack: a larger opening?
+                probe = opening_needed(case, k, progress=progress)
+                result["opening_probe"] = probe
+                reason += f"; {probe['text']}"
             raise PlanningFailure(f"site {site.name}: no collision-free instrument placement "
-                                  f"({p.reason})", result={"site": site.name, **p.to_dict()})
+                                  f"({reason})", result=result)
         out.append(p)
     return out
+
+
+def _place_site(case: Case, fpsm, exact, site, k: int) -> Placement:
+    """Stage 2 at one site (``k`` its index in the case: its random stream)."""
+    tool = case.instrument_at(site)
+    return place_instrument(
+        fpsm,
+        site.position,
+        site.axis,
+        rod_radius=tool.rod_radius,
+        implant_length=tool.implant_length,
+        objective=case.placement.objective,
+        seed=seeds.seed(case.seed, seeds.PLACEMENT, k),
+        tool=tool,
+        safety=case.safety,
+        exact=exact,
+    )
+
+
+def refused_by_geometry(p: Placement, safety) -> bool:
+    """True where the scan's instrument search refused the site and not for the certified
+    bound's slack: the exact reference of the refusal (the planner's ``exact_best``: FCL at
+    sampled poses of every candidate's feed and region) keeps less than the margin, or no
+    candidate had collision-free FPSM lines for it to check (the cavity is too narrow for the
+    rod's line itself)."""
+    search = (p.verification or {}).get("instrument_search")
+    if not search:
+        return False
+    best = search.get("exact_best")
+    return not best or best["value"] < safety.clearance_margin
+
+
+OPENING_STEP_DEG = 5.0  # a geometry refusal tries larger mouth openings in these steps
+OPENING_MAX_DEG = 45.0  # up to the jaw-opening model's largest (mesh.mouth_opening_deg)
+
+
+def site_at_opening(case: Case, site, angle_deg: float):
+    """``site`` carried with the jaw to another mouth opening: its position taken back to the
+    scan as scanned (:func:`systems.anatomy.distances.as_scanned` inverts the opening map) and
+    opened by ``angle_deg`` (:func:`opening_map`); its axis, an axis in the bone, turned as a
+    rigid body about the hinge by the change of the map's rotation at the site (inside the
+    occlusal band, where a molar's crown may lie, the map stretches the tissue; the bone turns
+    with the jaw)."""
+    mesh = case.mesh
+    params = {"hinge_point": mesh.hinge_point, "hinge_axis": mesh.hinge_axis,
+              "occlusal_point": mesh.occlusal_point, "occlusal_normal": mesh.occlusal_normal,
+              "blend": mesh.blend}
+    X_WC = center_frame(case.center.origin, case.center.z_axis, x_hint=case.center.x_hint)
+    R, t = X_WC[:3, :3], X_WC[:3, 3]
+    p_W = R @ site.position + t
+    scanned = anatomy.as_scanned(p_W[None], mesh.mouth_opening_deg, params)
+    _, a_old = opening_map(scanned, mesh.mouth_opening_deg, **params)
+    moved, a_new = opening_map(scanned, angle_deg, **params)
+    hinge = np.asarray(mesh.hinge_axis, dtype=float)
+    axis_W = rotate_about_axis((R @ site.axis)[None], np.zeros(3), hinge / np.linalg.norm(hinge),
+                               a_new - a_old)[0]
+    return dataclasses.replace(site, position=R.T @ (moved[0] - t), axis=R.T @ axis_W)
+
+
+def opening_needed(case: Case, k: int, *, progress=None) -> dict:
+    """For site ``k``, refused by its geometry at the case's mouth opening: the smallest larger
+    opening (steps of :data:`OPENING_STEP_DEG` up to :data:`OPENING_MAX_DEG`) at which stage 2
+    places the whole instrument (refit, the site carried with the jaw, :func:`site_at_opening`,
+    the same verification). Returns ``opening_deg`` (None if none does), what each opening gave
+    (``tried``) and the sentence the refusal adds (``text``)."""
+    mesh = case.mesh
+    if (mesh.mouth_opening_deg <= 0 or mesh.hinge_point is None
+            or mesh.mouth_opening_deg >= OPENING_MAX_DEG):
+        return {"opening_deg": None, "tried": [],
+                "text": "the case has no jaw-opening model to try a larger opening with"
+                if mesh.mouth_opening_deg < OPENING_MAX_DEG
+                else f"the mouth is open by the model's largest {OPENING_MAX_DEG:g} deg"}
+    site = case.sites[k]
+    tried = []
+    for deg in np.arange(mesh.mouth_opening_deg + OPENING_STEP_DEG, OPENING_MAX_DEG + 1e-9,
+                         OPENING_STEP_DEG):
+        deg = float(deg)
+        if progress is not None:
+            progress.say(f"site {site.name}: refused by its geometry; trying a mouth opening "
+                         f"of {deg:g} deg")
+        moved = site_at_opening(case, site, deg)
+        trial = dataclasses.replace(case, mesh=dataclasses.replace(mesh, mouth_opening_deg=deg),
+                                    sites=(moved,))
+        fit = fit_stage(trial)
+        try:
+            site_stage(trial, fit)
+            p = _place_site(trial, fit.fpsm, fit.exact(mesh.close_open_cuts), moved, k)
+        except InputError as exc:
+            tried.append({"opening_deg": deg, "valid": False, "reason": str(exc)})
+            continue
+        tried.append({"opening_deg": deg, "valid": p.valid,
+                      "clearance_certified": p.verification.get("clearance_certified"),
+                      "reason": p.reason})
+        if p.valid:
+            cert = p.verification.get("clearance_certified")
+            return {"opening_deg": deg, "tried": tried,
+                    "text": f"it plans at a mouth opening of {deg:g} deg (mesh.mouth_opening_deg;"
+                            f" certified {cert * 1e3:.2f} mm there)"}
+    shown = ", ".join(f"{t['opening_deg']:g}" for t in tried)
+    return {"opening_deg": None, "tried": tried,
+            "text": f"no mouth opening up to {OPENING_MAX_DEG:g} deg places it (tried {shown} "
+                    f"deg)"}
 
 
 # -- robot base for all sites -----------------------------------------------------------------
