@@ -289,7 +289,7 @@ def bench_sound(n: int, n_fcl: int, repeats: int) -> str:
         f"sound signed bound (rod_clearance): {sound_rate:12,.0f} rods/s; "
         f"{sound_rate / fcl_rate:.1f} x FCL",
         f"Eq. 12 batched: {paper_rate:11,.0f} rods/s",
-        f"FCL collide:   {fcl_rate:12,.0f} rods/s (python-fcl, one call per rod)",
+        f"FCL collide:   {fcl_rate:12,.0f} rods/s (Coal, one call per rod)",
         f"whole tool, single query (ToolClearance.one): {one_s / 1000 * 1e6:.1f} us",
         f"rods called safe by the sound bound that FCL says collide: {safe_fcl} of {k:,}",
     ])

@@ -27,8 +27,8 @@ VOLATILE_SIMULATION_KEYS = ("realtime_factor",)
 VOLATILE_RUN_KEYS = ("wall_seconds",)
 
 # Distributions whose versions decide the numbers in a plan (absent ones are left out).
-DEPENDENCIES = ("drake", "numpy", "scipy", "trimesh", "embreex", "numba", "python-fcl", "dask",
-                "distributed", "h5py", "matplotlib", "PyYAML")
+DEPENDENCIES = ("drake", "numpy", "scipy", "trimesh", "embreex", "numba", "python-fcl", "coal",
+                "dask", "distributed", "h5py", "matplotlib", "PyYAML")
 
 _SOURCE = Path(__file__).resolve().parents[1]  # the checkout, for an editable install
 

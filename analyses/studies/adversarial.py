@@ -18,10 +18,11 @@ directions and 8 diagonals) x held and out-and-back, per site.
 
 At every logged pose (200 Hz) of every run:
 
-- the **exact tool clearance**: FCL (python-fcl) distance between the tool's body and the opened
-  scan mesh (a BVH of its triangles; without the lips and cheeks in front of the mouth opening,
-  which the case takes as retracted: :func:`exact_for`), the tool as the capsules of the case's
-  tool (``TeleopCase.tool``, the body the supervisor bounds): analyses.studies.scan_reference;
+- the **exact tool clearance**: FCL's (Coal, through ExactCavity) distance between the tool's
+  body and the opened scan mesh (a BVH of its triangles; without the lips and cheeks in front of
+  the mouth opening, which the case takes as retracted: :func:`exact_for`), the tool as the
+  solids of the case's instrument (``TeleopCase.tool``, the body the supervisor bounds):
+  analyses.studies.scan_reference;
   and **between the logged poses**: the arm's joint-linear motion from one logged configuration
   to the next, sampled where it could come closer than the logged poses, with a certified lower
   bound over the whole swept motion (analyses.studies.scan_reference.swept_clearance);

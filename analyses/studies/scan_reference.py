@@ -1,7 +1,8 @@
 """The exact reference of the teleop studies on the bundled default case (the adversarial
 operator, analyses.studies.adversarial; the awake patient, analyses.studies.head_motion): the case
 planned as
-``implantplan plan`` does, and FCL (python-fcl) between the whole tool and the opened scan.
+``implantplan plan`` does, and FCL (Coal, through ExactCavity) between the whole tool and the
+opened scan.
 
 The instrument is the teleop case's :class:`systems.instrument.Instrument` (the body the
 barrier bounds), each solid as it is: a capsule's clearance is its axis's FCL distance to the scan
