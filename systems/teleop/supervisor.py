@@ -603,7 +603,7 @@ class SafetySupervisor(LeafSystem):
     def _update(self, context, discrete_state):
         x = context.get_discrete_state(0).get_value()
         V_W = clip_twist(self._V_in.Eval(context), self.limits)  # step 0
-        new = discrete_state.get_mutable_vector(0).get_mutable_value()  # written in place
+        new = discrete_state.get_mutable_value(0)  # the next state, written in place
         if V_W[0] == 0.0 and V_W[1] == 0.0 and V_W[2] == 0.0:  # no rotation: the common case
             w_C, dR = None, _IDENTITY
         else:  # the rotation of one period (Drake's AngleAxis; the operator's command has none)
@@ -651,10 +651,10 @@ class SafetySupervisor(LeafSystem):
         value.set_value(RigidTransform(RotationMatrix(x[24:33].reshape(3, 3)), x[21:24]))
 
     def _calc_filtered(self, context, output: BasicVector):
-        output.SetFromVector(context.get_discrete_state(0).get_value()[12:18])
+        output.set_value(context.get_discrete_state(0).get_value()[12:18])
 
     def _calc_barrier(self, context, output: BasicVector):
-        output.SetFromVector(context.get_discrete_state(0).get_value()[18:21])
+        output.set_value(context.get_discrete_state(0).get_value()[18:21])
 
     def set_desired_pose(self, context, X_WE) -> None:
         """Reset the desired pose (e.g. to the tool's pose at the start of a run)."""
