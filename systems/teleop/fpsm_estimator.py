@@ -389,13 +389,13 @@ class FpsmEstimator(LeafSystem):
         return out
 
     def _update(self, context, discrete_state):
-        discrete_state.get_mutable_vector(0).SetFromVector(self.estimate(context))
+        discrete_state.set_value(0, self.estimate(context))
 
     def _calc_cache(self, context, value):
         value.set_value(self.estimate(context))
 
     def _calc_safety(self, context, output: BasicVector):
-        output.SetFromVector(self._estimate(context)[:3])
+        output.set_value(self._estimate(context)[:3])
 
     def _calc_alarm(self, context, output: BasicVector):
-        output.SetFromVector(self._estimate(context)[3:])
+        output.set_value(self._estimate(context)[3:])
