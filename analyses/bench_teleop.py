@@ -21,7 +21,8 @@ kinematic >= 20x real time, dynamic >= 5x):
 - the bare-loop reference: the same scene and DiffIK at 200 Hz with two trivial Python systems
   (a constant desired pose and a pass-through), no fixture, no estimator, no loggers;
 - the cost share of each Python system in the kinematic run (exclusive time in its callbacks,
-  measured by wrapping them).
+  measured by wrapping them), per call and per 200 Hz step;
+- the load average at the start and at the end (the timings are wall clock).
 
 Timings on a shared machine are noisy; the ratios in one run are what to compare.
 """
@@ -30,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import time
 import timeit
 from collections import defaultdict
@@ -235,6 +237,7 @@ def main(argv=None) -> int:
     parser.add_argument("--head-motion", help="also time the kinematic diagram with this head "
                         "motion on (breathing|swallow|startle|drift; target >= 5x)")
     args = parser.parse_args(argv)
+    load = os.getloadavg()  # timings on a shared machine: printed with the load
 
     if args.case == "default":
         case = adversarial.default_case_sites()[0][0]
@@ -331,13 +334,18 @@ def main(argv=None) -> int:
         f"Python systems in the kinematic runs ({kin_sim:.1f} s simulated, "
         f"{kin_wall:.2f} s wall):"
     )
-    print(f"{'system':<24} {'calls':>8} {'us/call':>9} {'share of wall':>14}")
+    steps = kin_sim / kin.period  # 200 Hz control steps
+    print(f"{'system':<24} {'calls':>8} {'us/call':>9} {'us/step':>8} {'share of wall':>14}")
     total = 0.0
     for name in CALLBACKS:
         s, n = timer.seconds[name], timer.calls[name]
         total += s
-        print(f"{name:<24} {n:>8d} {1e6 * s / max(n, 1):>9.1f} {100 * s / kin_wall:>13.1f}%")
-    print(f"{'all Python systems':<24} {'':>8} {'':>9} {100 * total / kin_wall:>13.1f}%")
+        print(f"{name:<24} {n:>8d} {1e6 * s / max(n, 1):>9.1f} {1e6 * s / steps:>8.1f} "
+              f"{100 * s / kin_wall:>13.1f}%")
+    print(f"{'all Python systems':<24} {'':>8} {'':>9} {1e6 * total / steps:>8.1f} "
+          f"{100 * total / kin_wall:>13.1f}%")
+    print(f"load average (1, 5, 15 min) at the start {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}, "
+          "at the end {:.2f} {:.2f} {:.2f}".format(*os.getloadavg()))
     return 0
 
 

@@ -135,7 +135,7 @@ def pose(value: Any, field: str, *, batch: bool = False, tol: float = ROTATION_T
         what = "poses of shape (..., 4, 4)" if batch else "a 4x4 pose"
         raise InputError(field, f"expected {what}, got shape {X.shape}")
     flat = np.ascontiguousarray(X.reshape(-1, 4, 4))
-    err, finite = _rotation_error(flat)
+    err, finite = rotation_error(flat)
     if not finite:
         raise InputError(field, "poses must be finite (found NaN or inf)")
     if err > tol:
@@ -162,8 +162,9 @@ def rotation(value: Any, field: str, *, tol: float = ROTATION_TOL) -> np.ndarray
 
 
 @numba.njit(cache=True)
-def _rotation_error(X):  # pragma: no cover - compiled
-    """max |R^T R - I| and |det R - 1| over a batch of poses, and whether all entries are finite."""
+def rotation_error(X):  # pragma: no cover - compiled
+    """max |R^T R - I| and |det R - 1| over a batch of poses (n, 4, 4), and whether all entries
+    are finite: :func:`pose`'s test, compiled (the control loops call it from their kernels)."""
     worst = 0.0
     for n in range(X.shape[0]):
         for i in range(4):

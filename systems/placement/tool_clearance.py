@@ -706,6 +706,24 @@ def rigid_poses(X, name: str = "X_CTool") -> np.ndarray:
     return X
 
 
+@numba.njit(cache=True)
+def is_rigid_pose(X) -> bool:
+    """True when :func:`rigid_poses` accepts the one pose X (4, 4) (C-contiguous): the same test
+    (finite, a proper rotation and the last row [0, 0, 0, 1] within ``validate.ROTATION_TOL``,
+    the position within ``MAX_COORDINATE``), compiled for the control loops; they call
+    :func:`rigid_poses` for its error when it is False."""
+    err, finite = validate.rotation_error(X.reshape((1, 4, 4)))
+    if not finite or err > validate.ROTATION_TOL:
+        return False
+    for j in range(4):
+        if abs(X[3, j] - (1.0 if j == 3 else 0.0)) > validate.ROTATION_TOL:
+            return False
+    for i in range(3):
+        if abs(X[i, 3]) > MAX_COORDINATE:
+            return False
+    return True
+
+
 def tool_clearance(
     fpsm: Fpsm,
     X_CTool,

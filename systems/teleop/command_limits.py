@@ -203,6 +203,7 @@ def clip_twist(V, limits: CommandLimits) -> np.ndarray:
 # -- the LeafSystem ---------------------------------------------------------------------------
 
 STATUS_SIZE = 6  # [status, cause, held, fault samples, fault events, time of the sample]
+_STATUS_OF_STATE = np.array([4, 5, 0, 2, 3, 6])  # the status output's entries of the state
 
 
 class CommandLimiter(LeafSystem):
@@ -247,21 +248,19 @@ class CommandLimiter(LeafSystem):
     def period(self) -> float:
         return self._dt
 
-    def _step(self, context):
-        x = context.get_discrete_state(0).get_value().tolist()
-        return x, limit_step(self._V.Eval(context), x[0] > 0.5, int(x[1]), self.limits,
-                             self._dt, self._n_clear)
-
     def _calc_limited(self, context, output: BasicVector):
-        output.SetFromVector(self._step(context)[1][0])
+        x = context.get_discrete_state(0).get_value()
+        output.set_value(limit_step(self._V.Eval(context), x[0] > 0.5, int(x[1]), self.limits,
+                                    self._dt, self._n_clear)[0])
 
     def _update(self, context, discrete_state):
-        x, (_, status, cause, latched, run) = self._step(context)
+        x0, x1, x2, x3 = context.get_discrete_state(0).get_value()[:4].tolist()
+        _, status, cause, latched, run = limit_step(self._V.Eval(context), x0 > 0.5, int(x1),
+                                                    self.limits, self._dt, self._n_clear)
         fault = status == FAULT
-        discrete_state.get_mutable_vector(0).SetFromVector([
-            1.0 if latched else 0.0, float(min(run, self._n_clear)), x[2] + fault,
-            x[3] + (fault and x[0] < 0.5), float(status), float(cause), context.get_time()])
+        discrete_state.set_value(0, [
+            1.0 if latched else 0.0, float(min(run, self._n_clear)), x2 + fault,
+            x3 + (fault and x0 < 0.5), float(status), float(cause), context.get_time()])
 
     def _calc_status(self, context, output: BasicVector):
-        x = context.get_discrete_state(0).get_value()
-        output.SetFromVector(x[[4, 5, 0, 2, 3, 6]])
+        output.set_value(context.get_discrete_state(0).get_value()[_STATUS_OF_STATE])

@@ -165,10 +165,8 @@ class VirtualFixtureForceLaw(LeafSystem):
         (m), angle violation (rad), F in World (N), angle error (rad)."""
         V = self._V_cmd.Eval(context)
         out = np.empty(12)
-        vfc.body_law_world(
-            self._X_meas.Eval(context).GetAsMatrix4(), np.asarray(V, dtype=float),
-            self._X_CW, self._R_ET, *self._args, out,
-        )
+        vfc.body_law_world(self._X_meas.Eval(context).GetAsMatrix4(), V, self._X_CW, self._R_ET,
+                           *self._args, out)
         if not self._enabled:
             out[:6] = V
         return out
@@ -192,7 +190,10 @@ class VirtualFixtureForceLaw(LeafSystem):
         value.set_value(RigidTransform(RotationMatrix(x[3:12].reshape(3, 3)), x[:3]))
 
     def _calc_corrected(self, context, output: BasicVector):
-        output.SetFromVector(self.law(context)[:6])
+        if not self._enabled:  # the law's corrected twist is then the command itself
+            output.set_value(self._V_cmd.Eval(context))
+            return
+        output.set_value(self.law(context)[:6])
 
     def _violations(self, context) -> np.ndarray:
         if self._integrate:

@@ -39,7 +39,14 @@ from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm.model import Fpsm, line_kernel
 from implantplan.systems.frames import apply, invert
 from implantplan.systems.instrument import Instrument
-from implantplan.systems.placement.tool_clearance import ToolClearance, clearance_field
+from implantplan.systems.placement.scan_clearance import capped_at
+from implantplan.systems.placement.tool_clearance import (
+    ToolClearance,
+    clearance_field,
+    fpsm_at,
+    is_rigid_pose,
+    rigid_poses,
+)
 from implantplan.systems.safety import DEFAULT as SAFETY
 
 
@@ -154,6 +161,8 @@ class LinesAtPoses:
         self._args = (np.ascontiguousarray(fpsm.rho), np.ascontiguousarray(fpsm.slice_z),
                       float(fpsm.settings.get("shrink_m", 0.0)), fpsm.max_radius,
                       float(lambda_avg), float(lambda_min))
+        # the compiled kernel's arguments in one tuple (the estimator's one call per update)
+        self.kernel_args = (self._start_T, self._dir_T, self._radius, *self._args)
 
     def __call__(self, X_CenterT: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         X = np.ascontiguousarray(X_CenterT, dtype=float).reshape(-1, 4, 4)
@@ -201,9 +210,9 @@ def tool_safety(
 _CLEARANCES: dict = {}
 
 
-def _sound(fpsm: Fpsm, lines: ToolLines, clearance=None):
-    """X_CenterA (K, 4, 4) -> (K,) certified whole-tool clearance, for lines given in frame A
-    (``clearance``: a prepared one of the lines' tool; None: the FPSM's)."""
+def _sound_clearance(fpsm: Fpsm, lines: ToolLines, clearance=None):
+    """(the prepared whole-tool clearance, X_AT) for lines given in frame A (``clearance``: a
+    prepared one of the lines' tool; None: the FPSM's)."""
     tool = lines.tool or Instrument.paper(rod_radius=float(lines.radius[0]))
     X_AT = np.eye(4) if lines.X_AT is None else np.asarray(lines.X_AT, dtype=float)
     if clearance is None:
@@ -211,6 +220,13 @@ def _sound(fpsm: Fpsm, lines: ToolLines, clearance=None):
     elif clearance.instrument != tool:
         raise InputError("clearance", f"bounds the instrument {clearance.instrument.name!r}, "
                          f"not the estimator's {tool.name!r}")
+    return clearance, X_AT
+
+
+def _sound(fpsm: Fpsm, lines: ToolLines, clearance=None):
+    """X_CenterA (K, 4, 4) -> (K,) certified whole-tool clearance, for lines given in frame A
+    (``clearance``: a prepared one of the lines' tool; None: the FPSM's)."""
+    clearance, X_AT = _sound_clearance(fpsm, lines, clearance)
     return lambda X: np.atleast_1d(clearance(np.asarray(X, dtype=float) @ X_AT))
 
 
@@ -220,6 +236,47 @@ def _clearance(fpsm: Fpsm, tool: Instrument) -> ToolClearance:
     if hit is None or hit.fpsm is not fpsm or hit.field is not clearance_field(fpsm):
         hit = _CLEARANCES[key] = ToolClearance(fpsm, tool)
     return hit
+
+
+@numba.njit(inline="always")
+def _estimate(h_at, h_args, X_CT, X_CA, margin, far, lines_args, out) -> bool:
+    """One estimate in one call: the lines at the pose X_CT (4, 4) of their frame in Center
+    (:class:`LinesAtPoses`), the whole tool's clearance ``h_at(h_args, X_CA)`` at its Tool pose
+    X_CA (4, 4), the alarm, each clipped to +-``far`` (as ``np.clip``), into ``out`` (4). False
+    (``out`` not written): X_CA is not a rigid pose
+    (:func:`systems.placement.tool_clearance.is_rigid_pose`); the caller raises its error."""
+    start_T, dir_T, radius, rho, slice_z, shrink, max_radius, lam_avg, lam_min = lines_args
+    f = np.empty((1, radius.size))
+    d = np.empty((1, radius.size))
+    _lines_at_poses(X_CT.reshape((1, 4, 4)), start_T, dir_T, radius, rho, slice_z, shrink,
+                    max_radius, lam_avg, lam_min, f, d)
+    if not is_rigid_pose(X_CA):
+        return False
+    d_min = h_at(h_args, X_CA)
+    out[0], out[1], out[2] = f[0, 0], f[0, 1], d_min
+    out[3] = 1.0 if d_min <= margin else 0.0
+    for i in range(4):  # NaN stays NaN
+        if out[i] > far:
+            out[i] = far
+        elif out[i] < -far:
+            out[i] = -far
+    return True
+
+
+@numba.njit(cache=True)
+def _estimate_fpsm(h_args, X_CT, X_CA, margin, far, lines_args, out) -> bool:
+    """:func:`_estimate` with the FPSM bound (an entry point with its hook fixed: numba caches
+    it on disk, as the supervisor's)."""
+    return _estimate(fpsm_at, h_args, X_CT, X_CA, margin, far, lines_args, out)
+
+
+@numba.njit(cache=True)
+def _estimate_scan(h_args, X_CT, X_CA, margin, far, lines_args, out) -> bool:
+    """:func:`_estimate` with the capped scan bound."""
+    return _estimate(capped_at, h_args, X_CT, X_CA, margin, far, lines_args, out)
+
+
+_ESTIMATES = {fpsm_at: _estimate_fpsm, capped_at: _estimate_scan}
 
 
 class FpsmEstimator(LeafSystem):
@@ -242,9 +299,10 @@ class FpsmEstimator(LeafSystem):
 
     With ``period=None`` the outputs are computed from the input on demand (direct
     feedthrough). With a ``period`` (s) the estimate is a discrete state refreshed every period
-    and the outputs read it: the sensible rate for the diagram (each estimate costs two batched
-    line checks, ~0.1 ms each), and the alarm still fires before contact for any tool speed
-    below alarm_margin / period (1 mm / 20 ms = 50 mm/s at the defaults).
+    and the outputs read it: the sensible rate for the diagram (each estimate is one compiled
+    call: the two lines, the rigid-pose check and the whole tool's clearance), and the alarm
+    still fires before contact for any tool speed below alarm_margin / period (1 mm / 20 ms =
+    50 mm/s at the defaults).
 
     ``clearance``: the prepared whole-instrument clearance ``min_d_safe`` takes (of the lines'
     tool; the plan's scan bound capped above the alarm margin,
@@ -274,7 +332,15 @@ class FpsmEstimator(LeafSystem):
         if method not in ("sound", "paper"):
             raise InputError("method", f"expected 'sound' or 'paper', got {method!r}")
         self._method = method
-        self._sound = _sound(fpsm, self._lines, clearance) if method == "sound" else None
+        self._sound = None
+        if method == "sound":  # one compiled call per estimate: lines, rigid check, clearance
+            sound, self._X_AT = _sound_clearance(fpsm, self._lines, clearance)
+            kernel = _ESTIMATES.get(getattr(sound, "at", None))
+            if kernel is None:
+                raise InputError("clearance", "expected a ToolClearance or a CappedScanClearance "
+                                 f"(a compiled hook the estimator knows), got "
+                                 f"{type(sound).__name__}")
+            self._sound = (kernel, sound.at_args)
         self._X = self.DeclareAbstractInputPort("X_WT", AbstractValue.Make(RigidTransform()))
         if period is None:
             cache = self.DeclareCacheEntry(
@@ -307,21 +373,29 @@ class FpsmEstimator(LeafSystem):
 
     def estimate(self, context) -> np.ndarray:
         """[f_safe_line1, f_safe_line2, min_d_safe, alarm] for the input in ``context``."""
-        X_WT = self._X.Eval(context).GetAsMatrix4()
-        X_CT = self._X_CenterW @ X_WT
-        f, d = self._at_poses(X_CT)  # tool_safety's lines, prepared once
-        d_min = self._sound(X_CT)[0] if self._sound is not None else min(d[0, 0], d[0, 1])
-        out = np.array([f[0, 0], f[0, 1], d_min, float(d_min <= self._margin)])
-        return np.clip(out, -self.FAR, self.FAR)
+        X_CT = self._X_CenterW @ self._X.Eval(context).GetAsMatrix4()
+        if self._sound is None:  # the paper's smaller line distance
+            f, d = self._at_poses(X_CT)
+            d_min = min(d[0, 0], d[0, 1])
+            out = np.array([f[0, 0], f[0, 1], d_min, float(d_min <= self._margin)])
+            return np.clip(out, -self.FAR, self.FAR)
+        kernel, h_args = self._sound
+        X_CA = X_CT @ self._X_AT  # the Tool pose the clearance takes
+        out = np.empty(4)
+        if not kernel(h_args, X_CT, X_CA, self._margin, self.FAR, self._at_poses.kernel_args,
+                      out):
+            rigid_poses(X_CA)  # raises: not a rigid pose
+            raise RuntimeError("is_rigid_pose and rigid_poses disagree")  # pragma: no cover
+        return out
 
     def _update(self, context, discrete_state):
-        discrete_state.get_mutable_vector(0).SetFromVector(self.estimate(context))
+        discrete_state.set_value(0, self.estimate(context))
 
     def _calc_cache(self, context, value):
         value.set_value(self.estimate(context))
 
     def _calc_safety(self, context, output: BasicVector):
-        output.SetFromVector(self._estimate(context)[:3])
+        output.set_value(self._estimate(context)[:3])
 
     def _calc_alarm(self, context, output: BasicVector):
-        output.SetFromVector(self._estimate(context)[3:])
+        output.set_value(self._estimate(context)[3:])

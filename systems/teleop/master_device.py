@@ -50,6 +50,7 @@ context.
 from __future__ import annotations
 
 import csv
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -400,6 +401,10 @@ class _Playback:
     v_W: np.ndarray  # (n, 3) commanded velocity per sample
     d_W: np.ndarray  # (n, 3) commanded displacement from the start per sample
     w_W: np.ndarray  # (n, 3) commanded angular velocity per sample
+    V_W: np.ndarray = field(init=False, repr=False)  # (n, 6) [w_W, v_W]: the output per sample
+
+    def __post_init__(self):
+        object.__setattr__(self, "V_W", np.hstack([self.w_W, self.v_W]))
 
     @classmethod
     def of(cls, motion: MasterMotion | GlitchedMotion, mapping: IncrementalMapping) -> _Playback:
@@ -517,17 +522,18 @@ class MasterDevice(LeafSystem):
         return min(max(k, 0), play.motion.p_M.shape[0] - 1)
 
     def _calc_velocity(self, context, output: BasicVector):
-        play = self._playback(context)
-        out = np.zeros(6)
-        if self._target is not None and context.get_time() > play.motion.duration:
+        play = context.get_abstract_parameter(self._play).get_value()
+        t = context.get_time()
+        motion = play.motion
+        if self._target is not None and t > motion.duration:
+            out = np.zeros(6)
             v = self._gain * (self._target - self._X_meas.Eval(context).translation())
             norm = float(np.linalg.norm(v))
             out[3:] = v if norm <= self._speed else v * (self._speed / norm)
-        else:
-            k = self._index(context, play)
-            out[:3] = play.w_W[k]  # zeros for a motion without r_M (and no glitch)
-            out[3:] = play.v_W[k]
-        output.SetFromVector(out)
+            output.set_value(out)
+        else:  # _index, inline (w zero for a motion without r_M and no glitch)
+            k = min(max(math.floor(t / motion.dt + 1e-9), 0), play.V_W.shape[0] - 1)
+            output.set_value(play.V_W[k])
 
     def _calc_offset(self, context, output: BasicVector):
         play = self._playback(context)

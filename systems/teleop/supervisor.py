@@ -72,6 +72,8 @@ SCALES = np.array([1.0, 0.75, 0.5, 0.25])  # tried on h itself after the project
 GRADIENT_REUSE = 4  # consecutive steps at the wall that share one finite-difference gradient
 TOLERANCE = 1e-8  # m: rounding allowed in the discrete barrier condition per step
 FAR = 1.0e3  # stand-in for +inf (the tool wholly outside the mouth) on the output ports (m)
+_IDENTITY = np.eye(3)  # the rotation of a step without angular velocity (read only)
+_IDENTITY.flags.writeable = False
 
 
 def clearance(fpsm: Fpsm, X_CT: np.ndarray, tool: Instrument) -> np.ndarray:
@@ -436,6 +438,46 @@ def _commit(X, V, scale, R_CW, X_WC, X_TE, new):
     _world_pose_of_E(new, X_WC, X_TE)
 
 
+@numba.njit(inline="always")
+def _advance_checked(h_at, h_args, x, V_W, dR, dt, R_CW, X_WC, X_TE, margin, alpha, new, X1):
+    """The update's common path in one call: :func:`_advance`, the barrier h at the commanded
+    next pose X1 and the discrete barrier condition (on floats, as :func:`barrier_holds`).
+    True: the command passes, ``new`` is the whole next state (h capped at ``FAR``, no gradient
+    kept); False: it fails the condition, ``new[18]`` holds h at X1 and the caller takes the
+    slow path (steps 2-3)."""
+    _advance(x, V_W, dR, dt, R_CW, X_WC, X_TE, new, X1)
+    h = h_at(h_args, X1)
+    h0 = x[18]
+    if h0 < FAR:  # the barrier at the pose itself, kept from the previous update
+        a = -alpha * (h0 - margin)
+        b = 0.0 if 0.0 < a else a  # min(a, 0.0) as Python's min takes it
+        if not h >= h0 + dt * b - TOLERANCE:
+            new[18] = h
+            return False
+    new[18] = FAR if FAR < h else h
+    for i in range(33, 39):  # not at the wall this step: the next slow step computes afresh
+        new[i] = 0.0
+    new[39] = GRADIENT_REUSE
+    return True
+
+
+@numba.njit(cache=True)
+def _advance_checked_fpsm(h_args, x, V_W, dR, dt, R_CW, X_WC, X_TE, margin, alpha, new, X1):
+    """:func:`_advance_checked` on the FPSM bound (as :func:`_filter_step_fpsm`)."""
+    return _advance_checked(fpsm_at, h_args, x, V_W, dR, dt, R_CW, X_WC, X_TE, margin, alpha,
+                            new, X1)
+
+
+@numba.njit(cache=True)
+def _advance_checked_scan(h_args, x, V_W, dR, dt, R_CW, X_WC, X_TE, margin, alpha, new, X1):
+    """:func:`_advance_checked` on the capped scan bound (as :func:`_filter_step_scan`)."""
+    return _advance_checked(capped_at, h_args, x, V_W, dR, dt, R_CW, X_WC, X_TE, margin, alpha,
+                            new, X1)
+
+
+_ADVANCE_CHECKED = {fpsm_at: _advance_checked_fpsm, capped_at: _advance_checked_scan}
+
+
 class SafetySupervisor(LeafSystem):
     """Filters the fixture's corrected twist with the FPSM barrier; integrates the desired pose.
 
@@ -507,6 +549,7 @@ class SafetySupervisor(LeafSystem):
         self.limits = limits or CommandLimits()
         self._clear = ToolClearance(fpsm, tool) if clearance is None else clearance
         self._filter_step = _filter_step_of(self._clear)
+        self._advance_checked = _ADVANCE_CHECKED[self._clear.at]
         if clearance is not None and clearance.instrument != tool:
             raise InputError("clearance", f"bounds the instrument {clearance.instrument.name!r},"
                              f" not the supervisor's {tool.name!r}")
@@ -522,7 +565,7 @@ class SafetySupervisor(LeafSystem):
         self._X_ET[:3, :3] = R_ET
         self._X_TE = invert(self._X_ET)
         # buffers of the compiled slow path (no allocation per step)
-        self._X0, self._Xn, self._work = np.eye(4), np.eye(4), np.eye(4)
+        self._X0, self._Xn, self._work, self._X1 = np.eye(4), np.eye(4), np.eye(4), np.eye(4)
         self._Vc, self._Vo, self._g = np.zeros(6), np.zeros(6), np.zeros(6)
         self._V_in = self.DeclareVectorInputPort("V_WE_corrected", 6)
         self._margin_in = self.DeclareVectorInputPort("margin_extra", 1) if margin_input else None
@@ -560,54 +603,58 @@ class SafetySupervisor(LeafSystem):
     def _update(self, context, discrete_state):
         x = context.get_discrete_state(0).get_value()
         V_W = clip_twist(self._V_in.Eval(context), self.limits)  # step 0
-        # the rotation of one period (Drake's AngleAxis; the operator's command has none)
-        w_C = self._R_CW @ V_W[:3]
-        angle = float(np.linalg.norm(w_C)) * self._period
-        dR = np.eye(3) if angle == 0.0 else RotationMatrix(
-            AngleAxis(angle, w_C * (self._period / angle))).matrix()
-        new = np.empty(40)
-        X1 = np.empty((4, 4))
-        _advance(x, V_W, dR, self._period, self._R_CW, self._X_WC, self._X_TE, new, X1)
-        h0 = np.inf if x[18] >= FAR else float(x[18])
+        new = discrete_state.get_mutable_value(0)  # the next state, written in place
+        if V_W[0] == 0.0 and V_W[1] == 0.0 and V_W[2] == 0.0:  # no rotation: the common case
+            w_C, dR = None, _IDENTITY
+        else:  # the rotation of one period (Drake's AngleAxis; the operator's command has none)
+            w_C = self._R_CW @ V_W[:3]
+            angle = float(np.linalg.norm(w_C)) * self._period
+            dR = _IDENTITY if angle == 0.0 else RotationMatrix(
+                AngleAxis(angle, w_C * (self._period / angle))).matrix()
         released = self._release is not None and self._release.Eval(context)[0] > 0.5
+        X1 = self._X1
         if self._enabled and not released:
-            h = self._clear.one(X1)
             bar = self._barrier
+            margin = bar.margin
             if self._margin_in is not None:  # the awake patient: tracking lag and error
-                bar = replace(bar, margin=bar.margin + float(self._margin_in.Eval(context)[0]))
-            # barrier_holds, on floats (the common case must be cheap)
-            b = min(-bar.alpha * (h0 - bar.margin), 0.0) if h0 < np.inf else -np.inf
-            if h0 < np.inf and not h >= h0 + self._period * b - TOLERANCE:  # the slow path
-                X0 = self._X0
-                X0[:3, :3], X0[:3, 3] = x[3:12].reshape(3, 3), x[:3]
-                V = self._Vc
-                V[:3], V[3:] = w_C, self._R_CW @ V_W[3:]
-                age = int(x[39])
-                have_g = age < GRADIENT_REUSE
-                h, scale = self._filter_step(
-                    self._clear.at_args, X0, V,
-                    h0, x[33:39], have_g, self._period, bar.margin, bar.alpha,
-                    bar.length_scale, bar.eps_p, bar.eps_w, SCALES, self._Vo, self._Xn,
-                    self._g, self._work)
-                new[33:39] = self._g
-                new[39] = age + 1 if have_g else 1
-                _commit(self._Xn, self._Vo, scale, self._R_CW, self._X_WC, self._X_TE, new)
+                margin = margin + float(self._margin_in.Eval(context)[0])
+                if not 0.0 <= margin < np.inf:
+                    replace(bar, margin=margin)  # raises the barrier's own error
+            if self._advance_checked(self._clear.at_args, x, V_W, dR, self._period, self._R_CW,
+                                     self._X_WC, self._X_TE, margin, bar.alpha, new, X1):
+                return
+            # the slow path: the command fails the discrete barrier condition
+            h0 = float(x[18])
+            X0 = self._X0
+            X0[:3, :3], X0[:3, 3] = x[3:12].reshape(3, 3), x[:3]
+            V = self._Vc
+            V[:3] = self._R_CW @ V_W[:3] if w_C is None else w_C
+            V[3:] = self._R_CW @ V_W[3:]
+            age = int(x[39])
+            have_g = age < GRADIENT_REUSE
+            h, scale = self._filter_step(
+                self._clear.at_args, X0, V,
+                h0, x[33:39], have_g, self._period, margin, bar.alpha,
+                bar.length_scale, bar.eps_p, bar.eps_w, SCALES, self._Vo, self._Xn,
+                self._g, self._work)
+            new[33:39] = self._g
+            new[39] = age + 1 if have_g else 1
+            _commit(self._Xn, self._Vo, scale, self._R_CW, self._X_WC, self._X_TE, new)
             new[18] = min(h, FAR)
-        else:
-            new[18] = min(self._clear.one(X1), FAR) if released else min(h0, FAR)
-        if new[20] == 0.0:  # not at the wall this step: the next slow step computes afresh
-            new[33:39], new[39] = 0.0, GRADIENT_REUSE
-        discrete_state.get_mutable_vector(0).SetFromVector(new)
+            return
+        _advance(x, V_W, dR, self._period, self._R_CW, self._X_WC, self._X_TE, new, X1)
+        new[18] = min(self._clear.one(X1), FAR) if released else min(x[18], FAR)
+        new[33:39], new[39] = 0.0, GRADIENT_REUSE  # not at the wall
 
     def _calc_desired(self, context, value):
         x = context.get_discrete_state(0).get_value()
         value.set_value(RigidTransform(RotationMatrix(x[24:33].reshape(3, 3)), x[21:24]))
 
     def _calc_filtered(self, context, output: BasicVector):
-        output.SetFromVector(context.get_discrete_state(0).get_value()[12:18])
+        output.set_value(context.get_discrete_state(0).get_value()[12:18])
 
     def _calc_barrier(self, context, output: BasicVector):
-        output.SetFromVector(context.get_discrete_state(0).get_value()[18:21])
+        output.set_value(context.get_discrete_state(0).get_value()[18:21])
 
     def set_desired_pose(self, context, X_WE) -> None:
         """Reset the desired pose (e.g. to the tool's pose at the start of a run)."""

@@ -15,6 +15,8 @@ from implantplan.systems.placement.tool_clearance import (
     clearance_field,
     curve_bounds,
     feed_clearance,
+    is_rigid_pose,
+    rigid_poses,
     rod_clearance,
     rod_safe,
     tool_clearance,
@@ -192,3 +194,41 @@ def test_repeated_envelopes_are_computed_once_with_the_same_field():
     assert a.values.shape == b.values.shape and a.cover == pytest.approx(b.cover, rel=1e-12)
     np.testing.assert_allclose(a.values, b.values, rtol=0, atol=1e-12)
     assert np.ptp(a.values) > 0.01  # a field with structure, not a constant
+
+
+def test_the_compiled_rigid_test_is_rigid_poses():
+    """is_rigid_pose (the control loops' check) accepts exactly the poses rigid_poses accepts:
+    rotations perturbed around the tolerance, scaled, sheared, reflected, with a bad last row,
+    far away or non-finite."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(11)
+    poses = []
+    for k in range(400):
+        X = np.eye(4)
+        X[:3, :3] = Rotation.random(random_state=k).as_matrix()
+        X[:3, 3] = rng.normal(scale=0.05, size=3)
+        kind = k % 8
+        if kind == 1:  # around the tolerance of the rotation
+            X[:3, :3] += rng.normal(scale=10.0 ** rng.uniform(-8, -5), size=(3, 3))
+        elif kind == 2:
+            X[:3, :3] *= rng.choice([0.9, 1.0 + 2e-7, 1.0 - 5e-7, 1.0 + 5e-6])
+        elif kind == 3:
+            X[:3, 0] *= -1.0  # a reflection
+        elif kind == 4:
+            X[3, rng.integers(4)] += rng.choice([1e-7, 2e-6, -1e-3])
+        elif kind == 5:
+            X[rng.integers(3), 3] = rng.choice([999.0, 1000.0, 1000.5, -2e3])
+        elif kind == 6:
+            X[rng.integers(4), rng.integers(4)] = rng.choice([np.nan, np.inf, -np.inf])
+        poses.append(X)
+    accepted = 0
+    for X in poses:
+        try:
+            rigid_poses(X)
+            want = True
+        except InputError:
+            want = False
+        assert is_rigid_pose(np.ascontiguousarray(X)) == want, X
+        accepted += want
+    assert 0 < accepted < len(poses)  # both answers occur

@@ -122,3 +122,26 @@ def test_periodic_estimator_holds_the_last_estimate():
     assert system.GetOutputPort("alarm").Eval(context)[0] == 0.0
     with pytest.raises(InputError, match="period"):
         FpsmEstimator(CYL, np.eye(4), period=0.0)
+
+
+def test_system_is_the_core_at_every_pose_and_refuses_a_scaled_pose():
+    """The LeafSystem's one compiled call per estimate gives tool_safety's values bit for bit
+    (the sound clearance of the whole tool), and a scaled "pose" is refused as the core
+    refuses it (it would shrink the tool and pass as safe)."""
+    lines = ToolLines.contra_angle(R, D12)
+    system = FpsmEstimator(CYL, np.eye(4), lines, alarm_margin=0.01)
+    context = system.CreateDefaultContext()
+    port = system.GetInputPort("X_WT")
+    rng = np.random.default_rng(3)
+    for z in np.linspace(-0.02, 0.2, 12):
+        X = pose([rng.uniform(-0.02, 0.02), rng.uniform(-0.02, 0.02), z])
+        port.FixValue(context, AbstractValue.Make(RigidTransform(X)))
+        core = tool_safety(CYL, X, lines, alarm_margin=0.01)
+        want = np.clip([core.f_safe_line1[0], core.f_safe_line2[0], core.min_d_safe[0],
+                        float(core.alarm[0])], -FpsmEstimator.FAR, FpsmEstimator.FAR)
+        np.testing.assert_array_equal(system.estimate(context), want)
+    scaled = pose([0.0, 0.0, 0.044])
+    scaled[:3, :3] *= 0.9
+    port.FixValue(context, AbstractValue.Make(RigidTransform(scaled)))
+    with pytest.raises(InputError, match="proper rotation"):
+        system.estimate(context)
