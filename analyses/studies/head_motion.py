@@ -359,7 +359,7 @@ def tracker_from_args(args) -> TrackerParams:
             TrackerParams(**kw)
         except InputError as e:
             raise InputError(flag, str(e).split(': ', 1)[-1]) from None
-    return TrackerParams(**kw)
+    return TrackerParams(**kw, smooth=bool(getattr(args, "tracker_smooth", False)))
 
 
 def cmd_head_motion(args) -> int:
@@ -378,7 +378,7 @@ def cmd_head_motion(args) -> int:
         raise InputError("--plan", "a plan folder is studied on its own scan; expected no "
                          "--case cylinder with it")
     trk = {"rate": tracker.rate, "latency": tracker.latency,
-           "predict_samples": tracker.predict_samples,
+           "predict_samples": tracker.predict_samples, "smooth": tracker.smooth,
            "noise_position": tracker.noise_position, "noise_angle": tracker.noise_angle}
     out = Path(args.out)
     out_folder.check_out(out, force=None)  # before any work: a folder of the user's is refused
@@ -440,9 +440,6 @@ def cmd_turn_sweep(args, progress) -> int:
         raise InputError("--turn-sweep", "the sweep measures against the moving scan; expected "
                          "no --case cylinder with it")
     tracker = tracker_from_args(args)
-    if tracker != TrackerParams():
-        raise InputError("--turn-sweep", "the sweep runs the default camera; expected no "
-                         "--tracker-rate-hz, --tracker-latency-ms or --prediction-samples")
     out = Path(args.out)
     out_folder.check_out(out, force=None)
     from implantplan.analyses.studies.scan_reference import default_case_sites, plan_sites
@@ -455,11 +452,13 @@ def cmd_turn_sweep(args, progress) -> int:
     turns = H.grid(len(cases), amplitudes_deg=amplitudes, speeds_deg_s=speeds, onsets=onsets)
     progress.say(f"{len(turns)} head turns on {len(cases)} sites, {args.workers} process(es)")
     result = H.turn_sweep(cases, mesh, turns, seed=args.seed, workers=args.workers,
-                          progress=progress)
+                          tracker=tracker, progress=progress)
     worst = result.pop("_worst")
     out_folder.claim(out, "head_motion")
     figs = [p.name for p in H.plot_worst(worst, out)]
     study = {"case": "scan", "plan": None if args.plan is None else str(args.plan),
+             "tracker": {"rate": tracker.rate, "latency": tracker.latency,
+                         "predict_samples": tracker.predict_samples, "smooth": tracker.smooth},
              "turn_sweep": result, "figures": figs, "passed": result["passed"]}
     write_json(out / "head_motion.json", study, kind="head_motion")
     write_text_atomic(out / "report.html", render_head_turn(to_jsonable(study), figs))
@@ -502,6 +501,9 @@ def register_analysis(sub) -> None:
     p.add_argument("--prediction-samples", type=int, default=None,
                    help="samples of the latency-compensating prediction, 0 (off) or 2-6 "
                    "(default 2)")
+    p.add_argument("--tracker-smooth", action="store_true",
+                   help="the camera's prediction for a fast head, blended between samples "
+                   "(systems/teleop/tracker.py, Smoothing; off by default)")
     p.add_argument("--turn-sweep", action="store_true",
                    help="instead of the profiles: the deterministic grid of head turns about "
                    "the neck (amplitudes x peak speeds x both directions x onsets x sites), "

