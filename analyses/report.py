@@ -391,3 +391,38 @@ def render_head_motion(study: dict, figs: dict) -> str:
         parts.append(_figs(figs.get(name, [])))
     parts.append("</body></html>")
     return "\n".join(parts)
+
+
+def render_head_turn(study: dict, figs: list) -> str:
+    """``report.html`` of the head-turn sweep (``analyze head-motion --turn-sweep``,
+    analyses.studies.head_turn): the table per site x peak speed x direction, the pass rule,
+    and the worst run's figure (``figs``: PNG paths relative to the page)."""
+    res = study["turn_sweep"]
+    s = res["summary"]
+    mm = 1000.0
+    parts = [
+        "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"
+        "<link rel='icon' href='data:,'><title>implantplan: head turns</title>"
+        f"<style>{_CSS}</style></head><body>",
+        "<h1>The awake patient: head turns about the neck</h1>",
+        f"<p class='muted'>{html.escape(str(s['runs']))} runs, seed "
+        f"{html.escape(str(res['seed']))}; pass: exact clearance at the poses and over the swept "
+        f"motion &ge; {mm * (res['margin'] - res['margin_slack']):.1f} mm (margin "
+        f"{mm * res['margin']:.1f} mm - 0.2 mm), fixture violation &le; "
+        f"{mm * res['max_violation']:.1f} mm and no TCP step above "
+        f"{mm * res['step_limit']:.3f} mm per control step in the tracked head's frame (the "
+        f"frame the command lives in; the true head's adds the camera's error): "
+        f"{_badge(bool(study['passed']))}; differential IK reports {s['diffik_reports']} "
+        f"({s['diffik_stuck']} stuck)</p>",
+        _table(["site", "peak speed (deg/s)", "direction", "runs", "min exact at poses (mm)",
+                "min exact between poses, certified (mm)",
+                "max fixture violation, tracked head (mm)", "same, true head (mm)",
+                "max TCP step, tracked head (mm)", "same, true head (mm)", "arm jumps",
+                "DiffIK stuck", "guard stops", "backed out", "failed"],
+               [[r["site"], f"{r['peak_speed_deg_s']:.0f}", f"{r['direction']:+.0f}",
+                 r["runs"], f"{r['exact_mm']:.3f}", f"{r['between_mm']:.3f}",
+                 f"{r['violation_mm']:.3f}", f"{r['violation_true_mm']:.3f}",
+                 f"{r['step_mm']:.3f}", f"{r['step_true_mm']:.3f}", r["jumps"], r["stuck"],
+                 r["stopped"], r["backed_out"], r["failed"]] for r in res["table"]], left=1),
+        _figs(figs), "</body></html>"]
+    return "\n".join(parts)

@@ -289,12 +289,14 @@ class TrackedHeadFrame(LeafSystem):
         output_ports:
         - X_WE_head
         - X_WE_desired
+        - H
 
     With H = X_WHead_estimated X_WHead0^-1 (the tracked displacement of the head):
     ``X_WE_head`` = H^-1 X_WE_measured, the measured tool pose in the head-fixed World (where the
     constant X_WCenter holds: the fixture, the estimator and the master work there), and
     ``X_WE_desired`` = H X_WE_desired_head, the supervisor's desired pose carried with the head,
-    for DiffIK. All abstract RigidTransforms.
+    for DiffIK. All abstract RigidTransforms. ``H`` (12): H itself, [p (3), R row-major (9)],
+    for the logger (the frame the arm's command lives in, :attr:`FeedRun.X_CT_tracked`).
     """
 
     def __init__(self, X_WHead0):
@@ -306,6 +308,11 @@ class TrackedHeadFrame(LeafSystem):
         self._des = self.DeclareAbstractInputPort("X_WE_desired_head", make())
         self.DeclareAbstractOutputPort("X_WE_head", make, self._calc_head)
         self.DeclareAbstractOutputPort("X_WE_desired", make, self._calc_desired)
+        self.DeclareVectorOutputPort("H", 12, self._calc_H_vector)
+
+    def _calc_H_vector(self, context, output: BasicVector):
+        H = self._H(context)
+        output.SetFromVector(np.concatenate([H[:3, 3], H[:3, :3].ravel()]))
 
     def _H(self, context) -> np.ndarray:
         return self._head.Eval(context).GetAsMatrix4() @ self._X0_inv
@@ -552,7 +559,7 @@ def build_teleop(
         builder.Connect(corrected, phase.GetInputPort("V_WE_feed"))
         builder.Connect(vf_in.GetOutputPort("V_WE_corrected"), phase.GetInputPort("V_WE_insertion"))
         corrected = phase.GetOutputPort("V_WE_corrected")
-    head = trk = head_guard = None
+    head = trk = head_guard = frame = None
     measured = tool_pose.GetOutputPort("X_WE")
     if head_motion is not None:
         head = builder.AddSystem(HeadMotionSource(head_motion, case.X_WCenter))
@@ -641,6 +648,7 @@ def build_teleop(
         loggers["margin_extra"] = LogVectorOutput(head_guard.GetOutputPort("margin_extra"),
                                                   builder, period)
         loggers["lost"] = LogVectorOutput(trk.GetOutputPort("lost"), builder, period)
+        loggers["tracked"] = LogVectorOutput(frame.GetOutputPort("H"), builder, period)
     if phase is not None:
         loggers["phase"] = LogVectorOutput(phase.GetOutputPort("phase"), builder, period)
     visualizer = None
@@ -699,6 +707,12 @@ class FeedRun:
     lost: np.ndarray | None = None  # (n,) bool: the tracker's lost flag
     command: np.ndarray | None = None  # (n, 6) the CommandLimiter's status log
     phase: np.ndarray | None = None  # (n,) 1 while inserting (an insertion diagram)
+    # (n, 4, 4) the measured Tool pose in Center of the TRACKED head (the frame the supervisor
+    # integrates the command in): the arm's pose at log k in the head displacement DiffIK was
+    # given at its update one period before (log k - 1; a log shows the state before that
+    # instant's updates)
+    X_CT_tracked: np.ndarray | None = None
+    violation_tracked: np.ndarray | None = None  # (n,) the fixture's violation there (m)
 
     @property
     def fault_times(self) -> np.ndarray:
@@ -766,6 +780,14 @@ def simulate(teleop: Teleop, duration: float, *, motion: MasterMotion | None = N
     extra = {}
     if "phase" in logs:
         extra["phase"] = logs["phase"].data()[0] > 0.5
+    if "tracked" in logs:
+        Hv = logs["tracked"].data().T
+        H = np.repeat(np.eye(4)[None], Hv.shape[0], axis=0)
+        H[:, :3, 3], H[:, :3, :3] = Hv[:, :3], Hv[:, 3:].reshape(-1, 3, 3)
+        H_used = np.concatenate([H[:1], H[:-1]])  # DiffIK's result at log k used log k - 1's
+        X_CT_tracked = np.linalg.inv(case.X_WCenter) @ invert(H_used) @ X_WE @ X_ET
+        extra.update(X_CT_tracked=X_CT_tracked,
+                     violation_tracked=case.vf.body_violation(X_CT_tracked)[0])
     if "guard" in logs:
         extra.update(guard=logs["guard"].data().T.copy(),
                      margin_extra=logs["margin_extra"].data()[0].copy(),

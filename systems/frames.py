@@ -87,6 +87,18 @@ def rotation_angle(R: np.ndarray) -> np.ndarray:
     return np.arctan2(sin, cos)
 
 
+def rotation_vector(R: np.ndarray) -> np.ndarray:
+    """The rotation vector (3,) of a rotation matrix (3, 3) whose angle is below pi - 1e-6 (the
+    inverse of :func:`rotations` there): axis x angle, from the skew part sin(angle) axis."""
+    R = np.asarray(R, dtype=float)
+    s = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    angle = float(rotation_angle(R[None])[0])
+    if angle > np.pi - 1e-6:
+        raise ValueError(f"rotation_vector: angle {angle} too close to pi")
+    n = float(np.linalg.norm(s))
+    return s if n == 0.0 else s * (angle / n)
+
+
 def wrap_angle(a) -> np.ndarray:
     """Angles (any shape, rad) wrapped into [-pi, pi): the one angle wrap of the project (joint
     differences, rod directions theta_T, yaw differences).

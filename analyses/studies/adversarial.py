@@ -48,6 +48,9 @@ import numpy as np
 
 from implantplan.analyses.studies.scan_reference import (  # noqa: F401  (the study's reference, re-exported)
     IMPLANT_AXIS_RADIUS,
+    MARGIN_SLACK,
+    MAX_VIOLATION,
+    STEP_SLACK,
     ExactClearance,
     default_case_sites,
     exact_for,
@@ -71,10 +74,7 @@ from implantplan.systems.teleop.command_limits import CommandLimits
 from implantplan.systems.teleop.master_device import feeding_runs
 from implantplan.systems.teleop.supervisor import Barrier
 
-MARGIN_SLACK = 0.0002  # m: the exact clearance may dip this far below the margin
-MAX_VIOLATION = 0.0005  # m: the fixture's body violation must stay below this
 RECOVERY_SECONDS = 1.0  # s: the window after a fault clears in which the arm's steps count
-STEP_SLACK = 1.1  # DiffIK's linearization: an arm step may exceed the limit's by 10%
 FAULT_KINDS = JUMP_KINDS + ABSURD_KINDS
 
 

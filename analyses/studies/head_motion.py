@@ -131,18 +131,24 @@ def measure(run, still, case: TeleopCase, cavity: ExactCavity, *,
     out["reached_target"] = out["final_error"] <= F.TARGET_TOLERANCE
     out["_clearance"], out["_error"], out["_deviation"] = clear, err, dev
     if trig >= 0:
-        # the back-out on the tool in the TRUE head frame: along the fixture's axis, out of
-        # the deepest point it reached since the event (the onset; at the trigger it may still
-        # be carried in by the head it lags)
-        ref = trig if event_time is None else min(trig, float(event_time))
-        k = int(np.searchsorted(run.t, ref))
-        s = p[k:] @ case.vf.direction
-        out_of_deepest = s - np.minimum.accumulate(s)
-        dist = GuardSettings().retreat_distance
-        done = np.flatnonzero((run.t[k:] >= trig) & (out_of_deepest >= BACKED_OUT_SHARE * dist))
-        out["backed_out_time"] = float(run.t[k + done[0]]) if done.size else -1.0
-        out["backed_out_m"] = float(out_of_deepest.max())
+        out.update(back_out(run, case, trig, event_time))
     return out
+
+
+def back_out(run, case: TeleopCase, trig: float, event_time: float | None = None) -> dict:
+    """The guard's back-out measured on the tool in the TRUE head frame: along the fixture's
+    axis, out of the deepest point it reached since the event (``event_time``, e.g. the onset;
+    at the trigger ``trig`` it may still be carried in by the head it lags): the time it had
+    backed out ``BACKED_OUT_SHARE`` of the guard's distance (-1: never) and how far it went."""
+    p = run.X_CT[:, :3, 3]
+    ref = trig if event_time is None else min(trig, float(event_time))
+    k = int(np.searchsorted(run.t, ref))
+    s = p[k:] @ case.vf.direction
+    out_of_deepest = s - np.minimum.accumulate(s)
+    dist = GuardSettings().retreat_distance
+    done = np.flatnonzero((run.t[k:] >= trig) & (out_of_deepest >= BACKED_OUT_SHARE * dist))
+    return {"backed_out_time": float(run.t[k + done[0]]) if done.size else -1.0,
+            "backed_out_m": float(out_of_deepest.max())}
 
 
 def _public(m: dict) -> dict:
@@ -353,7 +359,7 @@ def tracker_from_args(args) -> TrackerParams:
             TrackerParams(**kw)
         except InputError as e:
             raise InputError(flag, str(e).split(': ', 1)[-1]) from None
-    return TrackerParams(**kw)
+    return TrackerParams(**kw, smooth=bool(getattr(args, "tracker_smooth", False)))
 
 
 def cmd_head_motion(args) -> int:
@@ -363,6 +369,8 @@ def cmd_head_motion(args) -> int:
     from implantplan.systems.files import to_jsonable, write_json, write_text_atomic
 
     progress = Progress("analyze head-motion", quiet=args.quiet)
+    if args.turn_sweep:
+        return cmd_turn_sweep(args, progress)
     profiles = tuple(p.strip() for p in args.profiles.split(",") if p.strip())
     check_study(profiles, args.runs)
     tracker = tracker_from_args(args)
@@ -370,7 +378,7 @@ def cmd_head_motion(args) -> int:
         raise InputError("--plan", "a plan folder is studied on its own scan; expected no "
                          "--case cylinder with it")
     trk = {"rate": tracker.rate, "latency": tracker.latency,
-           "predict_samples": tracker.predict_samples,
+           "predict_samples": tracker.predict_samples, "smooth": tracker.smooth,
            "noise_position": tracker.noise_position, "noise_angle": tracker.noise_angle}
     out = Path(args.out)
     out_folder.check_out(out, force=None)  # before any work: a folder of the user's is refused
@@ -414,6 +422,52 @@ def cmd_head_motion(args) -> int:
     return 0 if study["passed"] else 3  # a failed check exits 3 (DESIGN.md section 3)
 
 
+def cmd_turn_sweep(args, progress) -> int:
+    """``--turn-sweep``: the head-turn grid (analyses.studies.head_turn); every flag checked
+    before any planning or simulation; exit 3 when a run fails the acceptance."""
+    from implantplan.analyses.report import render_head_turn
+    from implantplan.analyses.studies import head_turn as H
+    from implantplan.systems.files import to_jsonable, write_json, write_text_atomic
+
+    amplitudes = H.parse_list(args.turn_amplitudes_deg, "--turn-amplitudes-deg")
+    speeds = H.parse_list(args.turn_speeds_deg_s, "--turn-speeds-deg-s")
+    onsets = tuple(o.strip() for o in args.turn_onsets.split(",") if o.strip())
+    H.check_grid(amplitudes, speeds, onsets=onsets)
+    if not 1 <= args.workers <= H.MAX_WORKERS:
+        raise InputError("--workers", f"expected an integer in 1..{H.MAX_WORKERS}, "
+                         f"got {args.workers}")
+    if args.case == "cylinder":
+        raise InputError("--turn-sweep", "the sweep measures against the moving scan; expected "
+                         "no --case cylinder with it")
+    tracker = tracker_from_args(args)
+    out = Path(args.out)
+    out_folder.check_out(out, force=None)
+    from implantplan.analyses.studies.scan_reference import default_case_sites, plan_sites
+
+    if args.plan is not None:
+        cases, mesh = plan_sites(args.plan, field="--plan")
+    else:
+        progress.say("planning the bundled default case (scan, sites 36 and 46)")
+        cases, mesh = default_case_sites()
+    turns = H.grid(len(cases), amplitudes_deg=amplitudes, speeds_deg_s=speeds, onsets=onsets)
+    progress.say(f"{len(turns)} head turns on {len(cases)} sites, {args.workers} process(es)")
+    result = H.turn_sweep(cases, mesh, turns, seed=args.seed, workers=args.workers,
+                          tracker=tracker, progress=progress)
+    worst = result.pop("_worst")
+    out_folder.claim(out, "head_motion")
+    figs = [p.name for p in H.plot_worst(worst, out)]
+    study = {"case": "scan", "plan": None if args.plan is None else str(args.plan),
+             "tracker": {"rate": tracker.rate, "latency": tracker.latency,
+                         "predict_samples": tracker.predict_samples, "smooth": tracker.smooth},
+             "turn_sweep": result, "figures": figs, "passed": result["passed"]}
+    write_json(out / "head_motion.json", study, kind="head_motion")
+    write_text_atomic(out / "report.html", render_head_turn(to_jsonable(study), figs))
+    H.print_table(result)
+    print(f"every head turn meets the acceptance: {'yes' if study['passed'] else 'NO'}; "
+          f"wrote {out / 'head_motion.json'} and {out / 'report.html'}")
+    return 0 if study["passed"] else 3
+
+
 def _never_below_zero(sites: dict) -> bool:
     """True when no run of any profile, nor the lost-tracking run, went below 0 clearance."""
     for res in sites.values():
@@ -447,6 +501,23 @@ def register_analysis(sub) -> None:
     p.add_argument("--prediction-samples", type=int, default=None,
                    help="samples of the latency-compensating prediction, 0 (off) or 2-6 "
                    "(default 2)")
+    p.add_argument("--tracker-smooth", action="store_true",
+                   help="the camera's prediction for a fast head, blended between samples "
+                   "(systems/teleop/tracker.py, Smoothing; off by default)")
+    p.add_argument("--turn-sweep", action="store_true",
+                   help="instead of the profiles: the deterministic grid of head turns about "
+                   "the neck (amplitudes x peak speeds x both directions x onsets x sites), "
+                   "exact clearance at the poses and over the swept motion, fixture violation, "
+                   "arm jumps, differential IK reports, back-outs; exit 3 if a run fails")
+    p.add_argument("--turn-amplitudes-deg", default="10,15",
+                   help="the sweep's amplitudes, deg, each in (0, 30] (default 10,15)")
+    p.add_argument("--turn-speeds-deg-s", default="30,45,60",
+                   help="the sweep's peak speeds, deg/s, each in (0, 120] (default 30,45,60)")
+    p.add_argument("--turn-onsets", default="early,mid,late",
+                   help="the sweep's onsets in the feed: early, mid, late (a quarter, half, "
+                   "three quarters of the operator's script; default all three)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="processes of the sweep, 1 or 2 (default 1)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--out", type=Path, required=True,
                    help="output folder (head_motion.json, report.html and head_<profile>.png)")

@@ -123,15 +123,38 @@ class HeadMotion:
                  "rate_rad_s": np.deg2rad(rng.uniform(0.5, 1.0)) / 60.0,
                  "axis": axis / np.linalg.norm(axis)}
         elif profile == "turn":
-            point, axis = (pivot, np.array([0.0, 0.0, 1.0])) if neck is None else neck
-            axis = np.asarray(axis, dtype=float).reshape(3)
             angle = np.deg2rad(rng.uniform(10.0, 15.0))
             rate = np.deg2rad(rng.uniform(30.0, 60.0))
-            p = {"onset_s": rng.uniform(start, start + window), "angle_rad": angle,
-                 "peak_rate_rad_s": rate, "seconds": MIN_JERK_PEAK * angle / rate,
-                 "axis": rng.choice([-1.0, 1.0]) * axis / np.linalg.norm(axis),
-                 "neck_point": np.asarray(point, dtype=float).reshape(3)}
+            onset = rng.uniform(start, start + window)
+            sign = float(rng.choice([-1.0, 1.0]))
+            turn = cls.turn(angle=angle, peak_rate=rate, sign=sign, onset=onset, pivot=pivot,
+                            neck=neck)
+            return cls(profile=profile, seed=int(seed), pivot=pivot, params=turn.params)
         return cls(profile=profile, seed=int(seed), pivot=pivot, params=p)
+
+    @classmethod
+    def turn(cls, *, angle: float, peak_rate: float, sign: float, onset: float, pivot=None,
+             neck=None) -> HeadMotion:
+        """The ``turn`` profile with given parameters (the sweep of the head-motion study):
+        ``angle`` (rad, > 0) about the neck's axis ``neck`` = (point, axis) in World (default
+        World Z through the pivot), ``sign`` +1 / -1 along the axis or against it, a
+        minimum-jerk step peaking at ``peak_rate`` (rad/s, > 0) from ``onset`` (s, >= 0)."""
+        pivot = np.zeros(3) if pivot is None else np.asarray(pivot, dtype=float).reshape(3)
+        for name, value in (("angle", angle), ("peak_rate", peak_rate)):
+            if not (np.isfinite(value) and value > 0):
+                raise InputError(f"turn.{name}", f"expected a finite value > 0, got {value}")
+        if not (np.isfinite(onset) and onset >= 0):
+            raise InputError("turn.onset", f"expected a finite time >= 0 s, got {onset}")
+        if sign not in (-1.0, 1.0):
+            raise InputError("turn.sign", f"expected +1 or -1, got {sign}")
+        point, axis = (pivot, np.array([0.0, 0.0, 1.0])) if neck is None else neck
+        axis = np.asarray(axis, dtype=float).reshape(3)
+        p = {"onset_s": float(onset), "angle_rad": float(angle),
+             "peak_rate_rad_s": float(peak_rate),
+             "seconds": MIN_JERK_PEAK * float(angle) / float(peak_rate),
+             "axis": float(sign) * axis / np.linalg.norm(axis),
+             "neck_point": np.asarray(point, dtype=float).reshape(3)}
+        return cls(profile="turn", pivot=pivot, params=p)
 
     @classmethod
     def from_csv(cls, path, *, pivot=None) -> HeadMotion:
@@ -195,6 +218,34 @@ class HeadMotion:
             w = np.column_stack([np.interp(t, d[:, 0], d[:, 4 + i]) for i in range(3)])
             u, w = u - d[0, 1:4], w - d[0, 4:7]  # D(0) = identity: relative to the first row
         return u, w
+
+    def speed_bounds(self) -> tuple[float, float]:
+        """(rad/s, m/s) upper bounds, over all times, of the head's angular speed |omega| and
+        of |du/dt|, the speed of the pivot's image p + u(t) (for bounds between sampled
+        times: a head point x moves at most |omega| |x - p - u| + |du/dt|). From the closed
+        forms: a minimum-jerk step of size A over T peaks at MIN_JERK_PEAK A / T, the swallow's
+        A sin^2(pi tau) at pi A / T, the breathing's at pi f A; a CSV's piecewise-linear
+        interpolation at its largest slope. The rotation vector's rate bounds |omega| (the
+        left Jacobian of SO(3) has norm <= 1)."""
+        p = self.params
+        if self.profile == "breathing":
+            return 0.0, float(np.pi * p["frequency_hz"] * p["amplitude_m"])
+        if self.profile == "swallow":
+            return 0.0, float(np.pi * p["amplitude_m"] / SWALLOW_SECONDS)
+        if self.profile == "startle":
+            return (float(MIN_JERK_PEAK * p["angle_rad"] / STARTLE_SECONDS),
+                    float(MIN_JERK_PEAK * p["amplitude_m"] / STARTLE_SECONDS))
+        if self.profile == "drift":
+            return float(p["rate_rad_s"]), float(p["speed_m_s"])
+        if self.profile == "turn":  # u = c - R c, c the neck point from the pivot
+            w = float(p["peak_rate_rad_s"])
+            return w, w * float(np.linalg.norm(p["neck_point"] - self.pivot))
+        if self.profile == "csv":
+            d = self.samples
+            dt = np.diff(d[:, 0])[:, None]
+            return (float(np.linalg.norm(np.diff(d[:, 4:7], axis=0) / dt, axis=1).max()),
+                    float(np.linalg.norm(np.diff(d[:, 1:4], axis=0) / dt, axis=1).max()))
+        return 0.0, 0.0  # still
 
     def D(self, t) -> np.ndarray:
         """(n, 4, 4) the head's displacement in World at times ``t``."""

@@ -33,6 +33,24 @@ prediction (one run in tissue), 0.20 mm with prediction, 0.57 mm at 60 Hz, 20 ms
 ``analyze head-motion --tracker-rate-hz --tracker-latency-ms --prediction-samples`` measures
 another camera against the same exact reference.
 
+**Smoothing** (``smooth``, off by default). A head turning at 30-60 deg/s (0.5-1 rad/s) is
+cut by the dead zone's 0.6 rad/s (two samples at 60 Hz) to a fraction of its rate, so the
+prediction lags and every new sample corrects it by a jump (1-2 mm at the tool), which the arm
+then has to make in one control step. With ``smooth``:
+
+- the ``VELOCITY_WINDOW``-sample fit (its own dead zones, 4 standard deviations of its slope:
+  0.1 rad/s and 5.7 mm/s at 60 Hz, against 0.6 rad/s and 34 mm/s of the two-sample slope)
+  says how much the head moves: a share rising linearly from 0 at its dead zone to 1 at twice
+  it, for the rotation and the translation each. Within the dead zone the prediction is the
+  default one; beyond it, the slope of the newest ``SMOOTH_SAMPLES`` samples times that share
+  (unshortened at full share: a turn is predicted at its rate, not 0.6 rad/s below it);
+- each new sample's correction (the previous samples' prediction at the moment the new one
+  became available, against the new one's) is blended in linearly over one camera period, so
+  the predicted pose is continuous in time (a new sample's noise, too, enters over a period).
+
+Computed from the ring alone (no extra state). Measured (analyses.studies.head_turn, and
+tests/systems/teleop/test_tracker.py on the tracker alone): see docs/measurements.md.
+
 Core: :func:`camera_samples` (vectorized over ticks), :func:`predict_pose`. LeafSystem:
 :class:`Tracker`.
 """
@@ -47,10 +65,11 @@ from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.framework import BasicVector, LeafSystem
 
 from implantplan.systems.errors import InputError
-from implantplan.systems.frames import rotations
+from implantplan.systems.frames import invert, rotation_vector, rotations
 
 RING = 12  # samples kept: more than latency * rate + VELOCITY_WINDOW for every setting
 VELOCITY_WINDOW = 6  # good samples in the velocity fit (0.1-0.2 s at 30-60 Hz)
+SMOOTH_SAMPLES = 3  # good samples of the moving head's slope under ``smooth``
 
 
 @dataclass(frozen=True)
@@ -67,6 +86,8 @@ class TrackerParams:
         reach: lever (m) from the head frame's origin to the tool, for the error bound.
         predict_samples: good samples of the latency-compensating prediction (module notes);
             0 turns it off (the arm follows the delayed estimate).
+        smooth: the prediction for a fast head (module notes, *Smoothing*): off by default
+            until the head-motion studies are re-measured with it.
     """
 
     rate: float = 60.0
@@ -77,6 +98,7 @@ class TrackerParams:
     seed: int = 0
     reach: float = 0.1
     predict_samples: int = 2
+    smooth: bool = False
 
     def __post_init__(self):
         if not (np.isfinite(self.rate) and 30.0 <= self.rate <= 60.0):
@@ -91,6 +113,8 @@ class TrackerParams:
                 and (self.predict_samples == 0 or 2 <= self.predict_samples <= RING // 2)):
             raise InputError("tracker.predict_samples", f"expected 0 (no prediction) or an "
                              f"integer 2-{RING // 2}, got {self.predict_samples!r}")
+        if not isinstance(self.smooth, bool | np.bool_):
+            raise InputError("tracker.smooth", f"expected true or false, got {self.smooth!r}")
         for w in self.dropouts:
             if len(w) != 2 or not (np.all(np.isfinite(w)) and w[1] > w[0]):
                 raise InputError("tracker.dropouts", f"expected (start, end) with end > start, "
@@ -105,11 +129,12 @@ class TrackerParams:
         reach x 4 sigma of angle (a 3-D normal's norm exceeds 4 sigma with probability 0.1%)."""
         return 4.0 * (self.noise_position + self.reach * self.noise_angle)
 
-    def gates(self) -> tuple[float, float]:
+    def gates(self, samples: int | None = None) -> tuple[float, float]:
         """(m/s, rad/s) the prediction's dead zones: 4 standard deviations of the noise of a
-        ``predict_samples``-sample slope at the camera's rate (a still head's fitted slope stays
-        inside them, so the prediction adds no noise to a still head)."""
-        k = max(self.predict_samples, 2)
+        ``predict_samples``-sample slope (or a ``samples``-sample one) at the camera's rate (a
+        still head's fitted slope stays inside them, so the prediction adds no noise to a still
+        head)."""
+        k = max(self.predict_samples if samples is None else samples, 2)
         tt = (np.arange(k) - 0.5 * (k - 1)) / self.rate
         spread = float(np.sqrt(tt @ tt))
         return 4.0 * self.noise_position / spread, 4.0 * self.noise_angle / spread
@@ -150,6 +175,12 @@ def _shrink(v: np.ndarray, gate: float) -> np.ndarray:
     """v shortened by ``gate`` (zero inside it): the soft threshold of a noisy slope."""
     n = float(np.linalg.norm(v))
     return v * max(0.0, 1.0 - gate / n) if n > 0 else v
+
+
+def _kept(v: np.ndarray, gate: float) -> float:
+    """How much a slope ``v`` says the head moves: 0 inside its dead zone ``gate``, rising
+    linearly to 1 at twice the gate."""
+    return float(np.clip(np.linalg.norm(v) / gate - 1.0, 0.0, 1.0))
 
 
 def predict_pose(rows: np.ndarray, t: float, gates: tuple[float, float], *,
@@ -221,6 +252,7 @@ class Tracker(LeafSystem):
         super().__init__()
         self._p = params
         self._gates = params.gates()
+        self._moving_gates = params.gates(VELOCITY_WINDOW)
         self._memo = None  # (key, rows) of the last _rows call
         X0 = np.asarray(X_WHead0, dtype=float)
         self._X0 = X0
@@ -308,9 +340,44 @@ class Tracker(LeafSystem):
         if (k < 2 or good.shape[0] < k or self._lost_now(context)
                 or t - good[-1, 0] > self._p.latency + 2.0 * self._p.period + 1e-9):
             return self.estimate(context)
-        if "line" not in entry:
-            entry["line"] = _slopes(good[-k:])
-        return predict_pose(good[-k:], t, self._gates, line=entry["line"])
+        if not self._p.smooth:
+            if "line" not in entry:
+                entry["line"] = _slopes(good[-k:])
+            return predict_pose(good[-k:], t, self._gates, line=entry["line"])
+        X = self._smooth_predict(good, t)
+        # the correction of the newest sample, blended in over one camera period
+        t_a = good[-1, 0] + self._p.latency  # when the newest sample became available
+        f = 1.0 - (t - t_a) * self._p.rate
+        if f <= 0.0 or good.shape[0] < k + 1 or good[-1, 0] - good[-2, 0] > 1.5 * self._p.period:
+            return X
+        if "correction" not in entry:
+            old = self._smooth_predict(good[:-1], t_a)
+            new = self._smooth_predict(good, t_a)
+            C = old @ invert(new)
+            entry["correction"] = (rotation_vector(C[:3, :3]), C[:3, 3])
+        w, u = entry["correction"]
+        C = np.eye(4)
+        C[:3, :3], C[:3, 3] = rotations((f * w)[None])[0], f * u
+        return C @ X
+
+    def _smooth_predict(self, good: np.ndarray, t: float) -> np.ndarray:
+        """The prediction under ``smooth`` from the good samples ``good`` (oldest first) at
+        ``t``: the default (shortened ``predict_samples`` slope) for a head the
+        ``VELOCITY_WINDOW`` fit calls still, the ``SMOOTH_SAMPLES`` slope times the share it
+        moves by for a moving one (module notes)."""
+        k = self._p.predict_samples
+        if good.shape[0] < max(VELOCITY_WINDOW, SMOOTH_SAMPLES):
+            return predict_pose(good[-k:], t, self._gates)
+        v = _slopes(good[-VELOCITY_WINDOW:])[2]
+        gp, gw = self._moving_gates
+        share = np.array([_kept(v[:3], gw), _kept(v[3:], gp)])
+        if not share.any():
+            return predict_pose(good[-k:], t, self._gates)
+        line = _slopes(good[-SMOOTH_SAMPLES:])
+        S = line[2].copy()
+        S[:3] *= share[0]
+        S[3:] *= share[1]
+        return predict_pose(good[-SMOOTH_SAMPLES:], t, (0.0, 0.0), line=(line[0], line[1], S))
 
     def _calc_predicted(self, context, value):
         X = self.predicted(context)

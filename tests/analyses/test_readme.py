@@ -69,6 +69,8 @@ SLOW = {
     "implantplan analyze head-motion --runs 50": "50 runs per profile and site: 5-20 min",
     "implantplan analyze accuracy --runs 200": "200 runs per row and site: 20-40 min",
     "implantplan analyze moprp-fidelity --scenario sitting": "the lying study's code, 1.5-2 min",
+    "implantplan analyze head-motion --turn-sweep": "72 head turns: 15-30 min (the sweep test "
+    "test_head_turn runs the same grid)",
 }
 # Commands that write under out/ but are not run here, and why.
 NOT_RUN = {

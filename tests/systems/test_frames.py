@@ -102,3 +102,17 @@ def test_frame_from_z_is_right_handed_with_the_hint():
     np.testing.assert_allclose(frame_from_z(np.zeros(3), [1.0, 0.0, 0.0])[:3, 0], [0, 1, 0])
     with pytest.raises(InputError, match="x_hint"):
         frame_from_z(np.zeros(3), [0, 0, 1], x_hint=[0, 0, -3])
+
+
+def test_rotation_vector_inverts_rotations():
+    """rotation_vector(rotations(w)) = w for angles up to pi - 1e-3 and down to 1e-9."""
+    from implantplan.systems.frames import rotation_vector, rotations
+
+    rng = np.random.default_rng(3)
+    axes = rng.normal(size=(200, 3))
+    axes /= np.linalg.norm(axes, axis=1)[:, None]
+    angles = np.concatenate([np.geomspace(1e-9, 1e-2, 50), rng.uniform(0.0, np.pi - 1e-3, 150)])
+    w = axes * angles[:, None]
+    got = np.array([rotation_vector(R) for R in rotations(w)])
+    np.testing.assert_allclose(got, w, atol=1e-9)
+    assert np.all(rotation_vector(np.eye(3)) == 0.0)

@@ -127,3 +127,57 @@ def test_a_turn_is_about_the_neck_at_its_drawn_rate():
         v = np.linalg.norm(hm.velocity(t, point=X_WC[:3, 3])[:, 3:], axis=1)
         assert v.max() == pytest.approx(p["peak_rate_rad_s"] * NECK_BEHIND_CENTER, rel=1e-3)
     assert signs == {-1.0, 1.0}
+
+
+def test_a_turn_with_given_parameters_is_the_drawn_turn():
+    """HeadMotion.turn (the sweep's deterministic turn) with a drawn turn's parameters is that
+    turn, pose for pose; bad parameters are refused naming them."""
+    X_WC = np.eye(4)
+    X_WC[:3, 3] = [0.4, -0.1, 0.9]
+    from implantplan.systems.teleop.head_motion import neck_of
+
+    neck = neck_of(X_WC)
+    for seed in range(4):
+        drawn = HeadMotion.make("turn", seed=seed, pivot=X_WC[:3, 3], neck=neck)
+        p = drawn.params
+        sign = float(np.sign(p["axis"] @ neck[1]))
+        given = HeadMotion.turn(angle=p["angle_rad"], peak_rate=p["peak_rate_rad_s"], sign=sign,
+                                onset=p["onset_s"], pivot=X_WC[:3, 3], neck=neck)
+        t = np.linspace(0.0, 5.0, 501)
+        np.testing.assert_allclose(given.D(t), drawn.D(t), atol=1e-15)
+    for kw, name in (({"angle": 0.0}, "turn.angle"), ({"peak_rate": np.nan}, "turn.peak_rate"),
+                     ({"onset": -1.0}, "turn.onset"), ({"sign": 0.5}, "turn.sign")):
+        args = {"angle": 0.2, "peak_rate": 1.0, "sign": 1.0, "onset": 1.0, **kw}
+        with pytest.raises(InputError, match=name):
+            HeadMotion.turn(**args)
+
+
+@pytest.mark.parametrize("profile", ["breathing", "swallow", "startle", "drift", "turn"])
+def test_speed_bounds_bound_the_motion_and_are_tight(profile):
+    """speed_bounds() (the swept clearance under a moving head rests on it) is at or above the
+    angular speed and the pivot image's speed at 20,001 times, and within 0.1% of their peak for
+    the closed forms that reach it (the drift is constant)."""
+    X_WC = np.eye(4)
+    X_WC[:3, 3] = PIVOT
+    from implantplan.systems.teleop.head_motion import neck_of
+
+    for seed in range(3):
+        hm = HeadMotion.make(profile, seed=seed, pivot=PIVOT, neck=neck_of(X_WC))
+        w_max, v_max = hm.speed_bounds()
+        t = np.linspace(0.0, 6.0, 20001)
+        V = hm.velocity(t)  # [omega; velocity of the pivot's image]
+        w, v = np.linalg.norm(V[:, :3], axis=1), np.linalg.norm(V[:, 3:], axis=1)
+        assert w.max() <= w_max * (1 + 1e-6) + 1e-12
+        assert v.max() <= v_max * (1 + 1e-6) + 1e-12
+        if profile != "turn":  # the turn's pivot image moves slower than w |neck - pivot|
+            assert v.max() >= v_max * (1 - 1e-3)
+        assert w.max() >= w_max * (1 - 1e-3)
+
+
+def test_speed_bounds_of_a_recording(tmp_path):
+    """A CSV's bounds are its largest slopes (linear interpolation between the rows)."""
+    path = tmp_path / "head.csv"
+    path.write_text("t_s,x_m,y_m,z_m,rx_rad,ry_rad,rz_rad\n0,0,0,0,0,0,0\n"
+                    "0.5,0.001,0,0,0,0,0.01\n1.0,0.001,0.003,0,0,0,0.01\n")
+    w_max, v_max = HeadMotion.from_csv(path).speed_bounds()
+    assert w_max == pytest.approx(0.02) and v_max == pytest.approx(0.006)

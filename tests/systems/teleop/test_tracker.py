@@ -169,3 +169,36 @@ def test_bad_settings_are_input_errors():
         TrackerParams(dropouts=((2.0, 1.0),))
     with pytest.raises(InputError, match="tracker.predict_samples"):
         TrackerParams(predict_samples=1)
+
+
+def _error_at_the_tool(params, motion, t_end):
+    """(error (n,), its change per control step (n - 1,)) of the predicted head at three points
+    4-14 cm in front of the neck (where a tool in the mouth is), after 0.5 s."""
+    tool = np.array([[0.0, 0.0, 0.04], [0.0, 0.0, 0.085], [0.0, 0.0, 0.14]])
+    t, lost, V, est, X0, pred = _run(params, motion, t_end)
+    true = motion.D(t) @ X0
+    pts = lambda X: np.einsum("nij,kj->nki", X[:, :3, :3], tool) + X[:, None, :3, 3]  # noqa: E731
+    d = pts(pred) - pts(true)
+    keep = t > 0.5
+    return (np.linalg.norm(d, axis=2).max(axis=1)[keep],
+            np.linalg.norm(np.diff(d, axis=0), axis=2).max(axis=1)[keep[1:]])
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_smoothing_follows_a_fast_turn_without_jumps_and_leaves_a_still_head_alone(seed):
+    """With ``smooth``: a 15 deg turn at 60 deg/s about the neck is predicted within 0.7x the
+    default prediction's error, and the error changes by at most 0.3x as much per control step
+    (the arm's desired pose no longer jumps at every camera sample); a still head's error is no
+    larger, and changes less per step (the noise of a new sample is blended in)."""
+    neck = (PIVOT - np.array([0.0, 0.0, 0.04]), np.array([0.0, 1.0, 0.0]))
+    turn = HeadMotion.turn(angle=np.deg2rad(15.0), peak_rate=np.deg2rad(60.0), sign=1.0,
+                           onset=1.0, pivot=PIVOT, neck=neck)
+    e0, s0 = _error_at_the_tool(TrackerParams(seed=seed), turn, 2.0)
+    e1, s1 = _error_at_the_tool(TrackerParams(seed=seed, smooth=True), turn, 2.0)
+    assert e1.max() < 0.7 * e0.max() and s1.max() < 0.3 * s0.max()
+    still = HeadMotion("still")
+    e0, s0 = _error_at_the_tool(TrackerParams(seed=seed), still, 2.0)
+    e1, s1 = _error_at_the_tool(TrackerParams(seed=seed, smooth=True), still, 2.0)
+    assert e1.max() <= e0.max() + 1e-9 and s1.max() < 0.5 * s0.max()
+    with pytest.raises(InputError, match="tracker.smooth"):
+        TrackerParams(smooth="yes")
