@@ -230,13 +230,20 @@ def test_admissible_samples_lie_in_the_region_and_cover_its_extremes():
 @pytest.mark.parametrize("tool", ["actuator", "paper"])
 def test_the_certified_feed_and_region_is_never_above_fcl_at_its_samples(cavity, grid, tool):
     """The verification's certified value over a feed and the fixture's region (the scan bound
-    less each solid's region loss, FCL resolving) is at most FCL's minimum over samples of that
-    region about every feed pose (each sample lies in the region) wherever FCL's is free (in
-    contact both are only below any claim: FCL's negative values are a floor, not a depth):
-    40 random feeds, some in contact; and where FCL's samples keep 1.5-4.5 mm the bound gives
-    away less than 1 mm (about the region's worst-case loss, 0.5 mm + 1 deg times the reach)."""
+    less each solid's region loss, FCL resolving) is at most FCL's minimum over the samples of
+    that region about every feed pose that the fixture admits (:func:`fixture_admits`: a turn
+    at the TCP on top of the full lateral offset can swing the rod's axis at the mouth opening
+    out of the region; with those samples, seed 11's 16 feeds read 0.65 mm where the region
+    keeps 1.61 mm) wherever FCL's is free (in contact both are only below any claim: FCL's
+    negative values are a floor, not a depth): 40 random feeds, some in contact; and where
+    FCL's samples keep 1.5-4.5 mm the bound gives away less than 1 mm (about the region's
+    worst-case loss, 0.5 mm + 1 deg times the reach)."""
     from implantplan.systems.placement.scan_clearance import feed_scan_clearance
-    from implantplan.systems.placement.tool_clearance import admissible_poses, feed_poses
+    from implantplan.systems.placement.tool_clearance import (
+        admissible_poses,
+        feed_poses,
+        fixture_admits,
+    )
 
     inst = Instrument.actuator() if tool == "actuator" else Instrument.paper()
     sc = ScanClearance(cavity, inst, grid=grid)
@@ -247,8 +254,10 @@ def test_the_certified_feed_and_region_is_never_above_fcl_at_its_samples(cavity,
         cert = feed_scan_clearance(sc, X, depth=depth, lateral=lateral, angle=angle,
                                    clearance=SPEC.clearance_margin)["value"]
         feed = feed_poses(X, depth, 1e-3)[0][0]
+        S = admissible_poses(feed, lateral, angle).reshape(len(feed), -1, 4, 4)
+        inside = S[fixture_admits(S, feed, H_CAVITY, lateral)]  # the cavity opens at its top
         # FCL's minimum over the samples (exact_minimum: the same value, checked above)
-        fcl = sc.exact_minimum(admissible_poses(feed, lateral, angle).reshape(1, -1, 4, 4))[0][0]
+        fcl = sc.exact_minimum(inside[None])[0][0]
         assert cert <= max(fcl, 0.0) + 1e-9
         if 1.5e-3 <= fcl <= 4.5e-3:  # near the margin (the bound stops resolving at 5 mm)
             gaps.append(fcl - cert)
