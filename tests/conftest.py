@@ -4,12 +4,19 @@ The bundled default case is planned once per test run (:func:`demo_run`): under 
 each worker process has its own session, so the first worker that asks plans it into the folder
 the workers share (``tmp_path_factory.getbasetemp().parent``) under a file lock, and the others
 read that folder. Tests read the plan folder; a test that writes into a plan folder copies it
-first (:func:`plan_copy` in the studio tests)."""
+first (:func:`plan_copy` in the studio tests). The default case at its small sizes is planned once
+per run the same way (:func:`small_plan`)."""
 
 import contextlib
 import io
 import os
 from pathlib import Path
+
+# The parallel numba kernels run on OpenMP (libgomp), whose threads spin at every barrier unless
+# told to sleep; with one pytest-xdist worker per core, two workers' spinning threads take the
+# cores from each other (measured: ~16% of the suite's CPU time). Set before anything loads
+# libgomp; the workers and the subprocesses the tests start inherit it; the results are the same.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import pytest
 from hypothesis import settings
@@ -74,3 +81,28 @@ def demo_plan(demo_run):
     """The bundled default case planned once (the plan folder of :func:`demo_run`); read it, or
     copy it before writing into it."""
     return demo_run[0]
+
+
+# the flags of :func:`small_plan`'s run: one feed per site, no figures
+SMALL_PLAN_FLAGS = ["--runs", "1", "--no-figures", "--quiet"]
+
+
+def _plan_small(folder: Path) -> None:
+    from tests.analyses.cases import default_case_data, write_case
+
+    data = default_case_data(small=True)
+    data["safety"]["registration_samples"] = 20
+    case = write_case(folder / "case.yaml", data)
+    code, printed = run_cli(["plan", str(case), "--out", str(folder / "plan"),
+                             *SMALL_PLAN_FLAGS])
+    assert code == 0, printed
+
+
+@pytest.fixture(scope="session")
+def small_plan(tmp_path_factory):
+    """The default case at its small sizes (tests.analyses.cases.SMALL, 20 registration samples)
+    planned once per test run with :data:`SMALL_PLAN_FLAGS`: ``(case file, plan folder)``. Read
+    them (plan the case file again for a second plan), or copy the folder before writing into
+    it."""
+    folder = once_per_run(tmp_path_factory, "small", _plan_small)
+    return folder / "case.yaml", folder / "plan"

@@ -17,14 +17,21 @@ from implantplan import models
 from implantplan.analyses.cli import main
 from implantplan.analyses.provenance import without_volatile
 from tests.analyses.cases import default_case_data
+from tests.conftest import SMALL_PLAN_FLAGS
 
 FAST = ["--runs", "0", "--no-figures", "--quiet"]
 
 
-def _plan(tmp_path, name, file_type=None, scale=1.0, small=False):
-    """The default case (tests.analyses.cases; ``small``: its small sizes) planned from the scan
-    saved as ``file_type`` (None: the bundled OBJ): plan.json without its volatile parts."""
-    case = default_case_data(small=small)
+def _read(out) -> dict:
+    plan = without_volatile(json.loads((out / "plan.json").read_text()))
+    plan.pop("case")  # names the case file
+    return plan
+
+
+def _plan(tmp_path, name, file_type=None, scale=1.0, case=None, flags=FAST):
+    """``case`` (default: the default case, tests.analyses.cases) planned with ``flags`` from the
+    scan saved as ``file_type`` (None: the bundled OBJ): plan.json without its volatile parts."""
+    case = default_case_data() if case is None else case
     source = models.model_path("oral/oralCavityMesh.obj")
     if file_type is not None:
         mesh = trimesh.load(source, process=False, force="mesh")
@@ -36,17 +43,22 @@ def _plan(tmp_path, name, file_type=None, scale=1.0, small=False):
     case_path = tmp_path / f"{name}.yaml"
     case_path.write_text(yaml.safe_dump(case))
     out = tmp_path / f"out_{name}"
-    assert main(["plan", str(case_path), "--out", str(out), *FAST]) == 0
-    plan = without_volatile(json.loads((out / "plan.json").read_text()))
-    plan.pop("case")  # names the case file
-    return plan
+    assert main(["plan", str(case_path), "--out", str(out), *flags]) == 0
+    return _read(out)
 
 
 @pytest.mark.parametrize("size", ["small", pytest.param("full", marks=pytest.mark.sweep)])
-def test_the_scan_as_ascii_stl_plans_exactly_like_the_obj(tmp_path, size):
-    small = size == "small"
-    assert _plan(tmp_path, "ascii", "stl_ascii", small=small) == _plan(tmp_path, "obj",
-                                                                      small=small)
+def test_the_scan_as_ascii_stl_plans_exactly_like_the_obj(tmp_path, size, request):
+    """The small case (its feeds included) against the run's shared plan of it from the OBJ
+    (tests/conftest.py ``small_plan``); the default case's own sizes in the sweep."""
+    if size == "small":
+        case_path, obj_plan = request.getfixturevalue("small_plan")
+        case = yaml.safe_load(case_path.read_text())
+        assert case["mesh"]["path"] == str(models.model_path("oral/oralCavityMesh.obj"))
+        assert _plan(tmp_path, "ascii", "stl_ascii", case=case,
+                     flags=SMALL_PLAN_FLAGS) == _read(obj_plan)
+    else:
+        assert _plan(tmp_path, "ascii", "stl_ascii") == _plan(tmp_path, "obj")
 
 
 @pytest.mark.slow
