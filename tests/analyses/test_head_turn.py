@@ -116,9 +116,11 @@ SMALL = [H.Turn(0, np.deg2rad(15.0), np.deg2rad(60.0), 1.0, "mid"),
 
 # the default camera: its prediction lags a fast turn and corrects it by a jump at every camera
 # sample, which the arm makes in one or two control steps (docs/measurements.md, the awake
-# patient: the head-turn sweep); the smoothed camera (TrackerParams.smooth) is the fix
-CAMERAS = [pytest.param(TrackerParams(), id="default-camera", marks=pytest.mark.xfail(
-               strict=True, reason="open: arm jumps at 45-60 deg/s with the default camera")),
+# patient: the head-turn sweep); the smoothed camera (TrackerParams.smooth) is the fix. The
+# default camera's open failure is kept in the sweep group (CI), the default run checks the fix
+CAMERAS = [pytest.param(TrackerParams(), id="default-camera", marks=[pytest.mark.sweep,
+                        pytest.mark.xfail(strict=True, reason="open: arm jumps at 45-60 deg/s "
+                                          "with the default camera")]),
            pytest.param(TrackerParams(smooth=True), id="smoothed-camera")]
 
 
