@@ -138,14 +138,13 @@ def test_a_fast_head_turn_meets_the_acceptance(sites, turn, camera):
 
 
 @pytest.mark.sweep
-@pytest.mark.parametrize("camera", [
-    pytest.param([], id="default-camera", marks=pytest.mark.xfail(
-        strict=True, reason="open: arm jumps at 45-60 deg/s with the default camera")),
-    pytest.param(["--tracker-smooth"], id="smoothed-camera")])
+@pytest.mark.parametrize("camera", [pytest.param(["--tracker-smooth"], id="smoothed-camera")])
 def test_the_full_turn_sweep_meets_the_acceptance(demo_plan, tmp_path, capsys, camera):
     """The whole grid (2 amplitudes x 3 peak speeds x 2 directions x 3 onsets x 2 sites, the
     command as docs/commands.md gives it): every run meets the acceptance at every logged pose;
-    the JSON, the table, the report and the worst run's figure are written."""
+    the JSON, the table, the report and the worst run's figure are written. (The default
+    camera fails 45 of the 72 on arm jumps, measured: docs/measurements.md; its open failure
+    is the small test's default-camera case, which is cheaper to keep.)"""
     out = tmp_path / "turns"
     code = main(["analyze", "head-motion", "--turn-sweep", "--plan", str(demo_plan),
                  *camera, "--workers", "2", "--out", str(out), "--quiet"])
