@@ -190,6 +190,17 @@ def choice(value: Any, field: str, options: tuple) -> Any:
     return value
 
 
+def names(values, field: str, options: tuple) -> tuple:
+    """A non-empty sequence of names, each one of ``options`` (a flag's comma-separated list)."""
+    if not values:
+        raise InputError(field, f"expected names from {', '.join(map(str, options))}")
+    for value in values:
+        if value not in options:
+            raise InputError(field, f"expected names from {', '.join(map(str, options))}, "
+                             f"got {value!r}")
+    return tuple(values)
+
+
 def unknown_keys(d: dict, allowed: tuple[str, ...], where: str) -> None:
     """Reject keys that are not known (a typo must not silently fall back to a default)."""
     extra = sorted(set(d) - set(allowed))

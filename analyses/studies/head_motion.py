@@ -53,6 +53,7 @@ from implantplan.systems.teleop.head_guard import GuardSettings
 from implantplan.systems.teleop.head_motion import PROFILES, HeadMotion, neck_of
 from implantplan.systems.teleop.master_device import feeding_runs
 from implantplan.systems.teleop.tracker import TrackerParams
+from implantplan.systems.validate import names
 
 STUDY_PROFILES = PROFILES[1:]  # breathing, swallow, startle, drift, turn
 BACKED_OUT_SHARE = 0.9  # the back-out counts as done when the tool moved 90% of the distance
@@ -187,12 +188,7 @@ def check_study(profiles, runs: int) -> None:
     """The study's own arguments (errors name the flag), checked before any work."""
     if runs < 1:
         raise InputError("--runs", f"expected an integer >= 1, got {runs}")
-    if not profiles:
-        raise InputError("--profiles", f"expected names from {', '.join(STUDY_PROFILES)}")
-    for p in profiles:
-        if p not in STUDY_PROFILES:
-            raise InputError("--profiles", f"expected names from {', '.join(STUDY_PROFILES)}, "
-                             f"got {p!r}")
+    names(profiles, "--profiles", STUDY_PROFILES)
 
 
 def head_study(case: TeleopCase, inst, *, profiles=STUDY_PROFILES, runs: int = 50, seed: int = 0,

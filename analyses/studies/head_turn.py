@@ -64,6 +64,7 @@ from implantplan.systems.errors import InputError
 from implantplan.systems.teleop.head_motion import HeadMotion, neck_of
 from implantplan.systems.teleop.master_device import feeding_runs
 from implantplan.systems.teleop.tracker import TrackerParams
+from implantplan.systems.validate import names
 
 AMPLITUDES_DEG = (10.0, 15.0)
 SPEEDS_DEG_S = (30.0, 45.0, 60.0)
@@ -113,12 +114,7 @@ def check_grid(amplitudes_deg, speeds_deg_s, directions=DIRECTIONS, onsets=tuple
     for d in directions:
         if d not in (1.0, -1.0):
             raise InputError("directions", f"expected +1 or -1, got {d}")
-    if not onsets:
-        raise InputError("--turn-onsets", f"expected names from {', '.join(ONSETS)}")
-    for o in onsets:
-        if o not in ONSETS:
-            raise InputError("--turn-onsets", f"expected names from {', '.join(ONSETS)}, "
-                             f"got {o!r}")
+    names(onsets, "--turn-onsets", ONSETS)
 
 
 def parse_list(text: str, flag: str) -> tuple[float, ...]:
