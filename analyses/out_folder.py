@@ -5,8 +5,10 @@ a marker file, :data:`MARKER`. ``--out`` is checked before any work (:func:`chec
 
 - an empty text, ``.``, the current folder or one of its parents, a symbolic link (a loop
   included), a file, a device or a FIFO, a parent that cannot be written: exit 2 with what it is;
-- an existing folder that holds anything and no marker: exit 2 naming one of its entries, unless
-  ``force`` (``--force``): what the user keeps there is never replaced silently.
+- an existing folder that holds anything and no marker, or a marked folder holding entries the
+  project did not write there (the marker of a folder completed atomically lists its entries):
+  exit 2 naming some of them, unless ``force`` (``--force``): what the user keeps there is never
+  replaced silently.
 
 A folder is built in a staging folder beside its destination (:func:`staged`) and moved in at the
 end: the previous folder stays whole until the new one is complete. Staging folders and the
@@ -63,6 +65,26 @@ def is_project_folder(path: Path) -> bool:
     except (OSError, UnicodeDecodeError):
         return False
     return re.search(r'"kind":\s*"plan"', head) is not None
+
+
+def foreign_entries(path: Path) -> list[str]:
+    """The entries of an existing folder ``path`` that the project did not write: all of them
+    in a folder that is not the project's (:func:`is_project_folder`); in a marked folder that
+    was completed atomically (:func:`staged` records its entries in the marker), those not
+    recorded there, besides what a plan folder gains later (studio recordings, scenes): a file
+    the user put into a plan folder is theirs too. Sorted."""
+    path = Path(path)
+    entries = sorted(os.listdir(path))
+    if not is_project_folder(path):
+        return entries
+    try:
+        written = json.loads((path / MARKER).read_text()).get("entries")
+    except (OSError, ValueError, AttributeError):
+        written = None  # an old plan folder, or a marker of a folder written file by file
+    if not isinstance(written, list):
+        return []
+    return [e for e in entries
+            if e != MARKER and e not in written and not _PLAN_ENTRIES.match(e)]
 
 
 def _kind_of(st: os.stat_result) -> str:
@@ -124,14 +146,13 @@ def check_out(out, *, force: bool | None = False, field: str = "--out") -> Path:
     if st is not None:
         if not os.access(path, os.R_OK | os.W_OK | os.X_OK):
             raise InputError(field, f"cannot read and write {text!r} (permission denied)")
-        if not is_project_folder(path):
-            entries = sorted(os.listdir(path))
-            if entries and not force:
-                shown = ", ".join(repr(e) for e in entries[:3])
-                more = f" and {len(entries) - 3} more" if len(entries) > 3 else ""
-                offer = "" if force is None else ", or --force to replace it"
-                raise InputError(field, f"{text!r} holds files implantplan did not write "
-                                 f"({shown}{more}); give a new or empty folder{offer}")
+        entries = foreign_entries(path)
+        if entries and not force:
+            shown = ", ".join(repr(e) for e in entries[:3])
+            more = f" and {len(entries) - 3} more" if len(entries) > 3 else ""
+            offer = "" if force is None else ", or --force to replace it"
+            raise InputError(field, f"{text!r} holds files implantplan did not write "
+                             f"({shown}{more}); give a new or empty folder{offer}")
     if path.parent.is_dir():
         remove_stale(path)
     return path
@@ -203,11 +224,15 @@ def claim(folder: Path, kind: str) -> Path:
     return folder
 
 
-def mark(folder: Path, kind: str) -> Path:
-    """Write the marker into ``folder`` (what made it, for the next run's check)."""
+def mark(folder: Path, kind: str, *, entries: list[str] | None = None) -> Path:
+    """Write the marker into ``folder`` (what made it, for the next run's check; with
+    ``entries``, the folder's entries as written: anything else found there later is the
+    user's, :func:`foreign_entries`)."""
     marker = Path(folder) / MARKER
-    marker.write_text(json.dumps({"schema_version": 1, "kind": kind,
-                                  "written_by": f"implantplan {__version__}"}) + "\n")
+    data = {"schema_version": 1, "kind": kind, "written_by": f"implantplan {__version__}"}
+    if entries is not None:
+        data["entries"] = list(entries)
+    marker.write_text(json.dumps(data) + "\n")
     return marker
 
 
@@ -228,6 +253,7 @@ def staged(out: Path, kind: str, *, field: str = "--out") -> Iterator[Path]:
         tmp.chmod(0o777 & ~current_umask())  # mkdtemp makes 0700; a plan is for colleagues too
         mark(tmp, kind)
         yield tmp
+        mark(tmp, kind, entries=sorted(e for e in os.listdir(tmp) if e != MARKER))
         swap_in(tmp, out)
     finally:
         if tmp.exists():

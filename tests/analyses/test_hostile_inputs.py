@@ -635,3 +635,25 @@ def test_sigterm_stops_a_batch_and_cleans_up(tmp_path):
     assert "Traceback" not in err.decode()
     assert sorted(p.name for p in out.iterdir()) == [MARKER]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["case.yaml", "study"]
+
+
+def test_a_file_put_into_a_plan_folder_is_the_users(tmp_path):
+    """A plan folder (marked, written atomically) into which the user copied a file: the next
+    run towards it is refused naming that file (exit 2 in the CLI), the file kept; what a plan
+    folder gains later (studio recordings) is still the project's; --force replaces it."""
+    from implantplan.analyses.out_folder import check_out, foreign_entries, staged
+    from implantplan.systems.errors import InputError
+
+    out = tmp_path / "patient42"
+    with staged(out, "plan") as stage:
+        (stage / "plan.json").write_text('{"kind": "plan"}')
+        (stage / "figures").mkdir()
+    assert foreign_entries(out) == [] and check_out(out) == out
+    (out / "recordings").mkdir()  # the studio's, written into the plan folder later
+    assert check_out(out) == out
+    (out / "xray_of_patient.png").write_bytes(b"\x89PNG")
+    assert foreign_entries(out) == ["xray_of_patient.png"]
+    with pytest.raises(InputError, match="xray_of_patient.png"):
+        check_out(out)
+    assert (out / "xray_of_patient.png").read_bytes() == b"\x89PNG"
+    assert check_out(out, force=True) == out
