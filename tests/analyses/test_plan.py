@@ -306,8 +306,10 @@ def test_rerun_into_the_same_folder_replaces_the_plan_without_simulation(tmp_pat
     shutil.copytree(small_plan[1], out)  # the previous run's plan (with its feeds) in the folder
     assert any(s["simulation"] for s in json.loads((out / "plan.json").read_text())["sites"])
     args = ["plan", str(case), "--out", str(out), "--runs", "0", "--no-figures", "--quiet"]
-    (out / "stale.txt").write_text("from the previous run")
-    assert main(args) == 0
+    (out / "stale.txt").write_text("not the plan's")
+    assert main(args) == 2  # a file put into the plan folder is the user's: refused, kept
+    assert (out / "stale.txt").read_text() == "not the plan's"
+    assert main([*args, "--force"]) == 0
     plan = json.loads((out / "plan.json").read_text())
     assert all(s["simulation"] is None for s in plan["sites"])
     sim_checks = {"feeds missing the target", "max VF violation", "FPSM collision alarms",
