@@ -209,7 +209,19 @@ def _parsed(path: Path, field: str, loads, error, what: str) -> Any:
     try:
         return loads(text)
     except error as exc:
-        raise InputError(field, f"{path} is not valid {what} ({exc})") from None
+        raise InputError(field, f"{path} is not valid {what} ({_one_line(exc)})") from None
+
+
+def _one_line(exc: Exception) -> str:
+    """A parser's message on one line: PyYAML's marked errors as 'line L, column C: problem'
+    (their text spans lines, with a copy of the offending line), others with their white space
+    folded."""
+    mark, problem = getattr(exc, "problem_mark", None), getattr(exc, "problem", None)
+    if mark is not None and problem:
+        context = getattr(exc, "context", None)
+        return " ".join(f"line {mark.line + 1}, column {mark.column + 1}: "
+                        f"{context + ': ' if context else ''}{problem}".split())
+    return " ".join(str(exc).split())
 
 
 def _check_header(data: Any, path: Path, kind: str | None, field: str) -> dict:

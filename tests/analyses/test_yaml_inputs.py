@@ -254,3 +254,22 @@ def test_the_old_name_of_d12_is_still_read_with_a_note_once(monkeypatch, capsys)
     data["sites"][0]["head_to_tip_mm"] = 31.0
     with pytest.raises(InputError, match=r"sites\[0\]\.implant_length_mm: .*not both"):
         case_from_dict(data, source=default_case_path())
+
+
+@pytest.mark.parametrize("text,where", [
+    ("a: !!python/object:os.system {}\n", "line 1, column 4"),
+    ("base: {x: 1}\nb:\n  <<: {x: 2}\n", "line 3, column 3"),
+    ("a: [1, 2\n", "line 2, column 1"),
+    ("a: b: c\n", "line 1, column 5"),
+])
+def test_a_yaml_syntax_error_is_one_line_naming_where(tmp_path, text, where):
+    """PyYAML's marked errors span lines (the offending line copied, a caret under it); the
+    message a user reads is one line with the line and column."""
+    from implantplan.systems.files import read_yaml
+
+    path = tmp_path / "case.yaml"
+    path.write_text(text)
+    with pytest.raises(InputError) as info:
+        read_yaml(path, field="case")
+    message = str(info.value)
+    assert "\n" not in message and where in message and "not valid YAML" in message
