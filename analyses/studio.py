@@ -705,11 +705,14 @@ def _cmd_studio(args) -> int:
     print("keys: " + ", ".join(f"{lab}" for lab, _ in KEYS.values())
           + "; T teleop on/off, V save recording, M keyboard/sliders, G FPSM slices; "
           "Quit button or Ctrl-C to stop", flush=True)
+    stopped = None
     try:
         studio.run(lock=status.lock)
-    except KeyboardInterrupt:
-        pass
+    except KeyboardInterrupt as exc:  # Ctrl-C is the studio's way to quit (exit 0)
+        stopped = exc
     finally:
         status.close()
-    print("studio: closed")
+    print("studio: closed", flush=True)
+    if stopped is not None and type(stopped) is not KeyboardInterrupt:
+        raise stopped  # SIGTERM (the CLI's Terminated): exit 143 as every command
     return 0

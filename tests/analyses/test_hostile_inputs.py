@@ -575,7 +575,7 @@ def test_sigterm_stops_a_capmap_build_and_keeps_only_its_resumable_blocks(tmp_pa
 @pytest.mark.sweep  # plans a case and starts the studio's servers: ~50 s at load
 def test_sigterm_stops_the_studio(tmp_path):
     """The studio serving a case it planned stops on SIGTERM as on Ctrl-C (it closes its
-    servers and exits), its plan folder kept."""
+    servers and exits), with SIGTERM's exit code 143 as every command, its plan folder kept."""
     case = tmp_path / "case.yaml"
     case.write_text(yaml.safe_dump(small_case()))
     printed = tmp_path / "printed.txt"
@@ -595,6 +595,7 @@ def test_sigterm_stops_the_studio(tmp_path):
         proc.wait(timeout=60)
     text = printed.read_text(errors="replace")
     assert "studio: closed" in text and "Traceback" not in text, text
+    assert proc.returncode == 143 and "terminated (SIGTERM)" in text, (proc.returncode, text)
     assert (tmp_path / "plan" / "plan.json").is_file() and (tmp_path / "plan" / MARKER).is_file()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["case.yaml", "plan", "printed.txt"]
 
