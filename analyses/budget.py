@@ -13,7 +13,8 @@ below gives 536 MB to the fit, measured 465 MB), rounded up:
 - the scan: 2 KB per triangle (the scanned, opened and closed copies, the FCL tree, the ray
   scene), the triangles bounded from the file's size (at least 16 bytes per triangle in any
   format: binary STL has 50, binary PLY about 19); a CBCT: 40 bytes per voxel (2 bytes each in
-  the files) and 6 x voxels^(2/3) triangles;
+  the files, or the voxels its headers give where more: a compressed file) and 6 x
+  voxels^(2/3) triangles;
 - the FPSM fit: 128 bytes per ray of the dense check ((8 slices x 8 samples) per slice and sample)
   and 256 per ray of the conservative cast ((slices - 1) x 3 + 1 heights x samples);
 - the registration Monte Carlo: 512 bytes per sample and feed pose (51 poses: a feed of at most
@@ -33,7 +34,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from implantplan.systems.anatomy.cbct import is_volume_path, scan_files
+from implantplan.systems.anatomy.cbct import is_volume_path, scan_files, volume_voxels
 from implantplan.systems.errors import InputError
 
 MB = 1e6
@@ -76,8 +77,9 @@ def estimate(case, *, runs: int | None = None) -> dict[str, float]:
     n_sites = len(case.sites)
     fp = case.fpsm
     cbct = 0.0
-    if is_volume_path(case.mesh.path):  # a CBCT: voxels from the files' size (2 bytes each)
-        voxels = sum(p.stat().st_size for p in scan_files(case.mesh.path)) / BYTES_PER_VOXEL
+    if is_volume_path(case.mesh.path):  # a CBCT: voxels from its headers, or the files' size
+        voxels = max(volume_voxels(case.mesh.path) or 0,
+                     sum(p.stat().st_size for p in scan_files(case.mesh.path)) / BYTES_PER_VOXEL)
         cbct = PER_VOXEL * voxels
         faces = FACES_PER_VOXEL_AREA * voxels ** (2 / 3)
     else:

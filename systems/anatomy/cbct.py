@@ -84,6 +84,30 @@ def scan_files(path) -> list[Path]:
     return [path]
 
 
+def volume_voxels(path) -> int | None:
+    """The voxels a CBCT path holds, from its headers alone (no pixel data read): a NIfTI
+    file's shape, or a series folder's slice count times its first slice's rows and columns;
+    None where the headers cannot tell (the reader then names what is wrong). A compressed
+    file holds far more voxels than its size says."""
+    path = Path(path)
+    try:
+        if path.is_dir():
+            import pydicom
+
+            files = scan_files(path)
+            if not files:
+                return None
+            ds = pydicom.dcmread(files[0], stop_before_pixels=True)
+            return len(files) * int(ds.Rows) * int(ds.Columns)
+        if path.name.lower().endswith(NIFTI_SUFFIXES):
+            import nibabel as nib
+
+            return int(np.prod(nib.load(str(path)).header.get_data_shape()))
+    except Exception:  # an unreadable header: the reader's own error says what is wrong
+        return None
+    return None
+
+
 def read_volume(path, *, field: str = "mesh.path") -> Volume:
     """A DICOM series folder or a NIfTI file as a :class:`Volume`."""
     path = Path(path)

@@ -247,3 +247,22 @@ def test_nifti_reads_back_to_its_surface_and_2d_inputs_are_refused(tmp_path):
     one = write_sphere_series(tmp_path / "s", shape=(3, 8, 8))
     with pytest.raises(InputError, match="one DICOM file .a 2D image."):
         read_volume(one[0])
+
+
+def test_a_compressed_volume_counts_its_voxels_from_the_header(tmp_path):
+    """A .nii.gz of zeros is far smaller than its voxels (the memory estimate once counted
+    voxels from the file's size, 2 bytes each, and let a 1.4 MB file of 149 M voxels through);
+    the header gives the shape. A DICOM folder: slices x rows x columns."""
+    import nibabel as nib
+
+    from implantplan.systems.anatomy.cbct import volume_voxels
+
+    path = tmp_path / "zeros.nii.gz"
+    nib.save(nib.Nifti1Image(np.zeros((200, 150, 60), np.int16), np.eye(4)), path)
+    assert path.stat().st_size / 2 < 0.05 * 200 * 150 * 60
+    assert volume_voxels(path) == 200 * 150 * 60
+    assert volume_voxels(tmp_path / "missing.nii.gz") is None
+    folder = tmp_path / "series"
+    write_ct_series(folder, np.zeros((4, 12, 10), np.float32), [0.0, 0.0, 0.0],
+                    [0.5, 0.5, 0.5], ids=SeriesIds())
+    assert volume_voxels(folder) == 4 * 12 * 10
