@@ -95,13 +95,17 @@ class MeshSection:
     bone_threshold_hu: float = v.spec(partial(v.number, low=100.0, high=2000.0), 300.0)
 
     @property
-    def opening(self) -> dict:
-        """Keyword arguments of systems.fpsm.oral_mesh.open_mouth (m); empty when 0 deg."""
-        if self.mouth_opening_deg <= 0:
-            return {}
+    def jaw(self) -> dict:
+        """The jaw-opening model's keyword arguments of systems.fpsm.oral_mesh.open_mouth and
+        opening_map (m), whatever the angle."""
         return {"hinge_point": self.hinge_point, "hinge_axis": self.hinge_axis,
                 "occlusal_point": self.occlusal_point, "occlusal_normal": self.occlusal_normal,
                 "blend": self.blend}
+
+    @property
+    def opening(self) -> dict:
+        """Keyword arguments of systems.fpsm.oral_mesh.open_mouth (m); empty when 0 deg."""
+        return {} if self.mouth_opening_deg <= 0 else self.jaw
 
 
 @dataclass(frozen=True)

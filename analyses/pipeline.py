@@ -269,10 +269,7 @@ def site_at_opening(case: Case, site, angle_deg: float):
     rigid body about the hinge by the change of the map's rotation at the site (inside the
     occlusal band, where a molar's crown may lie, the map stretches the tissue; the bone turns
     with the jaw)."""
-    mesh = case.mesh
-    params = {"hinge_point": mesh.hinge_point, "hinge_axis": mesh.hinge_axis,
-              "occlusal_point": mesh.occlusal_point, "occlusal_normal": mesh.occlusal_normal,
-              "blend": mesh.blend}
+    mesh, params = case.mesh, case.mesh.jaw
     X_WC = center_frame(case.center.origin, case.center.z_axis, x_hint=case.center.x_hint)
     R, t = X_WC[:3, :3], X_WC[:3, 3]
     p_W = R @ site.position + t
@@ -316,11 +313,10 @@ def opening_needed(case: Case, k: int, *, progress=None) -> dict:
         except InputError as exc:
             tried.append({"opening_deg": deg, "valid": False, "reason": str(exc)})
             continue
-        tried.append({"opening_deg": deg, "valid": p.valid,
-                      "clearance_certified": p.verification.get("clearance_certified"),
+        cert = p.verification.get("clearance_certified")
+        tried.append({"opening_deg": deg, "valid": p.valid, "clearance_certified": cert,
                       "reason": p.reason})
         if p.valid:
-            cert = p.verification.get("clearance_certified")
             return {"opening_deg": deg, "tried": tried,
                     "text": f"it plans at a mouth opening of {deg:g} deg (mesh.mouth_opening_deg;"
                             f" certified {cert * 1e3:.2f} mm there)"}
