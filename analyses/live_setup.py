@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import pickle
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -170,6 +171,24 @@ def opened_scan(sp: StudioPlan):
     return pipeline.fit_stage(load_case(source)).opened
 
 
+_REFERENCES: dict = {}  # (scenario, feeding targets) -> percentile reference, per process
+
+
+def _percentile_reference(sc: moprp.Scenario, X_OT: np.ndarray, model) -> np.ndarray:
+    """The plan's percentile reference (:func:`analyses.pipeline.percentile_reference`, seeded by
+    the scenario), sampled once per process for a scenario and feeding targets: a plan opened
+    again (the studio reopened, a replay) reads the same array instead of sampling 1 s again."""
+    key = (pickle.dumps(sc), X_OT.tobytes())  # exact: every field and digit
+    if key not in _REFERENCES:
+        def evaluate(X, rng):
+            return pipeline.combine_sites([moprp.evaluate_bases(X, sc, rng, model=model, X_OT=T)
+                                           for T in X_OT])
+
+        _REFERENCES[key] = pipeline.percentile_reference(sc, evaluate)
+        _REFERENCES[key].setflags(write=False)
+    return _REFERENCES[key]
+
+
 def load_plan(folder, *, field: str = "--plan", reference: bool = True) -> StudioPlan:
     """Open a plan folder (its plan.json and fpsm.json) for the studio; without ``reference``
     no percentile reference is sampled (replays need none; percentiles are then NaN)."""
@@ -189,11 +208,7 @@ def load_plan(folder, *, field: str = "--plan", reference: bool = True) -> Studi
                      for s in plan["sites"]])
     model = moprp.collision_model(sc)
 
-    def evaluate(X, rng):
-        return pipeline.combine_sites([moprp.evaluate_bases(X, sc, rng, model=model, X_OT=T)
-                                  for T in X_OT])
-
-    F_ref = pipeline.percentile_reference(sc, evaluate) if reference else np.zeros((0, 3))
+    F_ref = _percentile_reference(sc, X_OT, model) if reference else np.zeros((0, 3))
     pareto = plan["base"]["pareto"]
     return StudioPlan(
         folder=path.parent, plan=plan, sc=sc, fpsm=fpsm,

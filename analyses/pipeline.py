@@ -286,8 +286,10 @@ def opening_needed(case: Case, k: int, *, progress=None) -> dict:
     """For site ``k``, refused by its geometry at the case's mouth opening: the smallest larger
     opening (steps of :data:`OPENING_STEP_DEG` up to :data:`OPENING_MAX_DEG`) at which stage 2
     places the whole instrument (refit, the site carried with the jaw, :func:`site_at_opening`,
-    the same verification). Returns ``opening_deg`` (None if none does), what each opening gave
-    (``tried``) and the sentence the refusal adds (``text``)."""
+    the same verification). The widest opening is tried first: where even it does not place
+    the site (a handle too thick for this mouth) one trial answers instead of eight. Returns
+    ``opening_deg`` (None if none does), what each opening gave (``tried``, in the order
+    tried) and the sentence the refusal adds (``text``)."""
     mesh = case.mesh
     if (mesh.mouth_opening_deg <= 0 or mesh.hinge_point is None
             or mesh.mouth_opening_deg >= OPENING_MAX_DEG):
@@ -297,33 +299,41 @@ def opening_needed(case: Case, k: int, *, progress=None) -> dict:
                 else f"the mouth is open by the model's largest {OPENING_MAX_DEG:g} deg"}
     site = case.sites[k]
     tried = []
-    for deg in np.arange(mesh.mouth_opening_deg + OPENING_STEP_DEG, OPENING_MAX_DEG + 1e-9,
-                         OPENING_STEP_DEG):
-        deg = float(deg)
+
+    def trial(deg: float) -> dict:
         if progress is not None:
             progress.say(f"site {site.name}: refused by its geometry; trying a mouth opening "
                          f"of {deg:g} deg")
         moved = site_at_opening(case, site, deg)
-        trial = dataclasses.replace(case, mesh=dataclasses.replace(mesh, mouth_opening_deg=deg),
-                                    sites=(moved,))
-        fit = fit_stage(trial)
+        opened = dataclasses.replace(case, mesh=dataclasses.replace(mesh, mouth_opening_deg=deg),
+                                     sites=(moved,))
+        fit = fit_stage(opened)
         try:
-            site_stage(trial, fit)
-            p = _place_site(trial, fit.fpsm, fit.exact(mesh.close_open_cuts), moved, k)
+            site_stage(opened, fit)
+            p = _place_site(opened, fit.fpsm, fit.exact(mesh.close_open_cuts), moved, k)
         except InputError as exc:
             tried.append({"opening_deg": deg, "valid": False, "reason": str(exc)})
-            continue
-        cert = p.verification.get("clearance_certified")
-        tried.append({"opening_deg": deg, "valid": p.valid, "clearance_certified": cert,
-                      "reason": p.reason})
-        if p.valid:
-            return {"opening_deg": deg, "tried": tried,
-                    "text": f"it plans at a mouth opening of {deg:g} deg (mesh.mouth_opening_deg;"
-                            f" certified {cert * 1e3:.2f} mm there)"}
-    shown = ", ".join(f"{t['opening_deg']:g}" for t in tried)
-    return {"opening_deg": None, "tried": tried,
-            "text": f"no mouth opening up to {OPENING_MAX_DEG:g} deg places it (tried {shown} "
-                    f"deg)"}
+        else:
+            tried.append({"opening_deg": deg, "valid": p.valid,
+                          "clearance_certified": p.verification.get("clearance_certified"),
+                          "reason": p.reason})
+        return tried[-1]
+
+    widest = trial(OPENING_MAX_DEG)
+    if not widest["valid"]:
+        return {"opening_deg": None, "tried": tried,
+                "text": f"not even the jaw model's widest opening ({OPENING_MAX_DEG:g} deg) "
+                        "places it"}
+    found = widest
+    for deg in np.arange(mesh.mouth_opening_deg + OPENING_STEP_DEG, OPENING_MAX_DEG - 1e-9,
+                         OPENING_STEP_DEG):
+        if trial(float(deg))["valid"]:
+            found = tried[-1]
+            break
+    deg, cert = found["opening_deg"], found["clearance_certified"]
+    return {"opening_deg": deg, "tried": tried,
+            "text": f"it plans at a mouth opening of {deg:g} deg (mesh.mouth_opening_deg;"
+                    f" certified {cert * 1e3:.2f} mm there)"}
 
 
 # -- robot base for all sites -----------------------------------------------------------------

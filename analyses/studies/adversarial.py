@@ -121,7 +121,7 @@ def run_one(teleop, tc: TeleopCase, motion, exact: ExactClearance, *, finish_sec
     """Simulate one motion on a built diagram; the figures at every logged pose and between."""
     duration = motion.duration + (FINISH_SECONDS if finish_seconds is None else finish_seconds)
     run = simulate(teleop, duration, motion=motion)
-    swept = swept_clearance(tc, exact, run.q)
+    swept = swept_clearance(tc, exact, run.q, screen=True)  # FCL where the smallest can be
     err = float(np.linalg.norm(run.p_WE[-1] - tc.X_WTarget[:3, 3]))
     return {
         "min_exact_clearance": float(swept.at_poses.min()),

@@ -4,7 +4,7 @@ ScanClearance`) against its exact reference, FCL against the same opened scan
 case, transformed copies of its cavity and both instruments.
 
 Run: ``python -m implantplan.analyses.studies.scan_bound_check [--poses 10000] [--seed 0]
-[--cavities default,mirror,scale0.9,scale1.1,rigid] [--out DIR]``; ``cohort-00``,
+[--cavities default,mirror,scale0.9,scale1.1,rigid] [--plan DIR] [--out DIR]``; ``cohort-00``,
 ``cohort-01`` are other subjects (cases of the default case's synthetic cohort,
 :func:`cohort_cavity`).
 
@@ -177,11 +177,35 @@ def planned_cavity(case_path, name: str, progress: Progress) -> tuple[Cavity, fl
     return Cavity(name, exact, feeds), float(case.safety.clearance_margin)
 
 
-def default_cavity(progress: Progress) -> tuple[Cavity, float]:
-    """The bundled default case's cavity, feeds and margin (:func:`planned_cavity`)."""
+def default_cavity(progress: Progress, plan=None) -> tuple[Cavity, float]:
+    """The bundled default case's cavity, feeds and margin (:func:`planned_cavity`); with
+    ``plan``, a plan folder (``implantplan plan`` or ``demo``): its case's cavity and the feeds
+    as that plan placed them (the fit again, the placements read, not searched again)."""
     from implantplan.analyses.case import default_case_path
 
-    return planned_cavity(default_case_path(), "default", progress)
+    if plan is None:
+        return planned_cavity(default_case_path(), "default", progress)
+    from implantplan.analyses import pipeline
+    from implantplan.analyses.case import load_case
+    from implantplan.systems.files import read_json
+    from implantplan.systems.placement.tool_clearance import feed_depth
+
+    folder = Path(plan)
+    data = read_json(folder / "plan.json", kind="plan", field="--plan")
+    source = Path(data["case"]["source"])
+    if not source.is_file():
+        raise InputError("--plan", f"{folder}: the case file the plan names ({source}) is not "
+                         "there")
+    case = load_case(source)
+    progress.say(f"default: fit of {source.name}, the placements of {folder}")
+    fit = pipeline.fit_stage(case)
+    feeds = []
+    for site in data["sites"]:
+        X_CT = np.asarray(site["feeding_target"]["X_CT"], dtype=float)
+        depth = {n: float(feed_depth(fit.fpsm, X_CT, instrument(n))) for n in INSTRUMENTS}
+        feeds.append((site["name"], X_CT, depth))
+    return (Cavity("default", fit.exact(case.mesh.close_open_cuts), feeds),
+            float(case.safety.clearance_margin))
 
 
 def cohort_cavity(name: str, progress: Progress) -> tuple[Cavity, float]:
@@ -516,9 +540,10 @@ def measure(scan, exact: ExactCavity, inst: Instrument, X: np.ndarray, kinds: np
 
 
 def study(*, poses: int = 10_000, seed: int = 0, cavities=CAVITIES, instruments=INSTRUMENTS,
-          progress: Progress | None = None, threads: int | None = 1) -> dict:
+          progress: Progress | None = None, threads: int | None = 1, plan=None) -> dict:
     """The check of every cavity x instrument (module notes); ``poses`` per pair. ``threads``:
-    numba's threads for the bound (1: timed like FCL, on one core; None: as it is)."""
+    numba's threads for the bound (1: timed like FCL, on one core; None: as it is); ``plan``: a
+    plan folder whose case and placements are the ``default`` cavity (:func:`default_cavity`)."""
     import numba
 
     check_poses(poses)
@@ -536,7 +561,7 @@ def study(*, poses: int = 10_000, seed: int = 0, cavities=CAVITIES, instruments=
     try:
         base, margin = None, None
         if any(name in CAVITIES for name in cavities):
-            base, margin = default_cavity(progress)
+            base, margin = default_cavity(progress, plan)
         rows = []
         for ci, name in enumerate(cavities):
             if name in SUBJECTS:
@@ -609,6 +634,9 @@ def _arguments(argv):
                          "(default: the default case and its 4 copies)")
     ap.add_argument("--out", type=Path, default=None,
                     help="a new folder for scan_bound_check.json")
+    ap.add_argument("--plan", type=Path, default=None,
+                    help="a plan folder (implantplan plan/demo): its case and placements are the "
+                         "'default' cavity (default: the bundled case, placed again)")
     return ap.parse_args(argv)
 
 
@@ -630,7 +658,7 @@ def main(argv=None) -> int:
         if not cavities:
             raise InputError("--cavities", "expected at least one cavity")
         res = study(poses=poses, seed=seed, cavities=cavities,
-                    progress=Progress("scan-bound-check"))
+                    progress=Progress("scan-bound-check"), plan=args.plan)
         if args.out is not None:
             try:
                 args.out.mkdir(parents=True)

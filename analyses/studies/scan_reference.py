@@ -147,11 +147,13 @@ class Swept:
     """The whole tool's exact clearance along a logged run (m).
 
     Attributes:
-        at_poses: (n,) at every logged configuration.
+        at_poses: (n,) at every logged configuration: FCL's value where ``exact_at``, elsewhere
+            a lower bound above the run's smallest (``screen``, :func:`swept_clearance`).
         sampled: the smallest at the logged and the sampled configurations between them.
         bound: a certified lower bound over the whole swept motion (module docstring).
         path: (n - 1,) S of each segment: the longest path of a tool point over it (m).
         sampled_segments: how many segments were sampled.
+        exact_at: (n,) where ``at_poses`` is FCL's value (all of them unless screened).
     """
 
     at_poses: np.ndarray
@@ -159,6 +161,40 @@ class Swept:
     bound: float
     path: np.ndarray
     sampled_segments: int
+    exact_at: np.ndarray
+
+
+SCREEN_STRIDE = 8  # screened runs: FCL at every 8th logged pose first (:func:`screened`)
+
+
+def screened(values, P: np.ndarray, *, stride: int = SCREEN_STRIDE):
+    """The logged poses' clearance with FCL only where it can be the run's smallest: ``values``
+    (an index array -> FCL's clearance at those poses), ``P`` (n,) the poses' path coordinate
+    (the cumulative S: no tool point moves farther than P_j - P_i between poses i < j).
+
+    FCL at every ``stride``-th pose and the last; a pose between known ones is at least
+    L_j = max over its nearest known neighbours i of c_i - |P_j - P_i| (the clearance is
+    1-Lipschitz in the tool's points' motion). Poses whose L_j is not above zero (a contact
+    cannot be ruled out: a touching solid's value is not its distance) or not above the
+    smallest known value are measured, until none is left: the smallest value and where it is
+    are FCL's, as if every pose were measured; every other pose is proven free and at least its
+    L_j. Returns (c: FCL's value where ``known``, L_j elsewhere; known (n,) bool)."""
+    n = P.shape[0]
+    c = np.full(n, np.nan)
+    known = np.zeros(n, dtype=bool)
+    todo = np.unique(np.r_[np.arange(0, n, stride), n - 1])
+    index = np.arange(n)
+    while todo.size:
+        c[todo] = values(todo)
+        known[todo] = True
+        left = np.maximum.accumulate(np.where(known, index, -1))
+        right = np.minimum.accumulate(np.where(known, index, n)[::-1])[::-1]
+        L = np.maximum(c[left] - (P - P[left]), c[np.minimum(right, n - 1)]
+                       - (P[np.minimum(right, n - 1)] - P))
+        smallest = c[known].min()
+        todo = np.flatnonzero(~known & ((L <= 0.0) | (L < smallest)))
+    c[~known] = L[~known]
+    return c, known
 
 
 def tool_poses(tc: TeleopCase, q, *, head=None, t=None) -> np.ndarray:
@@ -204,21 +240,29 @@ def head_paths(tc: TeleopCase, q, t, head, reach: float, arm: np.ndarray) -> np.
 
 
 def swept_clearance(tc: TeleopCase, exact: ExactClearance, q, *, substeps: int = 8,
-                    at_poses=None, head=None, t=None) -> Swept:
+                    at_poses=None, head=None, t=None, screen: bool = False) -> Swept:
     """The exact clearance of the tool at the logged configurations ``q`` (n, 6) of a run and
     over the arm's motion between them (module docstring). ``at_poses``: the clearance at the
     configurations if already computed; ``head`` (a HeadMotion) and ``t`` (n,) the log times:
-    against the moving head's scan (module notes)."""
+    against the moving head's scan (module notes). ``screen``: FCL only at the poses that can
+    hold the run's smallest clearance (:func:`screened`; the smallest, the sampled minimum and
+    the certified bound are as sound, ``at_poses`` is FCL's only where ``exact_at``)."""
     q = np.asarray(q, dtype=float)
     if head is not None and (t is None or np.shape(t) != (q.shape[0],)):
         raise InputError("t", f"expected the {q.shape[0]} log times with a head motion")
-    c = (exact(tool_poses(tc, q, head=head, t=t)) if at_poses is None
-         else np.asarray(at_poses, dtype=float))
+    if q.shape[0] >= 2:
+        S = segment_paths(tc, q, exact.reach)
+        if head is not None:
+            S = S + head_paths(tc, q, t, head, exact.reach, S)
+    if at_poses is not None:
+        c, known = np.asarray(at_poses, dtype=float), np.ones(q.shape[0], dtype=bool)
+    elif screen and q.shape[0] >= 2:
+        X = tool_poses(tc, q, head=head, t=t)
+        c, known = screened(lambda k: exact(X[k]), np.r_[0.0, np.cumsum(S)])
+    else:
+        c, known = exact(tool_poses(tc, q, head=head, t=t)), np.ones(q.shape[0], dtype=bool)
     if q.shape[0] < 2:
-        return Swept(c, float(c.min()), float(c.min()), np.zeros(0), 0)
-    S = segment_paths(tc, q, exact.reach)
-    if head is not None:
-        S = S + head_paths(tc, q, t, head, exact.reach, S)
+        return Swept(c, float(c.min()), float(c.min()), np.zeros(0), 0, known)
     ends = np.minimum(c[:-1], c[1:])
     todo = np.flatnonzero((ends - 0.5 * S < c.min()) & (S > 0.0))
     sampled, bound = float(c.min()), float(c.min())
@@ -235,4 +279,4 @@ def swept_clearance(tc: TeleopCase, exact: ExactClearance, q, *, substeps: int =
         sub = np.minimum(chain[:, :-1], chain[:, 1:]) - 0.5 * (S[todo] / substeps)[:, None]
         sampled = min(sampled, float(cs.min()))
         bound = min(bound, float(sub.min()))
-    return Swept(c, sampled, bound, S, int(todo.size))
+    return Swept(c, sampled, bound, S, int(todo.size), known)

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from implantplan.analyses.studies import adversarial as A
-from implantplan.analyses.studies.scan_reference import plan_sites
-from implantplan.diagrams.teleop import build_teleop
+from implantplan.analyses.studies.scan_reference import plan_sites, swept_clearance
+from implantplan.diagrams.feeding import FINISH_SECONDS
+from implantplan.diagrams.teleop import build_teleop, simulate
 from implantplan.systems.instrument import Instrument
 from implantplan.systems.teleop.adversarial_operator import (
     Directions,
@@ -105,15 +106,29 @@ def test_normal_feed_reaches_the_target_safely(site):
 
 def test_without_the_safety_layer_the_push_enters_the_tissue(site):
     """The check can fail: with neither fixture nor supervisor the cheek push goes into tissue
-    (the exact reference says so) and the estimator's alarm fires."""
+    (the exact reference says so) and the estimator's alarm fires. The screened reference the
+    runs use (scan_reference.screened: FCL only where the smallest can be) on this run, in and
+    out of the tissue, against FCL at every logged pose: the same smallest and where it is, the
+    same sampled minimum, a certified bound at or below it; every pose left unmeasured is below
+    FCL there and at or above the smallest; fewer than half the poses measured."""
     tc, _, exact = site
     start, target = tc.X_WE(tc.q_start)[:3, 3], tc.X_WTarget[:3, 3]
     motion = adversarial_motion("cheek_left", start, target,
                                 Directions.of_case(tc.X_WTarget, tc.X_WCenter), seed=0)
     free = build_teleop(tc, vf_enabled=False, supervisor_enabled=False)
-    r = A.run_one(free, tc, motion, exact)
-    assert r["min_exact_clearance"] < 0.0
-    assert r["alarm"]
+    run = simulate(free, motion.duration + FINISH_SECONDS, motion=motion)
+    assert run.alarm.any()
+    full = swept_clearance(tc, exact, run.q)
+    sc = swept_clearance(tc, exact, run.q, screen=True)
+    assert full.at_poses.min() < 0.0
+    assert sc.at_poses.min() == full.at_poses.min()
+    assert np.argmin(sc.at_poses) == np.argmin(full.at_poses)
+    assert sc.sampled == full.sampled and sc.bound <= full.sampled
+    skipped = ~sc.exact_at
+    assert np.all(sc.at_poses[sc.exact_at] == full.at_poses[sc.exact_at])
+    assert np.all(sc.at_poses[skipped] <= full.at_poses[skipped])
+    assert np.all(sc.at_poses[skipped] >= full.at_poses.min())
+    assert skipped.any() and sc.exact_at.mean() < 0.5, sc.exact_at.mean()
 
 
 def test_the_supervisor_alone_keeps_the_margin_against_the_exact_anatomy(site):

@@ -63,8 +63,9 @@ SMALL = 100  # poses per cavity x instrument in the default run
 
 
 @pytest.fixture(scope="module")
-def default():
-    return sbc.default_cavity(Progress("test", quiet=True))
+def default(demo_plan):
+    """The default cavity with the demo plan's placements (the run's shared plan)."""
+    return sbc.default_cavity(Progress("test", quiet=True), demo_plan)
 
 
 @pytest.fixture(scope="module")
@@ -267,3 +268,16 @@ def _cohort_00_exact(pipeline, load_case, ExactCavity):
         fit = pipeline.fit_stage(case)
         return ExactCavity.from_scan(fit.opened, fit.fpsm,
                                      close_open_cuts=case.mesh.close_open_cuts), case
+
+
+@pytest.mark.sweep
+def test_a_plan_folder_gives_the_cavity_placed_again(default):
+    """``--plan``: the demo plan's feeds are the default case placed again (same seed)."""
+    again, margin = sbc.default_cavity(Progress("test", quiet=True))
+    assert margin == default[1]
+    assert len(again.feeds) == len(default[0].feeds)
+    for (name_a, X_a, depth_a), (name_b, X_b, depth_b) in zip(again.feeds, default[0].feeds,
+                                                              strict=True):
+        assert name_a == name_b and depth_a == pytest.approx(depth_b, abs=1e-12)
+        np.testing.assert_allclose(X_a, X_b, rtol=0, atol=1e-12)
+    assert len(again.exact.mesh.faces) == len(default[0].exact.mesh.faces)
