@@ -7,6 +7,7 @@ Every module's imports are read with ast (lazy ones inside functions
 included), so a new module is checked without being listed here."""
 
 import ast
+import functools
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -69,28 +70,32 @@ def resolve(target: str) -> str | None:
     return None
 
 
-EDGES = sorted({(m, t) for m, p in MODULES.items() for t in filter(None, map(resolve, imported(p)))
-                if t != m})
+@functools.cache
+def edges() -> list[tuple[str, str]]:
+    """Every (module, module it imports) of the four packages, parsed once on first use (not
+    at collection: both test workers collect this file)."""
+    return sorted({(m, t) for m, p in MODULES.items()
+                   for t in filter(None, map(resolve, imported(p))) if t != m})
 
 
 def test_the_walk_sees_the_tree():
     # the parser finds the modules and edges we know exist (a broken walk would pass vacuously)
     assert {"systems.frames", "analyses.pipeline", "analyses.figures.plan"} <= set(MODULES)
-    assert ("analyses.plan", "analyses.pipeline") in EDGES
-    assert ("diagrams.teleop", "systems.actuator") in EDGES
-    assert ("systems.placement.planner", "systems.fpsm.model") in EDGES
+    assert ("analyses.plan", "analyses.pipeline") in edges()
+    assert ("diagrams.teleop", "systems.actuator") in edges()
+    assert ("systems.placement.planner", "systems.fpsm.model") in edges()
     assert {"analyses.plan", "analyses.capmap", "analyses.cli", "analyses.bench_fpsm"} <= {
         m for m in MODULES if is_command(m)}
     assert not is_command("analyses.pipeline") and not is_command("analyses.report")
 
 
 def test_packages_import_downward():
-    upward = [(s, d) for s, d in EDGES if LAYERS[d.split(".")[0]] > LAYERS[s.split(".")[0]]]
+    upward = [(s, d) for s, d in edges() if LAYERS[d.split(".")[0]] > LAYERS[s.split(".")[0]]]
     assert upward == []
 
 
 def test_pipeline_cores_figures_and_report_never_import_commands():
-    bad = [(s, d) for s, d in EDGES
+    bad = [(s, d) for s, d in edges()
            if s.startswith("analyses.") and not is_command(s) and is_command(d)
            and (s, d) not in ALLOWED]
     assert bad == []
@@ -98,7 +103,7 @@ def test_pipeline_cores_figures_and_report_never_import_commands():
 
 def test_allowed_exceptions_still_exist():
     # an exception that is gone must leave the list (so it cannot hide a new one)
-    assert ALLOWED <= set(EDGES)
+    assert ALLOWED <= set(edges())
 
 
 # The stages inside systems/ and what each may import besides itself (the shared ground is the
@@ -130,13 +135,13 @@ def test_every_systems_module_is_in_a_known_stage():
 
 
 def test_stages_import_only_their_floors():
-    bad = [(s, d) for s, d in EDGES if s in SYSTEMS and d in SYSTEMS
+    bad = [(s, d) for s, d in edges() if s in SYSTEMS and d in SYSTEMS
            and stage(d) != stage(s) and stage(d) not in STAGES[stage(s)]]
     assert bad == []
 
 
 def test_no_import_cycle_inside_systems():
-    graph = {m: {d for s, d in EDGES if s == m and d in SYSTEMS} for m in SYSTEMS}
+    graph = {m: {d for s, d in edges() if s == m and d in SYSTEMS} for m in SYSTEMS}
     done, stack, cycles = set(), [], []
 
     def visit(m):

@@ -46,9 +46,12 @@ def step_pose(p: np.ndarray, R: np.ndarray, V: np.ndarray, dt: float):
     """One explicit step of a pose under the spatial velocity V = [w; v] (w about the frame's
     origin, v of the origin): p + v dt, exp([w] dt) R (Drake's AngleAxis rotation)."""
     p = p + V[3:] * dt
-    angle = float(np.linalg.norm(V[:3])) * dt
-    if angle > 0.0:
-        R = RotationMatrix(AngleAxis(angle, V[:3] * (dt / angle))).matrix() @ R
+    w = np.asarray(V[:3], dtype=float)
+    scale = float(np.abs(w).max())
+    if scale > 0.0:  # the axis normalized after scaling: a denormal twist's square underflows
+        u = w / scale
+        norm = float(np.linalg.norm(u))
+        R = RotationMatrix(AngleAxis(scale * norm * dt, u / norm)).matrix() @ R
     return p, R
 
 

@@ -47,18 +47,47 @@ def _plan(tmp_path, name, file_type=None, scale=1.0, case=None, flags=FAST):
     return _read(out)
 
 
-@pytest.mark.parametrize("size", ["small", pytest.param("full", marks=pytest.mark.sweep)])
-def test_the_scan_as_ascii_stl_plans_exactly_like_the_obj(tmp_path, size, request):
-    """The small case (its feeds included) against the run's shared plan of it from the OBJ
-    (tests/conftest.py ``small_plan``); the default case's own sizes in the sweep."""
-    if size == "small":
-        case_path, obj_plan = request.getfixturevalue("small_plan")
-        case = yaml.safe_load(case_path.read_text())
-        assert case["mesh"]["path"] == str(models.model_path("oral/oralCavityMesh.obj"))
-        assert _plan(tmp_path, "ascii", "stl_ascii", case=case,
-                     flags=SMALL_PLAN_FLAGS) == _read(obj_plan)
-    else:
-        assert _plan(tmp_path, "ascii", "stl_ascii") == _plan(tmp_path, "obj")
+def test_the_scan_as_ascii_stl_fits_exactly_like_the_obj(tmp_path):
+    """The default run: the scan saved as ASCII STL opens to the OBJ's vertices and triangles
+    and fits to its FPSM bit for bit (the whole plan from it: the sweep test below)."""
+    from implantplan.analyses import pipeline
+    from implantplan.analyses.case import case_from_dict
+
+    path = tmp_path / "scan.stl"
+    trimesh.load(models.model_path("oral/oralCavityMesh.obj"), process=False,
+                 force="mesh").export(path, file_type="stl_ascii")
+    fits = []
+    for mesh_path in (None, path):
+        data = default_case_data()
+        if mesh_path is not None:
+            data["mesh"]["path"] = str(mesh_path)
+        fits.append(pipeline.fit_stage(case_from_dict(data, source=tmp_path / "case.yaml")))
+    obj, stl = fits
+    # STL is a triangle soup: the same vertices and triangles, in another order
+    np.testing.assert_array_equal(np.unique(stl.opened.vertices, axis=0),
+                                  np.unique(obj.opened.vertices, axis=0))
+    tri = [np.unique(np.sort(f.vertices[f.faces].reshape(-1, 9), axis=1), axis=0)
+           for f in (stl.opened, obj.opened)]
+    np.testing.assert_array_equal(*tri)
+    fpsm = []
+    for fit in (stl, obj):
+        d = fit.fpsm.to_dict()
+        d["settings"].pop("mesh")  # the file it was read from
+        d["diagnostics"] = {k: v for k, v in d["diagnostics"].items() if "seconds" not in k}
+        fpsm.append(json.dumps(d))
+    assert fpsm[0] == fpsm[1]
+
+
+@pytest.mark.sweep
+def test_the_scan_as_ascii_stl_plans_exactly_like_the_obj(tmp_path, small_plan):
+    """The small case (its feeds included) from the ASCII STL against the run's shared plan of
+    it from the OBJ (tests/conftest.py ``small_plan``), and the default case's own sizes."""
+    case_path, obj_plan = small_plan
+    case = yaml.safe_load(case_path.read_text())
+    assert case["mesh"]["path"] == str(models.model_path("oral/oralCavityMesh.obj"))
+    assert _plan(tmp_path, "ascii", "stl_ascii", case=case,
+                 flags=SMALL_PLAN_FLAGS) == _read(obj_plan)
+    assert _plan(tmp_path, "ascii_full", "stl_ascii") == _plan(tmp_path, "obj")
 
 
 @pytest.mark.slow

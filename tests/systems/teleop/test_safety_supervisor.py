@@ -3,6 +3,8 @@ the barrier is the sound FPSM clearance of systems.placement.tool_clearance, a c
 bound),
 tested alone (FixValue on the input, the periodic update evaluated), and its core's properties."""
 
+import functools
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -32,7 +34,13 @@ TOOL = Instrument.paper(rod_radius=0.006, implant_length=0.031)
 R_CT = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])
 DT = 0.005
 BAR = Barrier(margin=0.001, alpha=20.0)
-CLEAR = ToolClearance(CYL, TOOL)
+
+
+@functools.cache
+def clear() -> ToolClearance:
+    """The cylinder's clearance of the paper tool (its field built on first use, not at
+    collection)."""
+    return ToolClearance(CYL, TOOL)
 
 
 def pose(x: float, z: float = 0.05) -> np.ndarray:
@@ -44,7 +52,7 @@ def x_at(h: float) -> float:
     lo, hi = 0.02, 0.049
     for _ in range(60):
         mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if CLEAR.one(pose(mid)) > h else (lo, mid)
+        lo, hi = (mid, hi) if clear().one(pose(mid)) > h else (lo, mid)
     return 0.5 * (lo + hi)
 
 
@@ -55,7 +63,7 @@ def test_clearance_is_a_lower_bound_of_the_one_by_hand():
     h = clearance(CYL, pose(0.042)[None], TOOL)[0]
     assert 0.001 <= h <= 0.002
     # nearer the wall it falls, through zero at the wall
-    assert CLEAR.one(pose(0.0425)) < h and CLEAR.one(pose(0.0445)) < 0.0
+    assert clear().one(pose(0.0425)) < h and clear().one(pose(0.0445)) < 0.0
     # wholly above the opening: large (the field is capped)
     assert clearance(CYL, pose(0.0, 0.2)[None], TOOL)[0] >= 0.01
 
@@ -65,7 +73,7 @@ def test_a_command_away_from_the_wall_or_slow_enough_passes_untouched():
     V = np.array([[0, 0, 0, -0.04, 0.0, 0.01],  # away from the wall (Center -x), and up
                   [0, 0, 0, 0.0, 0.0, -0.01],  # along the wall
                   [0, 0, 0, 0.008, 0.0, 0.0]])  # towards it, slower than alpha (h - m) = 20 mm/s
-    res = supervise(CLEAR, np.repeat(X[None], 3, axis=0), V, BAR, DT)
+    res = supervise(clear(), np.repeat(X[None], 3, axis=0), V, BAR, DT)
     np.testing.assert_array_equal(res.V, V)
     assert not res.active.any()
     np.testing.assert_array_equal(res.scale, 1.0)
@@ -75,7 +83,7 @@ def test_a_command_towards_the_wall_is_slowed_to_the_barrier_rate():
     """h = 2 mm, margin 1 mm, alpha 20/s: h may fall at most 20 (2 - 1) = 20 mm/s. Pushing at
     40 mm/s towards the wall (Center +x) is cut to about that."""
     V = np.array([[0, 0, 0, 0.04, 0.0, 0.0]])
-    res = supervise(CLEAR, pose(x_at(0.002))[None], V, BAR, DT)
+    res = supervise(clear(), pose(x_at(0.002))[None], V, BAR, DT)
     h, h1 = res.h[0], res.h_next[0]
     assert res.active[0] and 0.0 < res.scale[0] < 1.0
     assert h - h1 <= DT * 20.0 * (h - 0.001) + 1e-8  # the discrete barrier condition
@@ -85,12 +93,12 @@ def test_a_command_towards_the_wall_is_slowed_to_the_barrier_rate():
     # 0.05 mm above the margin at most 20 * 0.05 = 1 mm/s towards the wall is left; the part
     # along it passes (h is a bound on a 1 mm grid: along the wall it wiggles by micrometres
     # within a cell, which exactly at the margin may stop a tangential move too)
-    res = supervise(CLEAR, pose(x_at(0.00105))[None], np.array([[0, 0, 0, 0.04, 0.0, -0.01]]),
+    res = supervise(clear(), pose(x_at(0.00105))[None], np.array([[0, 0, 0, 0.04, 0.0, -0.01]]),
                     BAR, DT)
     assert res.h_next[0] >= res.h[0] - DT * 20.0 * 0.00005 - 1e-8
     assert abs(res.V[0, 3]) < 2e-3 and -0.01 - 1e-12 <= res.V[0, 5] <= -0.005
     # below the margin (h = 0.5 mm) an approach is stopped, not turned into a retreat
-    res = supervise(CLEAR, pose(x_at(0.0005))[None], np.array([[0, 0, 0, 0.04, 0.0, 0.0]]),
+    res = supervise(clear(), pose(x_at(0.0005))[None], np.array([[0, 0, 0, 0.04, 0.0, 0.0]]),
                     BAR, DT)
     assert -1e-4 < res.V[0, 3] < 2e-3
     assert res.h_next[0] >= res.h[0] - 1e-8
@@ -122,15 +130,15 @@ def test_barrier_filter_never_amplifies_and_meets_the_constraint(V, g, h):
 def test_supervised_step_keeps_the_barrier_and_never_amplifies(x, V):
     """On the cylinder, any command: one period of the filtered twist meets the discrete barrier
     condition on h itself, and |V'|_M <= |V|_M."""
-    res = supervise(CLEAR, pose(x)[None], V[None], BAR, DT)
+    res = supervise(clear(), pose(x)[None], V[None], BAR, DT)
     b = min(-20.0 * (res.h[0] - 0.001), 0.0)
     assert res.h_next[0] >= res.h[0] + DT * b - 1e-8
     M = np.array([BAR.length_scale**2] * 3 + [1.0] * 3)  # the metric of the projection
     assert np.sum(res.V[0] ** 2 * M) <= np.sum(V**2 * M) * (1 + 1e-12) + 1e-18
     assert 0.0 <= res.scale[0] <= 1.0 + 1e-12
-    assert CLEAR(res.X_next)[0] == res.h_next[0]  # the barrier at the pose it steps to
+    assert clear()(res.X_next)[0] == res.h_next[0]  # the barrier at the pose it steps to
     # the guarantee does not rest on the gradient: a wrong one still meets the condition
-    wrong = supervise(CLEAR, pose(x)[None], V[None], BAR, DT, g=np.roll(V, 2)[None])
+    wrong = supervise(clear(), pose(x)[None], V[None], BAR, DT, g=np.roll(V, 2)[None])
     assert wrong.h_next[0] >= wrong.h[0] + DT * b - 1e-8
     assert np.sum(wrong.V[0] ** 2 * M) <= np.sum(V**2 * M) * (1 + 1e-12) + 1e-18
 
@@ -165,7 +173,7 @@ def test_the_system_alone_filters_and_integrates():
     step = xd[:3] - pose(x0)[:3, 3]  # the state keeps the Tool pose in Center
     assert 0.0 < step[0] < 0.04 * DT
     h, scale, active = xd[18:21]
-    assert h == pytest.approx(CLEAR.one(pose(x0 + step[0])), abs=1e-9)
+    assert h == pytest.approx(clear().one(pose(x0 + step[0])), abs=1e-9)
     assert h >= 0.002 - DT * 20.0 * 0.001 - 1e-8 and 0 < scale < 1 and active == 1.0
     context.SetDiscreteState(0, xd)
     np.testing.assert_allclose(system.GetOutputPort("barrier").Eval(context), [h, scale, 1.0])
@@ -208,7 +216,7 @@ def test_every_integrated_step_keeps_the_command_limits():
         xd = system.EvalUniquePeriodicDiscreteUpdate(context).get_vector(0).get_value()
         np.testing.assert_array_equal(xd[:3], X_WE[:3, 3])
     # the core does the same with ``limits``
-    out = supervise(CLEAR, pose(0.0)[None], np.array([[0, 0, 0, -0.3, 0, -0.4]]), BAR, DT,
+    out = supervise(clear(), pose(0.0)[None], np.array([[0, 0, 0, -0.3, 0, -0.4]]), BAR, DT,
                     limits=CommandLimits(linear_speed=0.02))
     np.testing.assert_allclose(out.V[0], [0, 0, 0, -0.012, 0, -0.016], atol=1e-15)
 
