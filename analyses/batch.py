@@ -25,6 +25,10 @@ Statuses and the exit code of the batch (the first rule that applies):
   check (``checks failed``; ``plan`` exits 3 too);
 * 0: every case ``passed`` (planned, every check passing).
 
+Stopped early (Ctrl-C, SIGTERM), the batch kills its LocalCluster's workers and removes the
+staging folders of the cases they were planning; the next batch into DIR removes those a killed
+batch left (analyses.out_folder.remove_stale_inside).
+
 ``--make-cohort`` writes a synthetic cohort from one case (analyses.cohort.make_cohort).
 """
 
@@ -137,23 +141,30 @@ def run_batch(case_files, out_dir, *, scheduler: str | None = None, workers: int
         raise InputError("cases", "expected at least one case file (or --cohort)")
     out_dir.mkdir(parents=True, exist_ok=True)
     out_folder.mark(out_dir, "batch")
+    out_folder.remove_stale_inside(out_dir)  # cases' staging folders of a batch that was killed
     folders = case_folders(case_files)
     tasks = [(str(f), str(out_dir.resolve() / d), runs, figures, html_scene, force,
               tuple(sorted(accept)), memory_budget)
              for f, d in zip(case_files, folders, strict=True)]  # fmt: skip
     records: list = [None] * len(tasks)
     prog = Progress("batch", quiet=quiet)
-    with scaleout.engine(scheduler, workers, warm_up=WARM_UP) as eng:
-        prog.say(f"{len(tasks)} cases on {eng.description}")
-        eta = scaleout.Eta(len(tasks))
-        done = 0
-        for i, rec in scaleout.run_unordered(eng, plan_one, tasks, on_error=_lost(tasks)):
-            records[i] = rec
-            done += 1
-            prog.say(
-                f"{done}/{len(tasks)} cases, {eta.text(done)}: {rec['case']}: "
-                f"{rec['status']}" + (f" ({rec['reason']})" if rec["reason"] else "")
-            )
+    try:
+        with scaleout.engine(scheduler, workers, warm_up=WARM_UP) as eng:
+            prog.say(f"{len(tasks)} cases on {eng.description}")
+            eta = scaleout.Eta(len(tasks))
+            done = 0
+            for i, rec in scaleout.run_unordered(eng, plan_one, tasks, on_error=_lost(tasks)):
+                records[i] = rec
+                done += 1
+                prog.say(
+                    f"{done}/{len(tasks)} cases, {eta.text(done)}: {rec['case']}: "
+                    f"{rec['status']}" + (f" ({rec['reason']})" if rec["reason"] else "")
+                )
+    finally:
+        # a batch stopped early (Ctrl-C, SIGTERM): the engine killed its local workers, whose
+        # cases' staging folders stay behind named with their pids; those processes are gone
+        # (joined) once the engine is closed
+        out_folder.remove_stale_inside(out_dir)
     write_summary(out_dir, records)
     code = batch_exit_code(r["status"] for r in records)
     return records, code

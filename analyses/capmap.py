@@ -113,6 +113,7 @@ def build_map(
     have = 0
     if out is not None:
         store = cm.BlockStore.beside(out, params, poses_per_block=poses_per_block)
+        store.remove_partial()  # a block being written when a build was killed (kill -KILL)
         have = len(store.finished())
         if have and not resume:
             raise InputError(

@@ -177,6 +177,9 @@ def _existing_ancestor(folder: Path, text: str, field: str) -> Path:
 
 
 def _alive(pid: int) -> bool:
+    """The process ``pid`` runs: it exists and has not exited (a zombie, exited and not yet
+    reaped, has: the worker of a killed batch is one until the process it was handed to reaps
+    it)."""
     if pid == os.getpid():
         return True
     try:
@@ -185,21 +188,37 @@ def _alive(pid: int) -> bool:
         return False
     except PermissionError:  # another user's process
         return True
-    return True
+    return not _zombie(pid)
+
+
+def _zombie(pid: int) -> bool:
+    """``pid`` has exited and waits to be reaped (Linux's /proc; False where it cannot tell)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            text = f.read()
+    except OSError:
+        return False
+    return text[text.rfind(b")") + 2:][:1] == b"Z"  # the state follows "(command) "
 
 
 def leftovers(out: Path) -> list[Path]:
     """Staging and old folders beside ``out`` left by runs towards it whose process is gone."""
     out = Path(out)
+    return _leftovers_in(out.parent, out.name)
+
+
+def _leftovers_in(folder: Path, name: str | None) -> list[Path]:
+    """Staging and old folders in ``folder`` (towards ``name``, None: any) whose process is
+    gone."""
     found = []
     try:
-        entries = list(out.parent.iterdir())
+        entries = list(Path(folder).iterdir())
     except OSError:
         return []
     for entry in entries:
         m = _LEFTOVER.match(entry.name)
-        if m and m["name"] == out.name and not _alive(int(m["pid"])) and entry.is_dir() \
-                and not entry.is_symlink():
+        if m and (name is None or m["name"] == name) and not _alive(int(m["pid"])) \
+                and entry.is_dir() and not entry.is_symlink():
             found.append(entry)
     return found
 
@@ -207,8 +226,19 @@ def leftovers(out: Path) -> list[Path]:
 def remove_stale(out: Path) -> list[Path]:
     """Remove :func:`leftovers` that hold the marker or nothing (nothing else is ours: a folder
     of the user's renamed aside by a ``--force`` run that was killed stays)."""
+    return _remove(leftovers(out))
+
+
+def remove_stale_inside(folder: Path) -> list[Path]:
+    """Remove the leftovers of runs towards any folder inside ``folder`` (a batch folder: its
+    cases' staging folders, named with the pid of the worker process that planned the case),
+    as :func:`remove_stale` does beside one."""
+    return _remove(_leftovers_in(Path(folder), None))
+
+
+def _remove(found: list[Path]) -> list[Path]:
     removed = []
-    for entry in leftovers(out):
+    for entry in found:
         if is_project_folder(entry) or not any(entry.iterdir()):
             shutil.rmtree(entry, ignore_errors=True)
             removed.append(entry)

@@ -191,7 +191,7 @@ def placement_stage(case: Case, fit: FitResult, *, progress=None,
     for k, site in enumerate(case.sites):
         tool = case.instrument_at(site)
         try:
-            p = _place_site(case, fpsm, exact, site, k)
+            p = _place_site(case, fpsm, exact, site, k, progress=progress)
         except InputError as exc:  # name the case's field, not the placement's argument
             message = str(exc)
             if exc.field == "hole" and "outside the model" in exc.message:
@@ -228,8 +228,9 @@ def placement_stage(case: Case, fit: FitResult, *, progress=None,
     return out
 
 
-def _place_site(case: Case, fpsm, exact, site, k: int) -> Placement:
-    """Stage 2 at one site (``k`` its index in the case: its random stream)."""
+def _place_site(case: Case, fpsm, exact, site, k: int, *, progress=None) -> Placement:
+    """Stage 2 at one site (``k`` its index in the case: its random stream; ``progress`` gets
+    the lines of a long verification)."""
     tool = case.instrument_at(site)
     return place_instrument(
         fpsm,
@@ -242,6 +243,7 @@ def _place_site(case: Case, fpsm, exact, site, k: int) -> Placement:
         tool=tool,
         safety=case.safety,
         exact=exact,
+        progress=progress,
     )
 
 
@@ -310,7 +312,8 @@ def opening_needed(case: Case, k: int, *, progress=None) -> dict:
         fit = fit_stage(opened)
         try:
             site_stage(opened, fit)
-            p = _place_site(opened, fit.fpsm, fit.exact(mesh.close_open_cuts), moved, k)
+            p = _place_site(opened, fit.fpsm, fit.exact(mesh.close_open_cuts), moved, k,
+                            progress=progress)
         except InputError as exc:
             tried.append({"opening_deg": deg, "valid": False, "reason": str(exc)})
         else:

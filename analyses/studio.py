@@ -50,6 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from implantplan.analyses import live_setup as ls
+from implantplan.analyses import out_folder
 from implantplan.systems.capability import maps as cm
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import to_jsonable, write_json
@@ -693,6 +694,9 @@ def _cmd_studio(args) -> int:
     folder = args.plan
     if args.case is not None:
         from implantplan.analyses.case import load_case
+
+        if args.out is not None:  # before any work, as plan does (stale staging folders go)
+            out_folder.check_out(args.out, force=None)
         from implantplan.analyses.plan import plan_case
 
         case = load_case(args.case)

@@ -701,8 +701,9 @@ def build(
                 for f in as_completed(futures):
                     finish(futures[f], f.result())
             finally:
-                for f in futures:
-                    f.cancel()
+                from implantplan.systems.capability.scaleout import cancel_pending
+
+                cancel_pending(futures, ex)
                 if own:
                     ex.shutdown()
     except BaseException:  # Ctrl-C, SIGTERM, a failed block: the finished blocks stay

@@ -8,7 +8,9 @@ One engine serves capability-map builds (voxel blocks) and cohort planning (one 
   only, one single-threaded worker process per ``--workers`` (processes, not threads: the numpy /
   numba cores hold the GIL in places and Drake objects are per process), every port chosen by the
   OS (scheduler, workers), the dashboard off. It is closed when the run ends, also on an error or
-  Ctrl-C (the context manager's ``finally``).
+  Ctrl-C (the context manager's ``finally``); a run that stops early (Ctrl-C, SIGTERM, an error)
+  kills its worker processes first (:func:`kill_workers`) rather than wait for their tasks, so
+  the command exits at once (SIGTERM: within 2 s, DESIGN.md section 3).
 * ``tcp://HOST:PORT`` (or ``tls://``): a running cluster (``dask scheduler`` + ``dask worker``,
   docs/commands.md). ``--workers N`` then means "wait until N workers have joined".
 
@@ -149,6 +151,7 @@ def engine(
     from distributed import Client
 
     cluster = client = None
+    levels = {name: logging.getLogger(name).level for name in TEARDOWN_LOGGERS}
     try:
         if kind == LOCAL:
             with dask.config.set({"distributed.nanny.pre-spawn-environ": WORKER_ENV}):
@@ -174,11 +177,41 @@ def engine(
         if warm_up or kind == LOCAL:
             client.register_plugin(WarmUp(warm_up, ignore_sigint=kind == LOCAL))
         yield Engine(kind, n, description, client.get_executor(retries=retries, pure=False), client)
-    finally:
-        if client is not None:
-            client.close()
+    except BaseException:  # Ctrl-C, SIGTERM, an error: the tasks still running are not wanted
+        quiet_teardown()
         if cluster is not None:
-            cluster.close()
+            kill_workers(cluster)
+        raise
+    finally:
+        try:
+            if client is not None:
+                client.close()
+            if cluster is not None:
+                cluster.close()
+        finally:
+            for name, level in levels.items():
+                logging.getLogger(name).setLevel(level)
+
+
+def kill_workers(cluster) -> list[int]:
+    """SIGKILL the worker processes of our LocalCluster ``cluster`` (a run that stops early:
+    what they are computing is not wanted, and a worker busy in a task stops only when the task
+    ends or, after Dask's close timeout, 4 s, is killed anyway). Their nannies are told first
+    not to restart them, so the cluster then closes at once. The workers' ``finally`` blocks do
+    not run: what a task had begun on disk (a case's staging folder, named with the worker's
+    pid) is the caller's to remove, or the next run's (analyses.out_folder.remove_stale).
+    Returns the pids killed."""
+    killed = []
+    for nanny in list(cluster.workers.values()):
+        nanny.close_gracefully(reason="the run stopped")  # no restart when its worker dies
+        pid = nanny.pid
+        if pid:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                continue
+            killed.append(pid)
+    return killed
 
 
 def local_cluster(n: int):
@@ -232,8 +265,36 @@ def run_unordered(
                 result = on_error(i, exc)
             yield i, result
     finally:
-        for f in futures:
-            f.cancel()
+        cancel_pending(futures, eng.executor)
+
+
+def cancel_pending(futures, executor: Executor | None = None) -> None:
+    """Cancel the ``futures`` not done yet (a run that stops early). Those of a Dask client's
+    ``executor`` in one message, by shutting the executor down (no task can be submitted to it
+    after that): each ``Future.cancel`` of Dask's executor is a round trip to the scheduler,
+    1.6 s for the 1600 blocks of a map. Dask's teardown errors (futures cancelled while their
+    results were being gathered, a graph still being received) are not logged from then on:
+    the run is being abandoned, and the engine's ``finally`` restores the logging levels."""
+    from distributed.cfexecutor import ClientExecutor
+
+    if all(f.done() for f in futures):
+        return
+    if isinstance(executor, ClientExecutor):
+        quiet_teardown()
+        executor.shutdown(wait=False)
+        return
+    for f in futures:
+        f.cancel()
+
+
+# Loggers that report a Dask run's teardown races as errors with tracebacks
+TEARDOWN_LOGGERS = ("distributed", "tornado.application")
+
+
+def quiet_teardown() -> None:
+    """Silence :data:`TEARDOWN_LOGGERS` (the engine restores them when it closes)."""
+    for name in TEARDOWN_LOGGERS:
+        logging.getLogger(name).setLevel(logging.CRITICAL + 1)
 
 
 SCHEDULER_HELP = (

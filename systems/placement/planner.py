@@ -422,6 +422,7 @@ def verify_placement(
     exact=None,
     depth_step: float = 0.002,
     region_budget: int | None = None,
+    progress=None,
 ) -> dict:
     """Verify the whole admissible region of a placement: the tool at every lateral offset up
     to ``safety.lateral_tolerance`` and turn up to ``safety.angle_tolerance`` from the planned
@@ -433,7 +434,8 @@ def verify_placement(
        scan bound of every solid over the feed and the whole region, FCL resolving the poses the
        bound leaves below the margin, and where the region's worst-case loss leaves it below,
        the region itself by branch and bound with FCL, at most ``region_budget`` queries, None:
-       :data:`systems.placement.scan_clearance.REGION_BUDGET`); without a mesh, against the FPSM:
+       :data:`systems.placement.scan_clearance.REGION_BUDGET`, its progress lines to
+       ``progress``, a Progress-like object with ``say``); without a mesh, against the FPSM:
        :func:`systems.placement.tool_clearance.feed_clearance` (a lower bound over the whole
        region, no sampling gaps). The FPSM's value is kept as ``clearance_certified_fpsm``.
     2. Exact, against the scan mesh when ``exact`` is given: FCL at the planned pose, 8 lateral
@@ -463,7 +465,7 @@ def verify_placement(
         bound = ScanClearance(exact, tool)
         scan = feed_scan_clearance(bound, X, depth=depth, lateral=lateral, angle=angle,
                                    clearance=margin, resolve_region=True,
-                                   region_budget=region_budget)
+                                   region_budget=region_budget, progress=progress)
         certified, against = scan["value"], "scan"
     out = {
         "clearance_certified": certified,
@@ -543,8 +545,8 @@ def _lines_ok(problem: PlacementProblem, X: np.ndarray):
 
 
 def search_for_instrument(problem: PlacementProblem, bounds: np.ndarray, tool: Instrument,
-                          safety: SafetySpec, exact) -> tuple[np.ndarray | None, dict | None,
-                                                              dict]:
+                          safety: SafetySpec, exact, *,
+                          progress=None) -> tuple[np.ndarray | None, dict | None, dict]:
     """The best placement whose whole instrument clears the scan, when the FPSM optimum's does
     not (the PSO objective is the paper's: it sees the rod and the implant's path, not the
     instrument's head).
@@ -619,7 +621,8 @@ def search_for_instrument(problem: PlacementProblem, bounds: np.ndarray, tool: I
         if not screen["value"] >= margin:
             continue
         record["verified"] += 1
-        ver = verify_placement(problem.fpsm, X_CT[k], tool, safety=safety, exact=exact)
+        ver = verify_placement(problem.fpsm, X_CT[k], tool, safety=safety, exact=exact,
+                               progress=progress)
         if not ver["reasons"]:
             record["F"] = float(F[k])
             record["F_loss"] = float(F[k] - F.min())
@@ -637,7 +640,7 @@ def search_for_instrument(problem: PlacementProblem, bounds: np.ndarray, tool: I
         if value < margin or budget <= 0:
             break
         ver = verify_placement(problem.fpsm, X_CT[k], tool, safety=safety, exact=exact,
-                               region_budget=budget)
+                               region_budget=budget, progress=progress)
         budget -= ((ver["scan_bound"] or {}).get("region") or {}).get("fcl_queries", 0)
         record["verified"] += 1
         if rank == 0:
@@ -803,6 +806,7 @@ def place_instrument(
     tool: Instrument | None = None,
     safety: SafetySpec | None = None,
     exact=None,
+    progress=None,
 ) -> Placement:
     """Place the feeding target for one implant site by PSO (paper Sec. 4.3).
 
@@ -831,6 +835,8 @@ def place_instrument(
             margin is invalid (:func:`verify_placement`). None: ``SafetySpec()``.
         exact: an :class:`systems.placement.exact_clearance.ExactCavity` of the scan for the exact
             check (None: only the certified FPSM bound).
+        progress: a Progress-like object (``say``) for the progress lines of a long
+            verification (the fixture's region resolved with FCL); None: silent.
 
     Returns:
         :class:`Placement` (``seconds`` is the PSO time of all runs; loading the compiled
@@ -916,12 +922,13 @@ def place_instrument(
     res = best
     x = res.x
     verification = verify_placement(fpsm, tool_frames(X_CH, x[0], x[1]), tool, safety=safety,
-                                    exact=exact)
+                                    exact=exact, progress=progress)
     search = None
     if (reasons or verification["reasons"]) and exact is not None:
         # the FPSM optimum fails for the instrument (its head, the region): the best grid
         # placement that the scan certifies for the whole instrument
-        found, ver, search = search_for_instrument(problem, bounds, tool, safety, exact)
+        found, ver, search = search_for_instrument(problem, bounds, tool, safety, exact,
+                                                   progress=progress)
         search["rejected_optimum"] = {"d_T": float(x[0]), "theta_T": float(x[1]),
                                       "reason": "; ".join(reasons + verification["reasons"])}
         if found is not None:

@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import time
 from typing import TYPE_CHECKING
 
 import numba
@@ -487,6 +488,7 @@ class CappedScanClearance:
 
 REGION_BUDGET = 250_000  # FCL queries of one placement search's region resolution (~75 s)
 REGION_BATCH = 64  # cells split per round of :func:`region_branch_and_bound` (one FCL batch)
+REGION_PROGRESS_EVERY = 5.0  # s between the progress lines of :func:`region_branch_and_bound`
 
 
 def _region_poses(P: np.ndarray, index: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -500,7 +502,8 @@ def _region_poses(P: np.ndarray, index: np.ndarray, centre: np.ndarray) -> np.nd
 
 def region_branch_and_bound(scan: ScanClearance, P: np.ndarray, lower: np.ndarray, *,
                             half_step: float, lateral: float, angle: float, claim: float,
-                            budget: int = REGION_BUDGET) -> tuple[np.ndarray, int, bool]:
+                            budget: int = REGION_BUDGET,
+                            progress=None) -> tuple[np.ndarray, int, bool]:
     """Branch and bound over the fixture's region about feed poses, where the bound minus the
     region's worst-case loss leaves a pose below the claimed clearance; the scan bound and FCL
     at the cells' centres.
@@ -524,9 +527,16 @@ def region_branch_and_bound(scan: ScanClearance, P: np.ndarray, lower: np.ndarra
     than it (an upper estimate or FCL below it: disproved, the region holds such a pose), or
     after ``budget`` FCL queries (undecided: the bounds so far are returned, still sound).
 
+    A long search (a small margin: minutes) says how far it is, every
+    :data:`REGION_PROGRESS_EVERY` seconds, through ``progress`` (an
+    :class:`analyses.progress.Progress`-like object with ``say``; None: silent): the FCL queries
+    done of the budget, the cells still below the claim and the bound so far (the least cell's).
+    The result does not depend on it.
+
     Args:
         scan: the :class:`ScanClearance` of one solid, with its ExactCavity.
         P: (n, 4, 4) feed poses; lower: (n,) each cell's lower bound so far (m).
+        progress: where the progress lines go (None: nowhere).
 
     Returns:
         ((n,) the cells' lower bounds (m), FCL queries, decided: proven or disproved).
@@ -541,7 +551,14 @@ def region_branch_and_bound(scan: ScanClearance, P: np.ndarray, lower: np.ndarra
     lb = lower.astype(float).copy()
     queries = 0
     first = True
+    last_said = time.perf_counter()
+    what = solid.shapes[0].name if len(solid.shapes) == 1 else solid.name
     while True:
+        if progress is not None and time.perf_counter() - last_said >= REGION_PROGRESS_EVERY:
+            last_said = time.perf_counter()
+            progress.say(f"fixture region of the {what}: {queries:,} of {budget:,} FCL "
+                         f"queries, {int((lb < claim).sum()):,} cells below the claimed "
+                         f"{claim * 1e3:.3f} mm, bound {lb.min() * 1e3:.3f} mm so far")
         if first:  # the feed poses themselves (centres of the root cells, in the region)
             pick = np.arange(n)
             c, h, i, parent = centre, half, index, lb
@@ -604,7 +621,7 @@ NEAR_MINIMUM = 0.3e-3  # m: poses within this of the feed's least upper estimate
 def feed_scan_clearance(scan: ScanClearance, X_CTool, *, depth: float, lateral: float = 0.0,
                         angle: float = 0.0, clearance: float | None = None,
                         step: float = FEED_STEP, resolve_region: bool = False,
-                        region_budget: int | None = None) -> dict:
+                        region_budget: int | None = None, progress=None) -> dict:
     """Certified clearance (m) of the instrument against the scan over its whole feed (the pose
     ``X_CTool`` (4, 4) backed out along the rod by 0..``depth``) and the fixture's admissible
     region (the rod axis within ``lateral`` of the planned line, the orientation within
@@ -627,7 +644,7 @@ def feed_scan_clearance(scan: ScanClearance, X_CTool, *, depth: float, lateral: 
     :func:`region_branch_and_bound` (branch and bound of the region, FCL at the cells' centres),
     for the solids whose turn about the TCP is the region's (origin reach = rod-axis reach:
     the head and the implant, not the long rod the fixture holds by its axis). The value is
-    then the larger of the two sound bounds.
+    then the larger of the two sound bounds. ``progress`` gets that search's progress lines.
 
     Returns:
         dict: ``value`` (m), ``poses``, ``resolved_poses`` (poses FCL resolved), ``step``,
@@ -681,7 +698,8 @@ def feed_scan_clearance(scan: ScanClearance, X_CTool, *, depth: float, lateral: 
                 - region["fcl_queries"]
             lb, q, decided = region_branch_and_bound(
                 sub, P[low], cells[k, low], half_step=0.5 * t,
-                lateral=lateral, angle=angle, claim=c_claim, budget=max(budget, 0))
+                lateral=lateral, angle=angle, claim=c_claim, budget=max(budget, 0),
+                progress=progress)
             cells[k, low] = lb
             region["cells"] += int(low.size)
             region["fcl_queries"] += int(q)

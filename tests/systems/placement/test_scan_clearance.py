@@ -333,3 +333,53 @@ def test_the_fixture_admits_the_samples_that_keep_the_rod_at_the_opening():
     above = X.copy()
     above[:, 2, 3] = z_top + 0.01
     assert fixture_admits(admissible_poses(above, lateral, angle), above, z_top, lateral).all()
+
+
+def test_the_region_search_reports_its_progress_without_changing_its_result(cavity, grid,
+                                                                           monkeypatch):
+    """A long branch and bound over the fixture's region (a small margin: minutes) says how
+    far it is through ``progress`` (every REGION_PROGRESS_EVERY seconds; every round here):
+    the FCL queries done of its budget, rising, and the bound so far, never falling; the
+    result is the one found without it. A tiny budget (200 FCL queries) keeps it cheap."""
+    import dataclasses
+    import re
+
+    from implantplan.systems.placement import scan_clearance
+    from implantplan.systems.placement.scan_clearance import feed_scan_clearance
+
+    full = Instrument.actuator()
+    inst = dataclasses.replace(full, shapes=tuple(s for s in full.shapes if s.name != "rod"))
+    sc = ScanClearance(cavity, inst, grid=grid)
+    rng = np.random.default_rng(21)
+    lateral, angle, depth = SPEC.lateral_tolerance, SPEC.angle_tolerance, 0.002
+    for X in random_poses(1500, rng, lateral=0.012, z=(0.03, 0.05)):
+        base = feed_scan_clearance(sc, X, depth=depth, lateral=lateral, angle=angle)
+        if 0.3e-3 <= base["value"] <= 4e-3:
+            break
+    args = dict(depth=depth, lateral=lateral, angle=angle, clearance=base["value"] + 0.3e-3,
+                resolve_region=True, region_budget=200)
+    quiet = feed_scan_clearance(sc, X, **args)
+
+    class Lines:
+        def __init__(self):
+            self.said = []
+
+        def say(self, message):
+            self.said.append(message)
+
+    lines = Lines()
+    monkeypatch.setattr(scan_clearance, "REGION_PROGRESS_EVERY", 0.0)
+    told = feed_scan_clearance(sc, X, **args, progress=lines)
+    assert told == quiet
+    assert quiet["region"]["fcl_queries"] > 0 and len(lines.said) >= 2, lines.said
+    pattern = re.compile(r"fixture region of the (head|implant): ([\d,]+) of 200 FCL queries, "
+                         r"([\d,]+) cells below the claimed ([\d.]+) mm, "
+                         r"bound (-?[\d.]+) mm so far")
+    parsed = [pattern.fullmatch(s) for s in lines.said]
+    assert all(parsed), lines.said
+    for solid in {m[1] for m in parsed}:
+        queries = [int(m[2].replace(",", "")) for m in parsed if m[1] == solid]
+        bound = [float(m[5]) for m in parsed if m[1] == solid]
+        assert queries == sorted(queries) and bound == sorted(bound), lines.said
+    assert max(int(m[2].replace(",", "")) for m in parsed) <= quiet["region"]["fcl_queries"]
+    assert {m[4] for m in parsed} == {f"{args['clearance'] * 1e3:.3f}"}
