@@ -194,22 +194,22 @@ def test_a_foreign_04mm_series_plans_like_the_phantom(tmp_path):
     make_phantom_folder(default_case_path(), tmp_path / "phantom", voxel_mm=0.4, noise_hu=20.0,
                         seed=None, force=False)
     other = resample(read_dicom_series(tmp_path / "phantom" / "ct"), (0.3, 0.3, 0.35))
-    write_foreign_series(tmp_path / "foreign", other)
-    cases = _foreign_case(tmp_path / "phantom", tmp_path / "foreign", tmp_path / "cases",
+    write_foreign_series(tmp_path / "series", other)
+    cases = _foreign_case(tmp_path / "phantom", tmp_path / "series", tmp_path / "cases",
                           small=False)
     plans = []
     for case_file, name in zip(cases, ("own", "foreign"), strict=True):
-        code = main(["plan", str(case_file), "--out", str(tmp_path / name), "--runs", "0",
-                     "--no-figures", "--quiet"])
+        code = main(["plan", str(case_file), "--out", str(tmp_path / f"plan_{name}"), "--runs",
+                     "0", "--no-figures", "--quiet"])
         assert code == 0, name
-        plans.append(json.loads((tmp_path / name / "plan.json").read_text()))
+        plans.append(json.loads((tmp_path / f"plan_{name}" / "plan.json").read_text()))
     own, foreign = plans
     assert foreign["scan"]["patient_id"] == "FOREIGN-1"
     assert foreign["scan"]["spacing_mm"] == pytest.approx([0.3, 0.3, 0.35], abs=1e-5)
     assert foreign["passed"] and all(c["pass"] for c in foreign["checks"])
     assert [c["id"] for c in foreign["checks"]] == [c["id"] for c in own["checks"]]
-    d = curve_distance(Fpsm.load(tmp_path / "own" / "fpsm.json"),
-                       Fpsm.load(tmp_path / "foreign" / "fpsm.json"))
+    d = curve_distance(Fpsm.load(tmp_path / "plan_own" / "fpsm.json"),
+                       Fpsm.load(tmp_path / "plan_foreign" / "fpsm.json"))
     assert d.max() < 0.5e-3, d
     for so, sf in zip(own["sites"], foreign["sites"], strict=True):
         assert so["placement"]["valid"] and sf["placement"]["valid"]
