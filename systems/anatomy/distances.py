@@ -141,9 +141,9 @@ def bone_margin(volume, entry, apex, radius: float, threshold_hu: float, *,
     thickness is that distance less one step and the voxel's half-diagonal (the boundary may
     lie anywhere in the voxel), so the value never exceeds the true lateral thickness. On each
     side the bone may begin up to ``slope`` below the crest (a sloping ridge): the points above
-    that side's first point in bone, and within a voxel's half-diagonal below it (the top is
-    known to a voxel: a ray along a flat top at its level runs on its voxels' edges), are not
-    measured (the apex ring always is); a side whose bone begins deeper, or a
+    that side's first point in bone, and within a voxel's diagonal below it (the top is known
+    to a voxel's diagonal: a ray along a flat top at its level runs on its blurred edge), are
+    not measured (the apex ring always is); a side whose bone begins deeper, or a
     surface point outside bone below it, or the apex outside bone, gives a negative value
     (dehiscence, perforation). With ``facial`` (a direction, m-frame; its part across the axis
     is taken) only the directions within :data:`FACIAL_HALF_ANGLE` of it count: the facial
@@ -185,10 +185,11 @@ def bone_margin(volume, entry, apex, radius: float, threshold_hu: float, *,
     in_bone_surface = bone[:, :, 0]  # (R, A)
     side_starts = np.where(in_bone_surface.any(axis=0), np.argmax(in_bone_surface, axis=0),
                            rings)  # per direction, the first ring in bone
-    # a side's bone top is known to a voxel: the rings within a half-diagonal below its first
-    # point in bone run along a flat top's voxel edges, so the side is measured from below them
+    # a side's bone top is known to a voxel's diagonal (the voxel, and the blur of a
+    # reconstructed or resampled series): the rings within it below the side's first point in
+    # bone run along a flat top's blurred edge, so the side is measured from below them
     start_depth = ring_depth[np.minimum(side_starts, rings - 1)]
-    above = ring_depth[:, None] < start_depth[None, :] + half_diag
+    above = ring_depth[:, None] < start_depth[None, :] + 2 * half_diag
     above &= (np.arange(rings)[:, None] < rings - 1)  # the apex ring is always measured
     deep = ring_depth[np.minimum(side_starts, rings - 1)] - crest > slope
     measured = ~above | deep[None, :]

@@ -185,3 +185,23 @@ def test_the_facial_wall_of_an_anterior_maxillary_implant_needs_1_5_mm():
     (f,) = [c for c in checks if c["id"] == "anatomy.facial_bone_anterior_maxilla"
             and c["site"] == "11"]
     assert f["limit"] == 1.5e-3 and f["value"] == facial
+
+
+def test_an_oblique_crest_leaves_a_thin_wedge_that_fails():
+    """The 1.2 mm cylinder's crest cut at 38 deg across the implant (bone only under the plane
+    z = -tan(38 deg) y, mm): on its low side (+y) the implant enters bone through a wedge
+    thinner than 1 mm for its first 0.8 mm (1.28 mm per mm deeper), which the rings below the
+    side's first point in bone (0.47 mm apart) and a voxel's diagonal meet: the rule fails
+    (measured 0.65 mm; 1.10 mm with the crest flat)."""
+    vol = _socket_volume(1.2)
+    n = vol.hu.shape
+    k, j = np.meshgrid(np.arange(n[0]), np.arange(n[1]), indexing="ij")
+    z = vol.affine[2, 3] + vol.affine[2, 2] * k
+    y = vol.affine[1, 3] + vol.affine[1, 1] * j
+    above = (z > -np.tan(np.deg2rad(38.0)) * y)[..., None] & (vol.hu > 300)
+    vol.hu[above] = 40.0
+    margin, _ = d.bone_margin(vol, np.array([0.0, 0, 1e-3]), np.array([0.0, 0, -9e-3]), 2e-3,
+                              300.0)
+    assert margin < 0.8e-3
+    (c,) = anatomy_checks({"sites": [{"site": "36", "bone_margin_m": margin}]})
+    assert not c["pass"]
