@@ -16,6 +16,9 @@ three places show the same numbers:
   above 0) under registration error (the plan's registration Monte Carlo); the feed's
   duration (the simulated feeds, the longest); the smallest joint headroom per joint; the
   capability check's answer as it reports it;
+- with anatomy (canals, a CBCT), each clinical distance of the implant (analyses.checks.
+  ANATOMY_RULES: canal, adjacent tooth, nearest other implant, bone around it, facial bone in
+  the anterior maxilla) with its bound and pass/fail, from the plan's anatomy checks;
 - a verdict in words: ``refused`` (a check of the site failed: which), ``tight`` (every check
   passes but a margin is below :data:`TIGHT`: what to check) or ``ready``, with the next step.
 """
@@ -106,10 +109,33 @@ def surgeon_card(plan: dict, k: int) -> dict:
         "joint_headroom_limit": head.get("limit_rad"),
         "reach": {key: val for key, val in (s.get("capability") or {}).items()
                   if isinstance(val, (bool, int, float, str))},
+        "anatomy": _anatomy(checks),
         "units": "m, rad, s",
     }
     card.update(_verdict(checks + case_checks, tissue, card["arm_to_patient"], arm, room, card))
     return card
+
+
+ANATOMY_LABELS = {"anatomy.canal_distance": "implant to canal",
+                  "anatomy.adjacent_tooth_distance": "implant to adjacent tooth",
+                  "anatomy.inter_implant_distance": "implant to nearest implant",
+                  "anatomy.bone_around_implant": "bone around implant",
+                  "anatomy.facial_bone_anterior_maxilla": "facial bone (anterior maxilla)"}
+
+
+def _anatomy(checks: list[dict]) -> list[dict] | None:
+    """The site's anatomical distances (its ``anatomy.*`` checks, in analyses.checks.
+    ANATOMY_RULES' order): id, label, value (m; None where not finite), bound (m, a minimum)
+    and pass; None when the plan checked no anatomy at the site."""
+    from implantplan.analyses.checks import ANATOMY_RULES
+
+    out = []
+    for _, check_id, _, _ in ANATOMY_RULES:
+        c = _check(checks, check_id)
+        if c is not None:
+            out.append({"id": check_id, "label": ANATOMY_LABELS[check_id], "value": c["value"],
+                        "limit": c["limit"], "pass": c["pass"]})
+    return out or None
 
 
 def _arm_to_patient(feed: dict | None) -> dict | None:
@@ -196,6 +222,11 @@ def card_lines(card: dict) -> list[tuple[str, str]]:
          + f" deg (limit {np.rad2deg(card['joint_headroom_limit']):.0f})"),
         ("reach", ", ".join(f"{k.replace('_', ' ')}: {_word(v)}" for k, v in reach.items())),
     ]
+    for a in card.get("anatomy") or ():
+        value = "not measured" if a["value"] is None or not np.isfinite(a["value"]) else \
+            f"{1e3 * a['value']:.2f} mm"
+        lines.append((a["label"], f"{value} (>= {1e3 * a['limit']:.1f} mm): "
+                      + ("pass" if a["pass"] else "FAIL")))
     return lines
 
 

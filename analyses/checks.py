@@ -160,23 +160,33 @@ def feeding_checks(site: str, runs: list[dict]) -> list[dict]:
 def anatomy_checks(anatomy: dict | None) -> list[dict]:
     """The clinical distances of each planned implant (analyses.pipeline.anatomy_stage), each
     against its bound (systems.anatomy.distances): canal >= 2 mm, adjacent tooth >= 1.5 mm,
-    the nearest other implant >= 3 mm; a distance the case gives no anatomy for is not
-    checked. The bone around the implant is measured (``bone_margin_m``) but not yet a check:
-    the phantom's bone is too crude to validate the rule's measurement against."""
+    the nearest other implant >= 3 mm, the bone around the implant >= 1 mm (the CBCT's
+    bone: the least lateral thickness from the crest to the apex, ``bone_margin_m``) and, at a
+    site of the anterior maxilla, >= 1.5 mm on its facial side; a distance the case gives no
+    anatomy for (no canal, no CBCT, one implant) is not checked."""
     from implantplan.systems.anatomy import distances as d
 
     if anatomy is None:
         return []
-    rules = (("canal_clearance_m", "anatomy.canal_distance", "implant to the nerve canal",
-              d.MIN_CANAL),
-             ("tooth_clearance_m", "anatomy.adjacent_tooth_distance",
-              "implant to an adjacent tooth (CBCT)", d.MIN_TOOTH),
-             ("nearest_implant_m", "anatomy.inter_implant_distance",
-              "implant to the nearest other implant", d.MIN_INTER_IMPLANT))
     out = []
     for rec in anatomy["sites"]:
-        for key, check_id, name, limit in rules:
+        for key, check_id, name, limit in ANATOMY_RULES:
             if rec.get(key) is not None:
-                out.append(check(check_id, name, rec[key], limit, unit="m", upper=False,
-                                 site=rec["site"]))
+                out.append(check(check_id, name, rec[key], getattr(d, limit), unit="m",
+                                 upper=False, site=rec["site"]))
     return out
+
+
+# (anatomy record key, check id, name, bound in systems.anatomy.distances): the card's order
+ANATOMY_RULES = (
+    ("canal_clearance_m", "anatomy.canal_distance", "implant to the nerve canal", "MIN_CANAL"),
+    ("tooth_clearance_m", "anatomy.adjacent_tooth_distance",
+     "implant to an adjacent tooth (CBCT)", "MIN_TOOTH"),
+    ("nearest_implant_m", "anatomy.inter_implant_distance",
+     "implant to the nearest other implant", "MIN_INTER_IMPLANT"),
+    ("bone_margin_m", "anatomy.bone_around_implant", "bone around the implant (CBCT)",
+     "MIN_BONE"),
+    ("facial_bone_margin_m", "anatomy.facial_bone_anterior_maxilla",
+     "facial bone around the implant, anterior maxilla (CBCT)",
+     "MIN_BONE_FACIAL_ANTERIOR_MAXILLA"),
+)

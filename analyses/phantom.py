@@ -62,7 +62,8 @@ def make_phantom_folder(case_file: Path, out: Path, *, voxel_mm: float, noise_hu
         raise InputError("--seed", f"expected a number >= 0, got {seed}")
     X_WC = center_frame(case.center.origin, case.center.z_axis, x_hint=case.center.x_hint)
     phantom = make_phantom(scanned, spec, seed=seed, close_cuts=case.mesh.close_open_cuts,
-                           implants=planned_implants(case, X_WC, scanned=True))
+                           implants=planned_implants(case, X_WC, scanned=True),
+                           implant_radii=[s.implant_diameter / 2 for s in case.sites])
     with out_folder.staged(out, "phantom") as staging:
         files = write_ct_series(staging / "ct", phantom.hu, phantom.origin * 1e3,
                                 [voxel_mm] * 3, ids=SeriesIds(patient_id=f"PHANTOM-{case.name}"))

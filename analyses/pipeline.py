@@ -624,7 +624,8 @@ def anatomy_stage(case: Case, fit: FitResult) -> dict | None:
     case has anatomy (``anatomy:`` canals) or a CBCT (teeth and bone): each implant (its entry
     at the site, its apex ``placed_length`` deeper, ``implant_diameter`` wide) is taken back
     to the scan's frame as scanned (the inverse of the jaw-opening map), where the CBCT and the
-    canals are; distances in m. None without anatomy."""
+    canals are; distances in m. With a CBCT, the bone around each implant (and, at a site of
+    the anterior maxilla, on its facial side). None without anatomy."""
     if case.anatomy is None and fit.cbct is None:
         return None
     entry_s, apex_s = planned_implants(case, fit.fpsm.X_WC, scanned=True)
@@ -648,6 +649,11 @@ def anatomy_stage(case: Case, fit: FitResult) -> dict | None:
                                                                radius[k], teeth_hu)
             rec["bone_margin_m"], rec["bone_crest_depth_m"] = anatomy.bone_margin(
                 vol, entry_s[k], apex_s[k], radius[k], case.mesh.bone_threshold_hu)
+            if anatomy.anterior_maxilla(s.name):  # facial: out of the mouth, Center +Z (the
+                # upper jaw does not move with the jaw-opening model)
+                rec["facial_bone_margin_m"] = anatomy.bone_margin(
+                    vol, entry_s[k], apex_s[k], radius[k], case.mesh.bone_threshold_hu,
+                    facial=fit.fpsm.X_WC[:3, 2])[0]
         sites.append(rec)
     return {"frame": "the scan's frame as scanned (a CBCT's patient frame, LPS), m",
             "teeth_threshold_hu": teeth_hu, "bone_threshold_hu": case.mesh.bone_threshold_hu,

@@ -10,7 +10,8 @@ sqrt(3) h / 2 of its centre, so that much is taken off every distance measured t
 (the verdict may refuse a few safe implants, never accept one too close).
 
 Clinical bounds (DESIGN.md section 4): >= 2 mm implant to the inferior alveolar canal, >= 1.5 mm
-to an adjacent tooth, >= 3 mm between implants, >= 1 mm of bone around the implant.
+to an adjacent tooth, >= 3 mm between implants, >= 1 mm of bone around the implant, >= 1.5 mm on
+its facial side in the anterior maxilla (FDI 11-13, 21-23; deciduous 51-53, 61-63).
 """
 
 from __future__ import annotations
@@ -21,6 +22,15 @@ MIN_CANAL = 2.0e-3
 MIN_TOOTH = 1.5e-3
 MIN_INTER_IMPLANT = 3.0e-3
 MIN_BONE = 1.0e-3
+MIN_BONE_FACIAL_ANTERIOR_MAXILLA = 1.5e-3
+ANTERIOR_MAXILLA = frozenset({11, 12, 13, 21, 22, 23, 51, 52, 53, 61, 62, 63})  # FDI
+FACIAL_HALF_ANGLE = np.deg2rad(60.0)  # the facial side: directions within this of facial
+
+
+def anterior_maxilla(site: str) -> bool:
+    """True when a site's name is an FDI tooth number of the anterior maxilla (incisors and
+    canines of the upper jaw), where the facial bone's bound is 1.5 mm."""
+    return str(site).isdigit() and int(site) in ANTERIOR_MAXILLA
 
 
 def point_cylinder_distance(points, apex, entry, radius: float) -> np.ndarray:
@@ -120,7 +130,7 @@ def tooth_clearance(volume, entry, apex, radius: float, threshold_hu: float, *,
 
 def bone_margin(volume, entry, apex, radius: float, threshold_hu: float, *,
                 rings: int = 20, around: int = 24, reach: float = 6e-3,
-                slope: float = 2e-3) -> tuple[float, float]:
+                slope: float = 2e-3, facial=None) -> tuple[float, float]:
     """Bone around the implant (m): its least lateral bone thickness, and the depth (m) below
     the entry where bone begins (the crest).
 
@@ -131,9 +141,13 @@ def bone_margin(volume, entry, apex, radius: float, threshold_hu: float, *,
     thickness is that distance less one step and the voxel's half-diagonal (the boundary may
     lie anywhere in the voxel), so the value never exceeds the true lateral thickness. On each
     side the bone may begin up to ``slope`` below the crest (a sloping ridge): the points above
-    that side's first point in bone are not measured; a side whose bone begins deeper, or a
+    that side's first point in bone, and within a voxel's diagonal below it (the top is known
+    to a voxel's diagonal: a ray along a flat top at its level runs on its blurred edge), are
+    not measured (the apex ring always is); a side whose bone begins deeper, or a
     surface point outside bone below it, or the apex outside bone, gives a negative value
-    (dehiscence, perforation). Returns (-inf, nan) when the axis never enters bone."""
+    (dehiscence, perforation). With ``facial`` (a direction, m-frame; its part across the axis
+    is taken) only the directions within :data:`FACIAL_HALF_ANGLE` of it count: the facial
+    wall. Returns (-inf, nan) when the axis never enters bone."""
     h_max = float(np.max(volume.spacing)) * 1e-3
     step = 0.5 * float(np.min(volume.spacing)) * 1e-3
     half_diag = np.sqrt(3) / 2 * h_max
@@ -171,11 +185,21 @@ def bone_margin(volume, entry, apex, radius: float, threshold_hu: float, *,
     in_bone_surface = bone[:, :, 0]  # (R, A)
     side_starts = np.where(in_bone_surface.any(axis=0), np.argmax(in_bone_surface, axis=0),
                            rings)  # per direction, the first ring in bone
-    above = np.arange(rings)[:, None] < side_starts[None, :]
+    # a side's bone top is known to a voxel's diagonal (the voxel, and the blur of a
+    # reconstructed or resampled series): the rings within it below the side's first point in
+    # bone run along a flat top's blurred edge, so the side is measured from below them
+    start_depth = ring_depth[np.minimum(side_starts, rings - 1)]
+    above = ring_depth[:, None] < start_depth[None, :] + 2 * half_diag
+    above &= (np.arange(rings)[:, None] < rings - 1)  # the apex ring is always measured
     deep = ring_depth[np.minimum(side_starts, rings - 1)] - crest > slope
     measured = ~above | deep[None, :]
     thickness = np.where(above & deep[None, :], -half_diag, thickness)
     thickness = np.where(measured, thickness, np.inf)
+    if facial is not None:
+        f = np.asarray(facial, float) - (np.asarray(facial, float) @ axis) * axis
+        f /= np.linalg.norm(f)
+        thickness = np.where((radial @ f >= np.cos(FACIAL_HALF_ANGLE))[None, :], thickness,
+                             np.inf)
     apex_out = not bool(is_bone(apex[None])[0])
     value = float(np.min(thickness)) - (half_diag if apex_out else 0.0)
     return (min(value, -half_diag) if apex_out else value), crest

@@ -16,7 +16,12 @@ transform, scipy): mucosa/soft tissue 0-2 mm, cortical bone 2-3.5 mm, cancellous
 the jaws: 2-22 mm under each column's cavity floor and over its roof (vertical depth; crude
 anatomy, soft tissue elsewhere); teeth (enamel) in the tissue within 6 mm of the wall along the
 dental arch band near the occlusal plane, except the tooth each planned implant replaces; the
-mandibular canal a tube of soft-tissue HU through the bone, 5 mm under each implant's apex. Then
+alveolar ridge of each planned implant (:func:`alveolar_ridge`: bone 2.5 mm beyond the implant
+all round, a crest across its axis under 1 mm or more of mucosa; the band alone follows the
+scan's walls, and the default sites sit on a wall 38 deg off their implants' axes, where it left
+a wedge of bone at the crest and none beside the apex past the cavity's edge: -0.35 mm of bone
+around both, measured); the mandibular canal a tube of soft-tissue HU through the bone, 5 mm
+under each implant's apex. Then
 optionally a Gaussian blur (``psf_sigma``, voxels; off by default: it rounds creases and moves
 the iso-surface there by up to 0.1 mm at 1 mm voxels, measured) and Gaussian noise
 (``noise_hu``), seeded.
@@ -40,6 +45,12 @@ HU = {"air": -1000.0, "soft_tissue": 40.0, "cancellous": 500.0, "cortical": 1500
 MAX_VOXELS = 60_000_000  # float32 work arrays: about 1.5 GB at the bound
 MUCOSA_MM, CORTEX_MM, BONE_MM, TOOTH_MM = 2.0, 3.5, 22.0, 6.0
 TOOTH_GAP = 5.5e-3  # no tooth within this of an implant's entry along x: the missing tooth
+# the alveolar ridge around each planned implant (alveolar_ridge): its wall beyond the implant
+# (a molar ridge of 9 mm for a 4 mm implant), mucosa over its crest, how far the crest may slope
+# around the implant, how far it reaches under the apex, its cortex, sectors around the axis
+RIDGE_WALL_MM, RIDGE_MUCOSA_MM, RIDGE_SLOPE_MM, RIDGE_BELOW_APEX_MM = 2.5, 1.0, 1.5, 3.0
+CORTEX_WALL_MM, RIDGE_SECTORS = 1.5, 24
+IMPLANT_RADIUS = 2e-3
 
 
 @dataclass(frozen=True)
@@ -144,11 +155,64 @@ def distance_to_polyline(points: np.ndarray, polyline: np.ndarray) -> np.ndarray
     return np.min(np.linalg.norm(points[:, None, :] - closest, axis=2), axis=1)
 
 
+def alveolar_ridge(hu_t, tissue, depth, x, y, z, entry, apex, radius: float, *, teeth) -> dict:
+    """Write the alveolar ridge of one planned implant into ``hu_t`` [k, j, i] (in place; see
+    the module docstring): bone within ``radius + RIDGE_WALL_MM`` of the implant's axis, from
+    ``RIDGE_BELOW_APEX_MM`` under the apex up to a crest across the axis (flat along each
+    direction out of the axis), per sector of ``RIDGE_SECTORS`` around it the shallowest level
+    whose ridge lies ``RIDGE_MUCOSA_MM`` or more under the air surface (and at most
+    ``RIDGE_SLOPE_MM`` above the deepest sector's), continuous around the axis; the jaw
+    band's bone above the crest inside the ridge's radius is soft tissue; cortical within
+    ``CORTEX_WALL_MM`` of the ridge's sides and crest. Returns the crest depths (m, along the
+    axis from the entry) per sector."""
+    axis = (entry - apex) / np.linalg.norm(entry - apex)
+    length = float(np.linalg.norm(entry - apex))
+    R = radius + RIDGE_WALL_MM * 1e-3
+    reach = np.maximum(np.abs(axis) * length, 0) + R + 2e-3
+    lo, hi = np.minimum(entry, apex) - reach, np.maximum(entry, apex) + reach
+    sl = [slice(np.searchsorted(c, lo[d]), np.searchsorted(c, hi[d], side="right"))
+          for d, c in ((2, z), (1, y), (0, x))]
+    K, J, I = np.meshgrid(z[sl[0]], y[sl[1]], x[sl[2]], indexing="ij")
+    rel = np.stack([I - entry[0], J - entry[1], K - entry[2]], axis=-1)
+    a = -(rel @ axis)  # depth along the axis below the entry
+    lateral = rel + a[..., None] * axis
+    rho = np.linalg.norm(lateral, axis=-1)
+    helper = np.array([1.0, 0, 0]) if abs(axis[0]) < 0.9 else np.array([0, 1.0, 0])
+    u = np.cross(axis, helper)
+    u /= np.linalg.norm(u)
+    w = np.cross(axis, u)
+    phi = np.arctan2(lateral @ w, lateral @ u) % (2 * np.pi)
+    width = 2 * np.pi / RIDGE_SECTORS
+    sector = np.floor(phi / width).astype(int) % RIDGE_SECTORS
+    inside = (rho <= R) & (a <= length + RIDGE_BELOW_APEX_MM * 1e-3)
+    shallow = inside & (depth[sl[0], sl[1], sl[2]] < RIDGE_MUCOSA_MM * 1e-3) & (a <= length)
+    h = float(x[1] - x[0])
+    crest = np.zeros(RIDGE_SECTORS)
+    np.maximum.at(crest, sector[shallow], a[shallow] + h)
+    crest = np.maximum(crest, crest.max() - RIDGE_SLOPE_MM * 1e-3)
+    # continuous around the axis (a step between sectors is a ledge a ray can run along): the
+    # larger of each sector's and its neighbours', interpolated between the sectors' middles,
+    # so no point lies higher than its own sector asks
+    crest = np.maximum.reduce([np.roll(crest, -1), crest, np.roll(crest, 1)])
+    middles = (np.arange(-1, RIDGE_SECTORS + 1) + 0.5) * width
+    top = np.interp(phi, middles, np.concatenate([crest[-1:], crest, crest[:1]]))
+    view = hu_t[sl[0], sl[1], sl[2]]
+    bone_hu = (view == HU["cancellous"]) | (view == HU["cortical"])
+    view[inside & (a < top) & bone_hu] = HU["soft_tissue"]  # no band bone above the crest
+    ridge = inside & (a >= top) & tissue[sl[0], sl[1], sl[2]]
+    cortex = (R - rho < CORTEX_WALL_MM * 1e-3) | (a - top < CORTEX_WALL_MM * 1e-3)
+    view[ridge & ~cortex] = HU["cancellous"]
+    view[ridge & cortex] = HU["cortical"]
+    teeth[sl[0], sl[1], sl[2]] &= ~ridge
+    return crest
+
+
 def make_phantom(scan: trimesh.Trimesh, spec: PhantomSpec, *, seed, implants=None,
-                 close_cuts: bool = True) -> Phantom:
+                 implant_radii=None, close_cuts: bool = True) -> Phantom:
     """The synthetic CBCT of a cavity mesh (m, mesh frame = LPS); see the module docstring.
     ``implants`` (entries, apexes: (n, 3) each, m, mesh frame as scanned) places a canal under
-    each implant's apex and leaves its tooth out (the tooth the implant replaces)."""
+    each implant's apex, its alveolar ridge around it (``implant_radii``, m; default 2 mm) and
+    leaves its tooth out (the tooth the implant replaces)."""
     from scipy import ndimage
 
     mesh = close_open_cuts(scan)[0] if close_cuts else scan
@@ -188,6 +252,10 @@ def make_phantom(scan: trimesh.Trimesh, spec: PhantomSpec, *, seed, implants=Non
         teeth &= ~((np.abs(x - e[0]) < TOOTH_GAP)[None, None, :]
                    & (np.sign(y) == np.sign(e[1]))[None, :, None])
     hu_t[teeth] = HU["enamel"]
+    radii = np.full(len(entries), IMPLANT_RADIUS) if implant_radii is None else \
+        np.asarray(implant_radii, float)
+    for e, a, r in zip(entries, apexes, radii, strict=True):
+        alveolar_ridge(hu_t, tissue, depth, x, y, z, e, a, r, teeth=teeth)
     canals = canal_polylines(apexes, spec)
     for c in canals:
         lo = np.searchsorted(x, c[:, 0].min() - 2 * spec.canal_radius)

@@ -116,3 +116,47 @@ def test_thin_margins_make_a_passing_site_tight_with_what_to_check(plan):
 def test_tooth_numbers_are_fdi_only():
     assert [cards.tooth_fdi(n) for n in ("36", "46", "11", "85", "19", "90", "site1")] == \
         [36, 46, 11, 85, None, None, None]
+
+
+def test_the_card_carries_the_anatomy_with_bounds_and_verdicts(plan):
+    """A mesh plan without anatomy has none on its cards; the same plan with the anatomy checks
+    of a CBCT case at site 36 (a canal 1.5 mm away: fails) shows each distance with its bound
+    and pass/fail in the card, in its lines (report, studio) and in plan.json's schema."""
+    from implantplan import models
+    from implantplan.analyses.checks import anatomy_checks
+
+    assert all(c["anatomy"] is None for c in plan["cards"])
+    assert not any(label.startswith(("implant to", "bone around"))
+                   for label, _ in cards.card_lines(plan["cards"][0]))
+    p = copy.deepcopy(plan)
+    p["checks"] += anatomy_checks({"sites": [
+        {"site": "36", "canal_clearance_m": 1.5e-3, "tooth_clearance_m": 4.0e-3,
+         "nearest_implant_m": 24.7e-3, "bone_margin_m": 1.85e-3},
+        {"site": "46", "canal_clearance_m": 2.8e-3, "tooth_clearance_m": 3.9e-3,
+         "nearest_implant_m": 24.7e-3, "bone_margin_m": -float("inf")}]})
+    c36, c46 = (cards.surgeon_card(p, k) for k in range(2))
+    assert [(a["id"], a["value"], a["limit"], a["pass"]) for a in c36["anatomy"]] == [
+        ("anatomy.canal_distance", 1.5e-3, 2e-3, False),
+        ("anatomy.adjacent_tooth_distance", 4.0e-3, 1.5e-3, True),
+        ("anatomy.inter_implant_distance", 24.7e-3, 3e-3, True),
+        ("anatomy.bone_around_implant", 1.85e-3, 1e-3, True)]
+    assert c36["verdict"] == "refused" and "implant to the nerve canal" in c36["next_step"]
+    lines = dict(cards.card_lines(c36))
+    assert lines["implant to canal"] == "1.50 mm (>= 2.0 mm): FAIL"
+    assert lines["implant to adjacent tooth"] == "4.00 mm (>= 1.5 mm): pass"
+    assert lines["implant to nearest implant"] == "24.70 mm (>= 3.0 mm): pass"
+    assert lines["bone around implant"] == "1.85 mm (>= 1.0 mm): pass"
+    assert dict(cards.card_lines(c46))["bone around implant"] == \
+        "not measured (>= 1.0 mm): FAIL"  # the axis never entered bone
+    page = html.unescape(render(p | {"cards": [c36, c46]}, {}))
+    assert "1.50 mm (>= 2.0 mm): FAIL" in page and "1.85 mm (>= 1.0 mm): pass" in page
+    jsonschema = pytest.importorskip("jsonschema")
+    schema = json.loads(models.model_path("schemas/plan.schema.json").read_text())
+    from implantplan.systems.files import to_jsonable  # as plan.json is written
+
+    p["cards"] = json.loads(json.dumps(to_jsonable([c36, c46]), allow_nan=False))
+    assert p["cards"][1]["anatomy"][3]["value"] is None
+    jsonschema.Draft202012Validator(schema).validate(p)
+    p["cards"][0]["anatomy"][0]["limit"] = None
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.Draft202012Validator(schema).validate(p)

@@ -125,3 +125,83 @@ def test_tooth_clearance_is_never_above_the_exact_distance_on_random_implants():
     assert len(slack) > 50 and false_safe == 0
     # tight: within two voxel half-diagonals (0.87 mm at 0.5 mm voxels) of the exact distance
     assert max(slack) < np.sqrt(3) * 0.5e-3 + 1e-9
+
+
+def _socket_volume(wall_mm, *, offset_mm=(0.0, 0.0), radius_mm=2.0, h=0.075):
+    """A bone cylinder (1000 HU) along z, its crest flat at z = 0, 14 mm deep, of radius
+    ``radius_mm + wall_mm`` around (0, 0) in soft tissue (40 HU), air above z = 2 mm; h mm voxels
+    (a voxel is bone when its centre is). The implant of ``radius_mm`` sits around
+    ``offset_mm``: the wall is ``wall_mm`` thick on the side it moves away from."""
+    R = radius_mm + wall_mm + np.hypot(*offset_mm)
+    xy = np.arange(-R - 1.0, R + 1.0 + 1e-9, h)
+    z = np.arange(-15.0, 3.0 + 1e-9, h)
+    Z, Y, X = np.meshgrid(z, xy, xy, indexing="ij")
+    hu = np.where(Z > 2.0, -1000.0, 40.0)
+    hu[(np.hypot(X, Y) <= R) & (Z <= 0) & (Z >= -14)] = 1000.0
+    affine = np.diag([h, h, h, 1.0])
+    affine[:3, 3] = [xy[0], xy[0], z[0]]
+    return Volume(hu.astype(np.float32), affine)
+
+
+@pytest.mark.parametrize(("wall_mm", "passes"), [(0.8, False), (1.2, True)])
+def test_bone_around_an_implant_in_a_bone_cylinder(wall_mm, passes):
+    """A 4 mm implant, 10 mm long from 1 mm above the crest, centred in a bone cylinder whose
+    wall is 0.8 mm (fails the 1 mm rule) or 1.2 mm (passes) thick."""
+    vol = _socket_volume(wall_mm)
+    entry, apex = np.array([0.0, 0, 1e-3]), np.array([0.0, 0, -9e-3])
+    margin, crest = d.bone_margin(vol, entry, apex, 2e-3, 300.0)
+    assert crest == pytest.approx(1e-3, abs=0.1e-3)
+    # conservative (never above the wall), within a half step and two voxel half-diagonals of
+    # it (one subtracted, one where the nearest voxel's centre may lie): measured 0.69 / 1.10 mm
+    h = 0.075e-3
+    assert wall_mm * 1e-3 - h / 2 - np.sqrt(3) * h - 1e-9 <= margin <= wall_mm * 1e-3
+    (c,) = anatomy_checks({"sites": [{"site": "36", "bone_margin_m": margin,
+                                      "bone_crest_depth_m": crest}]})
+    assert c["id"] == "anatomy.bone_around_implant" and c["pass"] is passes
+    assert c["limit"] == 1e-3 and c["bound"] == "min" and c["value"] == margin
+
+
+def test_the_facial_wall_of_an_anterior_maxillary_implant_needs_1_5_mm():
+    """The implant 1.8 mm off the cylinder's centre towards +y: its wall is 1.2 mm thick on the
+    +y (facial) side and 4.8 mm on the other: 1 mm around it passes, 1.5 mm facial fails at
+    tooth 11 and is not asked at 36; facing -y the facial wall is the thick one."""
+    vol = _socket_volume(1.2, offset_mm=(0.0, 1.8))
+    entry, apex = np.array([0.0, 1.8e-3, 1e-3]), np.array([0.0, 1.8e-3, -9e-3])
+    around, _ = d.bone_margin(vol, entry, apex, 2e-3, 300.0)
+    facial, _ = d.bone_margin(vol, entry, apex, 2e-3, 300.0, facial=[0.0, 1.0, 0.2])
+    other, _ = d.bone_margin(vol, entry, apex, 2e-3, 300.0, facial=[0.0, -1.0, 0.0])
+    assert 1.0e-3 < around <= 1.2e-3 and facial == around
+    assert other > 3.0e-3  # the thick side: 4.8 mm across, less the 60 deg sector's slant
+    assert d.anterior_maxilla("11") and d.anterior_maxilla("23") and not d.anterior_maxilla("36")
+    assert not d.anterior_maxilla("14") and not d.anterior_maxilla("site-a")
+    checks = anatomy_checks({"sites": [
+        {"site": "11", "bone_margin_m": around, "facial_bone_margin_m": facial},
+        {"site": "21", "bone_margin_m": other, "facial_bone_margin_m": other}]})
+    got = {(c["site"], c["id"]): c["pass"] for c in checks}
+    assert got == {("11", "anatomy.bone_around_implant"): True,
+                   ("11", "anatomy.facial_bone_anterior_maxilla"): False,
+                   ("21", "anatomy.bone_around_implant"): True,
+                   ("21", "anatomy.facial_bone_anterior_maxilla"): True}
+    (f,) = [c for c in checks if c["id"] == "anatomy.facial_bone_anterior_maxilla"
+            and c["site"] == "11"]
+    assert f["limit"] == 1.5e-3 and f["value"] == facial
+
+
+def test_an_oblique_crest_leaves_a_thin_wedge_that_fails():
+    """The 1.2 mm cylinder's crest cut at 38 deg across the implant (bone only under the plane
+    z = -tan(38 deg) y, mm): on its low side (+y) the implant enters bone through a wedge
+    thinner than 1 mm for its first 0.8 mm (1.28 mm per mm deeper), which the rings below the
+    side's first point in bone (0.47 mm apart) and a voxel's diagonal meet: the rule fails
+    (measured 0.65 mm; 1.10 mm with the crest flat)."""
+    vol = _socket_volume(1.2)
+    n = vol.hu.shape
+    k, j = np.meshgrid(np.arange(n[0]), np.arange(n[1]), indexing="ij")
+    z = vol.affine[2, 3] + vol.affine[2, 2] * k
+    y = vol.affine[1, 3] + vol.affine[1, 1] * j
+    above = (z > -np.tan(np.deg2rad(38.0)) * y)[..., None] & (vol.hu > 300)
+    vol.hu[above] = 40.0
+    margin, _ = d.bone_margin(vol, np.array([0.0, 0, 1e-3]), np.array([0.0, 0, -9e-3]), 2e-3,
+                              300.0)
+    assert margin < 0.8e-3
+    (c,) = anatomy_checks({"sites": [{"site": "36", "bone_margin_m": margin}]})
+    assert not c["pass"]
