@@ -163,18 +163,28 @@ def planned_cavity(case_path, name: str, progress: Progress) -> tuple[Cavity, fl
     valid placement keeps its best feed), and the case's margin (m)."""
     from implantplan.analyses import pipeline
     from implantplan.analyses.case import load_case
-    from implantplan.systems.placement.tool_clearance import feed_depth
 
     case = load_case(case_path)
     progress.say(f"{name}: fit and placement")
     fit = pipeline.fit_stage(case)
     placements = pipeline.placement_stage(case, fit, require_valid=False)
-    exact = fit.exact(case.mesh.close_open_cuts)  # the one the placement verified against
+    return _cavity(name, case, fit, [(site.name, p.X_CT)
+                                     for site, p in zip(case.sites, placements, strict=True)])
+
+
+def _cavity(name: str, case, fit, targets) -> tuple[Cavity, float]:
+    """The cavity of a fitted case with its feeds at the feeding targets ``targets`` ((site
+    name, X_CT) per site), against the exact reference the placement verified against; the
+    case's margin (m)."""
+    from implantplan.systems.placement.tool_clearance import feed_depth
+
     feeds = []
-    for site, p in zip(case.sites, placements, strict=True):
-        depth = {n: float(feed_depth(fit.fpsm, p.X_CT, instrument(n))) for n in INSTRUMENTS}
-        feeds.append((site.name, np.asarray(p.X_CT, dtype=float), depth))
-    return Cavity(name, exact, feeds), float(case.safety.clearance_margin)
+    for site_name, X_CT in targets:
+        X_CT = np.asarray(X_CT, dtype=float)
+        depth = {n: float(feed_depth(fit.fpsm, X_CT, instrument(n))) for n in INSTRUMENTS}
+        feeds.append((site_name, X_CT, depth))
+    return (Cavity(name, fit.exact(case.mesh.close_open_cuts), feeds),
+            float(case.safety.clearance_margin))
 
 
 def default_cavity(progress: Progress, plan=None) -> tuple[Cavity, float]:
@@ -188,7 +198,6 @@ def default_cavity(progress: Progress, plan=None) -> tuple[Cavity, float]:
     from implantplan.analyses import pipeline
     from implantplan.analyses.case import load_case
     from implantplan.systems.files import read_json
-    from implantplan.systems.placement.tool_clearance import feed_depth
 
     folder = Path(plan)
     data = read_json(folder / "plan.json", kind="plan", field="--plan")
@@ -198,14 +207,8 @@ def default_cavity(progress: Progress, plan=None) -> tuple[Cavity, float]:
                          "there")
     case = load_case(source)
     progress.say(f"default: fit of {source.name}, the placements of {folder}")
-    fit = pipeline.fit_stage(case)
-    feeds = []
-    for site in data["sites"]:
-        X_CT = np.asarray(site["feeding_target"]["X_CT"], dtype=float)
-        depth = {n: float(feed_depth(fit.fpsm, X_CT, instrument(n))) for n in INSTRUMENTS}
-        feeds.append((site["name"], X_CT, depth))
-    return (Cavity("default", fit.exact(case.mesh.close_open_cuts), feeds),
-            float(case.safety.clearance_margin))
+    return _cavity("default", case, pipeline.fit_stage(case),
+                   [(s["name"], s["feeding_target"]["X_CT"]) for s in data["sites"]])
 
 
 def cohort_cavity(name: str, progress: Progress) -> tuple[Cavity, float]:

@@ -189,8 +189,7 @@ def screened(values, P: np.ndarray, *, stride: int = SCREEN_STRIDE):
         known[todo] = True
         left = np.maximum.accumulate(np.where(known, index, -1))
         right = np.minimum.accumulate(np.where(known, index, n)[::-1])[::-1]
-        L = np.maximum(c[left] - (P - P[left]), c[np.minimum(right, n - 1)]
-                       - (P[np.minimum(right, n - 1)] - P))
+        L = np.maximum(c[left] - (P - P[left]), c[right] - (P[right] - P))  # first, last known
         smallest = c[known].min()
         todo = np.flatnonzero(~known & ((L <= 0.0) | (L < smallest)))
     c[~known] = L[~known]
@@ -256,11 +255,12 @@ def swept_clearance(tc: TeleopCase, exact: ExactClearance, q, *, substeps: int =
             S = S + head_paths(tc, q, t, head, exact.reach, S)
     if at_poses is not None:
         c, known = np.asarray(at_poses, dtype=float), np.ones(q.shape[0], dtype=bool)
-    elif screen and q.shape[0] >= 2:
-        X = tool_poses(tc, q, head=head, t=t)
-        c, known = screened(lambda k: exact(X[k]), np.r_[0.0, np.cumsum(S)])
     else:
-        c, known = exact(tool_poses(tc, q, head=head, t=t)), np.ones(q.shape[0], dtype=bool)
+        X = tool_poses(tc, q, head=head, t=t)
+        if screen and q.shape[0] >= 2:
+            c, known = screened(lambda k: exact(X[k]), np.r_[0.0, np.cumsum(S)])
+        else:
+            c, known = exact(X), np.ones(q.shape[0], dtype=bool)
     if q.shape[0] < 2:
         return Swept(c, float(c.min()), float(c.min()), np.zeros(0), 0, known)
     ends = np.minimum(c[:-1], c[1:])
