@@ -1254,6 +1254,55 @@ def boundary_poses(
     return np.concatenate(out)[:n]
 
 
+def corner_poses(cmap: CapabilityMap, n: int, *, seed: int, far: float = 0.8) -> np.ndarray:
+    """``n`` poses (n, 4, 4) at the far ends of the map's certified-yes cells, where a
+    first-order certificate errs first: a certified (voxel, direction, roll bin) drawn at random,
+    the position at a corner of the voxel (70 %) or anywhere in it, the z axis on the edge of
+    the direction's region of the query's lookup (found by bisection along a random great circle
+    from d; ``far`` of the poses there, the rest inside), the roll at an edge of its bin (80 %,
+    per :func:`roll_bins`) or anywhere in it. Every pose is one the map's own lookup sends to a
+    certified cell (a few on a lookup border may land in the neighbouring cell: the map's
+    :meth:`CapabilityMap.verdict` says which). Empty when nothing is certified. Same seed, same
+    poses."""
+    rng = np.random.default_rng(seed)
+    k, r_n = cmap.params.directions, cmap.params.rolls
+    yes = np.unpackbits(cmap.yes_bits, axis=1, count=k * r_n).reshape(-1, k, r_n)
+    rows, ds, rs = np.nonzero(yes)
+    if rows.size == 0:
+        return np.zeros((0, 4, 4))
+    pick = rng.integers(rows.size, size=n)
+    row, d, r = rows[pick], ds[pick], rs[pick]
+    h = 0.5 * cmap.params.voxel * (1.0 - 1e-9)
+    c = cmap.centres()[row]
+    corner = c + h * rng.choice([-1.0, 1.0], size=(n, 3))
+    p = np.where(rng.random((n, 1)) < 0.7, corner, c + rng.uniform(-h, h, (n, 3)))
+    D = cmap.directions[d]
+    u = rng.normal(size=(n, 3))
+    u -= np.sum(u * D, axis=1, keepdims=True) * D
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    lo, hi = np.zeros(n), np.full(n, np.pi / 2)
+    for _ in range(30):  # the largest angle along u whose z the lookup still sends to d
+        mid = 0.5 * (lo + hi)
+        z = np.cos(mid)[:, None] * D + np.sin(mid)[:, None] * u
+        same = cmap.nearest_direction(z) == d
+        lo, hi = np.where(same, mid, lo), np.where(same, hi, mid)
+    t = np.where(rng.random(n) < far, lo, lo * rng.random(n))
+    z = np.cos(t)[:, None] * D + np.sin(t)[:, None] * u
+    x_d = frames_from_z(D)[:, :, 0]  # roll_bins' reference: F(d) carried from d to z
+    a = np.cross(D, z)
+    x_ref = x_d + np.cross(a, x_d) + np.cross(a, np.cross(a, x_d)) / (
+        1.0 + np.sum(D * z, axis=1, keepdims=True))
+    y_ref = np.cross(z, x_ref)
+    edge = rng.choice([-0.4999, 0.4999], size=n)
+    g = 2.0 * np.pi * (r + np.where(rng.random(n) < 0.8, edge, rng.uniform(-0.5, 0.5, n))) / r_n
+    x = np.cos(g)[:, None] * x_ref + np.sin(g)[:, None] * y_ref
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    X = np.zeros((n, 4, 4))
+    X[:, :3, :3] = np.stack([x, np.cross(z, x), z], axis=-1)
+    X[:, :3, 3], X[:, 3, 3] = p, 1.0
+    return X
+
+
 def some_roll_truth(params: MapParams, poses: np.ndarray):
     if params.rolls == 1:
         X_FT = params.X_FT_matrix()
