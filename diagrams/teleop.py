@@ -22,8 +22,10 @@ systems.teleop.command_limits).
 
 One diagram per case: the master motion is a parameter of the context
 (systems.teleop.master_device.MasterDevice.set_motion), so ``simulate(teleop, T, motion=m)``
-replays any
-run on the same diagram (diagrams.feeding runs K feeds this way).
+replays any run on the same diagram (diagrams.feeding runs K feeds this way); so are the head's
+motion and the tracker's noise seed (``head_motion=``, ``tracker_seed=``; HeadMotionSource.
+set_motion, Tracker.set_seed). :func:`final_pose` is a run reduced to the tool's last pose, on
+a diagram that may log the joints alone (``logs=False``): a study of many runs.
 
 Two modes:
 
@@ -417,6 +419,7 @@ def build_teleop(
     guard: GuardSettings | None = None,
     limits: CommandLimits | None = None,
     insertion: VirtualFixture | None = None,
+    logs: bool = True,
 ) -> Teleop:
     """Wire the feeding diagram of one case; it replays any master motion.
 
@@ -454,6 +457,8 @@ def build_teleop(
         insertion: the insertion fixture (Center frame; systems.teleop.insertion.
             insertion_fixture): the implant's insertion after the feed (module notes); None: the
             feed alone.
+        logs: False logs the joints alone (what :func:`final_pose` reads; :func:`simulate`
+            needs every log): a study of many runs that keeps only the placed pose.
     """
     if mode not in MODES:
         raise InputError("mode", f"expected kinematic or dynamic, got {mode!r}")
@@ -636,20 +641,23 @@ def build_teleop(
         q_port = plant.get_state_output_port(arm)
         builder.Connect(q_port, tool_pose.GetInputPort("q"))
 
-    loggers = {
-        "q": LogVectorOutput(q_port, builder, period),
-        "barrier": LogVectorOutput(supervisor.GetOutputPort("barrier"), builder, period),
-        "command": LogVectorOutput(limiter.GetOutputPort("command_status"), builder, period),
-        "safety": LogVectorOutput(estimator.GetOutputPort("safety"), builder, estimator_period),
-        "alarm": LogVectorOutput(estimator.GetOutputPort("alarm"), builder, estimator_period),
-    }
-    if head_guard is not None:
+    loggers = {"q": LogVectorOutput(q_port, builder, period)}
+    if logs:
+        loggers.update({
+            "barrier": LogVectorOutput(supervisor.GetOutputPort("barrier"), builder, period),
+            "command": LogVectorOutput(limiter.GetOutputPort("command_status"), builder, period),
+            "safety": LogVectorOutput(estimator.GetOutputPort("safety"), builder,
+                                      estimator_period),
+            "alarm": LogVectorOutput(estimator.GetOutputPort("alarm"), builder,
+                                     estimator_period),
+        })
+    if head_guard is not None and logs:
         loggers["guard"] = LogVectorOutput(head_guard.GetOutputPort("mode"), builder, period)
         loggers["margin_extra"] = LogVectorOutput(head_guard.GetOutputPort("margin_extra"),
                                                   builder, period)
         loggers["lost"] = LogVectorOutput(trk.GetOutputPort("lost"), builder, period)
         loggers["tracked"] = LogVectorOutput(frame.GetOutputPort("H"), builder, period)
-    if phase is not None:
+    if phase is not None and logs:
         loggers["phase"] = LogVectorOutput(phase.GetOutputPort("phase"), builder, period)
     visualizer = None
     if meshcat is not None:
@@ -736,20 +744,27 @@ class FeedRun:
         return float(self.t_safety[hit[0]]) if hit.size else None
 
 
-def simulate(teleop: Teleop, duration: float, *, motion: MasterMotion | None = None,
-             recording: bool = False, insertion_start: float | None = None) -> FeedRun:
-    """Run the diagram from the case's start for ``duration`` seconds of simulated time, in a
-    fresh context replaying ``motion`` (None: the motion the diagram was built with); an
-    insertion diagram starts inserting at ``insertion_start`` (s; None: never)."""
+def _run(teleop: Teleop, duration: float, *, motion, insertion_start, head_motion,
+         tracker_seed, recording: bool = False):
+    """Advance the diagram from the case's start to ``duration`` in a fresh context with the
+    run's parameters (:func:`simulate`); returns (context, wall s of AdvanceTo)."""
     if not np.isfinite(duration) or duration <= 0:
         raise InputError("duration", f"expected a duration > 0 s, got {duration}")
+    if head_motion is not None and teleop.head is None:
+        raise InputError("head_motion", "expected a diagram built with a head motion")
+    if tracker_seed is not None and teleop.tracker is None:
+        raise InputError("tracker_seed", "expected a diagram built with a tracker")
+    if insertion_start is not None and teleop.phase is None:
+        raise InputError("insertion_start", "expected a diagram built with an insertion")
     simulator = Simulator(teleop.diagram)
     context = simulator.get_mutable_context()
     if motion is not None:
         teleop.master.set_motion(context, motion)
+    if head_motion is not None:
+        teleop.head.set_motion(context, head_motion)
+    if tracker_seed is not None:
+        teleop.tracker.set_seed(context, tracker_seed)
     if insertion_start is not None:
-        if teleop.phase is None:
-            raise InputError("insertion_start", "expected a diagram built with an insertion")
         teleop.phase.set_start(context, insertion_start)
     diffik_context = teleop.diffik.GetMyMutableContextFromRoot(context)
     teleop.diffik.GetInputPort("use_robot_state").FixValue(diffik_context, False)
@@ -763,19 +778,67 @@ def simulate(teleop: Teleop, duration: float, *, motion: MasterMotion | None = N
     if recording and teleop.visualizer is not None:
         teleop.visualizer.StopRecording()
         teleop.visualizer.PublishRecording()
+    return context, wall
+
+
+def _tool_in_center(teleop: Teleop, context, q: np.ndarray, t: np.ndarray):
+    """(X_WE (n, 4, 4), X_CT (n, 4, 4), head D (n, 4, 4) or None) of logged joints ``q``
+    (n, 6) at times ``t``: the tool in the TRUE (moving) head's Center, D(t) X_WCenter."""
+    case = teleop.case
+    X_WE = case.X_WE(q)  # the tool's poses from the logged joints (no pose logger in the loop)
+    if teleop.head is None:
+        return X_WE, np.linalg.inv(case.X_WCenter) @ X_WE @ X_ET, None
+    head_D = teleop.head.motion_in(context).D(t)
+    return X_WE, np.linalg.inv(case.X_WCenter) @ invert(head_D) @ X_WE @ X_ET, head_D
+
+
+@dataclass(frozen=True)
+class FinalPose:
+    """Where one run left the tool (:func:`final_pose`)."""
+
+    X_CT: np.ndarray  # (4, 4) the measured Tool pose in Center at the last log
+    t: float  # s, the time of that log
+    sim_seconds: float
+    wall_seconds: float
+
+
+def final_pose(teleop: Teleop, duration: float, *, motion: MasterMotion | None = None,
+               insertion_start: float | None = None, head_motion: HeadMotion | None = None,
+               tracker_seed: int | None = None) -> FinalPose:
+    """The run of :func:`simulate` (the same arguments) reduced to the tool's last logged pose:
+    ``simulate(...).X_CT[-1]``, the same numbers, from a diagram built with or without
+    ``logs``."""
+    context, wall = _run(teleop, duration, motion=motion, insertion_start=insertion_start,
+                         head_motion=head_motion, tracker_seed=tracker_seed)
+    log = teleop.loggers["q"].FindLog(context)
+    t = log.sample_times()[-1:].copy()
+    q = log.data()[:6, -1:].T.copy()
+    X_CT = _tool_in_center(teleop, context, q, t)[1][0]
+    return FinalPose(X_CT=X_CT, t=float(t[0]), sim_seconds=float(context.get_time()),
+                     wall_seconds=wall)
+
+
+def simulate(teleop: Teleop, duration: float, *, motion: MasterMotion | None = None,
+             recording: bool = False, insertion_start: float | None = None,
+             head_motion: HeadMotion | None = None, tracker_seed: int | None = None) -> FeedRun:
+    """Run the diagram from the case's start for ``duration`` seconds of simulated time, in a
+    fresh context replaying ``motion`` (None: the motion the diagram was built with); an
+    insertion diagram starts inserting at ``insertion_start`` (s; None: never). The head's
+    motion and the tracker's noise seed are parameters of the context too: ``head_motion`` and
+    ``tracker_seed`` replace the diagram's for this run (None: the diagram's)."""
+    if "safety" not in teleop.loggers:
+        raise InputError("logs", "expected a diagram built with logs=True (final_pose reads "
+                         "one without)")
+    context, wall = _run(teleop, duration, motion=motion, insertion_start=insertion_start,
+                         head_motion=head_motion, tracker_seed=tracker_seed,
+                         recording=recording)
     logs = {k: v.FindLog(context) for k, v in teleop.loggers.items()}
     safety = logs["safety"].data().T
     q = logs["q"].data().T[:, :6].copy()
     # the fixture's violation at every logged pose, offline (one batched call, not in the loop)
     case = teleop.case
-    X_WE = case.X_WE(q)  # the tool's poses from the logged joints (no pose logger in the loop)
     t_log = logs["q"].sample_times().copy()
-    head_D = None
-    if teleop.head is not None:  # the tool in the TRUE (moving) head: Center = D(t) X_WCenter
-        head_D = teleop.head.motion.D(t_log)
-        X_CT = np.linalg.inv(case.X_WCenter) @ invert(head_D) @ X_WE @ X_ET
-    else:
-        X_CT = np.linalg.inv(case.X_WCenter) @ X_WE @ X_ET
+    X_WE, X_CT, head_D = _tool_in_center(teleop, context, q, t_log)
     violation, angle_violation = case.vf.body_violation(X_CT)
     extra = {}
     if "phase" in logs:

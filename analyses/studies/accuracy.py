@@ -58,7 +58,7 @@ import numpy as np
 
 from implantplan.analyses.case import Site as CaseSite
 from implantplan.diagrams import feeding as F
-from implantplan.diagrams.teleop import TeleopCase, build_teleop, simulate
+from implantplan.diagrams.teleop import TeleopCase, build_teleop, final_pose
 from implantplan.systems import seeds
 from implantplan.systems.errors import InputError
 from implantplan.systems.frames import invert
@@ -286,7 +286,12 @@ def run_key(sources, i: int, tracker: TrackerParams | None = None) -> tuple:
 
 
 class Simulations:
-    """The simulated placements of a site, cached by what changes them (:func:`run_key`)."""
+    """The simulated placements of a site, cached by what changes them (:func:`run_key`).
+
+    One diagram per (mode, camera settings but the seed): the master motion, the head motion
+    and the tracker's noise seed are parameters of a run's context
+    (diagrams.teleop.final_pose), so a worker builds each diagram once and replays every run
+    of the row on it."""
 
     def __init__(self, site: Site, seed: int):
         self.site, self.seed = site, seed
@@ -296,11 +301,17 @@ class Simulations:
         self.sim_seconds = 0.0
         self.wall_seconds = 0.0
 
-    def _diagram(self, mode: str):
-        if mode not in self._diagrams:
-            self._diagrams[mode] = build_teleop(self.site.case, mode=mode,
-                                                insertion=self._fixture)
-        return self._diagrams[mode]
+    def _diagram(self, mode: str, camera: TrackerParams | None):
+        """The diagram of ``mode`` (with the head and ``camera`` when given: its seed and the
+        head's motion are set per run); only the joints logged."""
+        key = (mode, None if camera is None else dataclasses.replace(camera, seed=0))
+        if key not in self._diagrams:
+            head = {}
+            if camera is not None:
+                head = {"head_motion": HeadMotion.make("still"), "tracker": key[1]}
+            self._diagrams[key] = build_teleop(self.site.case, mode=mode,
+                                               insertion=self._fixture, logs=False, **head)
+        return self._diagrams[key]
 
     def simulate(self, key: tuple) -> tuple[np.ndarray, float, float]:
         """(placed Tool pose (4, 4) in the true moving head's Center, registration not yet
@@ -309,6 +320,7 @@ class Simulations:
         motion, t_ins, T = procedure(self.site, max(i, 0), self.seed,
                                      operator="operator" in loop)
         tc = self.site.case
+        head = {}
         if trk is not None:
             if "head" in loop:
                 hm = HeadMotion.make(HEAD_PROFILES[i % len(HEAD_PROFILES)],
@@ -316,13 +328,10 @@ class Simulations:
                                      pivot=tc.X_WCenter[:3, 3])
             else:
                 hm = HeadMotion.make("still")
-            trk = dataclasses.replace(trk, seed=seeds.seed(self.seed, TRACKER, max(i, 0)))
-            teleop = build_teleop(tc, mode=mode, insertion=self._fixture, head_motion=hm,
-                                  tracker=trk)
-        else:
-            teleop = self._diagram(mode)
-        run = simulate(teleop, T, motion=motion, insertion_start=t_ins)
-        return run.X_CT[-1], run.sim_seconds, run.wall_seconds
+            head = {"head_motion": hm, "tracker_seed": seeds.seed(self.seed, TRACKER, max(i, 0))}
+        run = final_pose(self._diagram(mode, trk), T, motion=motion, insertion_start=t_ins,
+                         **head)
+        return run.X_CT, run.sim_seconds, run.wall_seconds
 
     def fill(self, keys, pool=None, index: int = 0, progress=None) -> None:
         """Simulate the ``keys`` not cached yet (in ``pool``'s processes when given)."""

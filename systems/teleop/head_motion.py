@@ -285,8 +285,11 @@ class HeadMotionSource(LeafSystem):
     origin] in World. ``D_W`` (abstract RigidTransform): the displacement D(t) itself (what moves
     the head's geometry in the scene).
 
+    The motion is a parameter of the context (``motion`` by default; :meth:`set_motion`), so
+    one diagram replays runs with other head motions.
+
     Args:
-        motion: the profile.
+        motion: the profile (the default context's).
         X_WHead0: (4, 4) the head frame at rest (t = 0).
     """
 
@@ -294,6 +297,7 @@ class HeadMotionSource(LeafSystem):
         super().__init__()
         self._motion = motion
         self._X0 = np.asarray(X_WHead0, dtype=float)
+        self._param = self.DeclareAbstractParameter(AbstractValue.Make(motion))
         self._X = self.DeclareAbstractOutputPort(
             "X_WHead", lambda: AbstractValue.Make(RigidTransform()), self._calc_pose)
         self.DeclareVectorOutputPort("V_WHead", 6, self._calc_velocity)
@@ -302,15 +306,31 @@ class HeadMotionSource(LeafSystem):
 
     @property
     def motion(self) -> HeadMotion:
+        """The motion of the default context."""
         return self._motion
 
+    def set_motion(self, context, motion: HeadMotion) -> None:
+        """Replay ``motion`` in ``context`` (this system's context or a diagram's root one)."""
+        if not isinstance(motion, HeadMotion):
+            raise InputError("head_motion", f"expected a HeadMotion, got {type(motion).__name__}")
+        own = self.GetMyMutableContextFromRoot(context)
+        own.get_mutable_abstract_parameter(self._param).set_value(motion)
+
+    def motion_in(self, context) -> HeadMotion:
+        """The motion ``context`` replays (this system's context or the root)."""
+        return self.GetMyContextFromRoot(context).get_abstract_parameter(self._param).get_value()
+
+    def _motion_of(self, context) -> HeadMotion:
+        return context.get_abstract_parameter(self._param).get_value()
+
     def _calc_pose(self, context, value):
-        X = self._motion.D(context.get_time())[0] @ self._X0
+        X = self._motion_of(context).D(context.get_time())[0] @ self._X0
         value.set_value(RigidTransform(RotationMatrix(X[:3, :3]), X[:3, 3]))
 
     def _calc_displacement(self, context, value):
-        X = self._motion.D(context.get_time())[0]
+        X = self._motion_of(context).D(context.get_time())[0]
         value.set_value(RigidTransform(RotationMatrix(X[:3, :3]), X[:3, 3]))
 
     def _calc_velocity(self, context, output: BasicVector):
-        output.SetFromVector(self._motion.velocity(context.get_time(), self._X0[:3, 3])[0])
+        output.SetFromVector(self._motion_of(context).velocity(context.get_time(),
+                                                               self._X0[:3, 3])[0])

@@ -502,7 +502,9 @@ class SafetySupervisor(LeafSystem):
 
     Each update costs one clearance query (the commanded next pose: the barrier at the pose
     itself is kept from the previous update); only a command that fails the discrete barrier
-    condition pays for the gradient (12 poses) and the check of the projection (4 poses).
+    condition pays for the gradient (12 poses) and the check of the projection (4 poses). A
+    released update costs none: h is left out of the state (NaN) and computed at the desired
+    pose when the ``barrier`` port is evaluated, or by the first update after the release.
 
     Args:
         fpsm: the surrogate model (Center frame).
@@ -566,6 +568,7 @@ class SafetySupervisor(LeafSystem):
         self._X_TE = invert(self._X_ET)
         # buffers of the compiled slow path (no allocation per step)
         self._X0, self._Xn, self._work, self._X1 = np.eye(4), np.eye(4), np.eye(4), np.eye(4)
+        self._Xh = np.eye(4)  # the pose of :meth:`_h_of_state`
         self._Vc, self._Vo, self._g = np.zeros(6), np.zeros(6), np.zeros(6)
         self._V_in = self.DeclareVectorInputPort("V_WE_corrected", 6)
         self._margin_in = self.DeclareVectorInputPort("margin_extra", 1) if margin_input else None
@@ -613,6 +616,9 @@ class SafetySupervisor(LeafSystem):
                 AngleAxis(angle, w_C * (self._period / angle))).matrix()
         released = self._release is not None and self._release.Eval(context)[0] > 0.5
         X1 = self._X1
+        if not released and np.isnan(x[18]):  # back from a release: h where the pose is now
+            x = x.copy()
+            x[18] = self._h_of_state(x)
         if self._enabled and not released:
             bar = self._barrier
             margin = bar.margin
@@ -643,8 +649,16 @@ class SafetySupervisor(LeafSystem):
             new[18] = min(h, FAR)
             return
         _advance(x, V_W, dR, self._period, self._R_CW, self._X_WC, self._X_TE, new, X1)
-        new[18] = min(self._clear.one(X1), FAR) if released else min(x[18], FAR)
+        # released: h at the new pose is not needed to integrate; the barrier port computes it
+        # if asked (NaN: not computed yet), the first update after the release before using it
+        new[18] = np.nan if released else min(x[18], FAR)
         new[33:39], new[39] = 0.0, GRADIENT_REUSE  # not at the wall
+
+    def _h_of_state(self, x) -> float:
+        """min(h, FAR) at the desired pose of state ``x`` (its Tool pose in Center)."""
+        X = self._Xh
+        X[:3, :3], X[:3, 3] = x[3:12].reshape(3, 3), x[:3]
+        return min(self._clear.one(X), FAR)
 
     def _calc_desired(self, context, value):
         x = context.get_discrete_state(0).get_value()
@@ -654,7 +668,11 @@ class SafetySupervisor(LeafSystem):
         output.set_value(context.get_discrete_state(0).get_value()[12:18])
 
     def _calc_barrier(self, context, output: BasicVector):
-        output.set_value(context.get_discrete_state(0).get_value()[18:21])
+        x = context.get_discrete_state(0).get_value()
+        if np.isnan(x[18]):  # released: h computed on demand (the update skips it)
+            output.set_value(np.array([self._h_of_state(x), x[19], x[20]]))
+        else:
+            output.set_value(x[18:21])
 
     def set_desired_pose(self, context, X_WE) -> None:
         """Reset the desired pose (e.g. to the tool's pose at the start of a run)."""

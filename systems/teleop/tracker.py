@@ -200,23 +200,27 @@ def predict_pose(rows: np.ndarray, t: float, gates: tuple[float, float], *,
     return X
 
 
-def camera_noise(params: TrackerParams, ticks) -> np.ndarray:
+def camera_noise(params: TrackerParams, ticks, seed: int | None = None) -> np.ndarray:
     """(n, 6) [rotation vector (rad); translation (m)] noise of camera ticks ``ticks`` (n,):
-    a pure function of (seed, tick), so every run with the same seed sees the same noise."""
+    a pure function of (seed, tick), so every run with the same seed sees the same noise
+    (``seed``: instead of ``params.seed``)."""
     ticks = np.atleast_1d(np.asarray(ticks, dtype=np.int64))
+    seed = params.seed if seed is None else seed
     out = np.empty((ticks.shape[0], 6))
     for i, k in enumerate(ticks):
-        z = np.random.default_rng([params.seed, int(k)]).standard_normal(6)
+        z = np.random.default_rng([seed, int(k)]).standard_normal(6)
         out[i, :3] = params.noise_angle * z[:3]
         out[i, 3:] = params.noise_position * z[3:]
     return out
 
 
-def camera_samples(params: TrackerParams, X_true: np.ndarray, ticks) -> np.ndarray:
+def camera_samples(params: TrackerParams, X_true: np.ndarray, ticks,
+                   seed: int | None = None) -> np.ndarray:
     """(n, 4, 4) noisy measurements of the true poses ``X_true`` (n, 4, 4) at ``ticks``: the
-    noise rotation applied about the pose's origin, then the noise translation."""
+    noise rotation applied about the pose's origin, then the noise translation (``seed``:
+    instead of ``params.seed``)."""
     X = np.array(X_true, dtype=float, copy=True).reshape(-1, 4, 4)
-    nz = camera_noise(params, ticks)
+    nz = camera_noise(params, ticks, seed)
     X[:, :3, :3] = rotations(nz[:, :3]) @ X[:, :3, :3]
     X[:, :3, 3] += nz[:, 3:]
     return X
@@ -246,6 +250,9 @@ class Tracker(LeafSystem):
 
     State: a ring of the last ``RING`` samples [time, good, p (3), R (9)], written at the
     camera's rate, and the newest good available sample (held through long dropouts).
+
+    The noise's seed is a parameter of the context (``params.seed`` by default;
+    :meth:`set_seed`), so one diagram replays runs with other noise.
     """
 
     def __init__(self, params: TrackerParams, X_WHead0):
@@ -260,6 +267,7 @@ class Tracker(LeafSystem):
         # [ring (RING x 14), next slot, held: the newest good available sample (14)]
         self.DeclareDiscreteState(np.concatenate([np.tile(row, RING), [0.0], row]))
         self.DeclarePeriodicDiscreteUpdateEvent(params.period, 0.0, self._update)
+        self._seed = self.DeclareAbstractParameter(AbstractValue.Make(int(params.seed)))
         self._X_in = self.DeclareAbstractInputPort("X_WHead",
                                                    AbstractValue.Make(RigidTransform()))
         self.DeclareAbstractOutputPort("X_WHead_estimated",
@@ -278,7 +286,20 @@ class Tracker(LeafSystem):
 
     @property
     def params(self) -> TrackerParams:
+        """The camera's settings (the seed: the default context's)."""
         return self._p
+
+    def set_seed(self, context, seed: int) -> None:
+        """Draw the noise from ``seed`` in ``context`` (this system's context or a diagram's
+        root one)."""
+        if not isinstance(seed, int | np.integer):
+            raise InputError("tracker.seed", f"expected an integer, got {seed!r}")
+        own = self.GetMyMutableContextFromRoot(context)
+        own.get_mutable_abstract_parameter(self._seed).set_value(int(seed))
+
+    def seed_in(self, context) -> int:
+        """The noise's seed in ``context`` (this system's or the root)."""
+        return self.GetMyContextFromRoot(context).get_abstract_parameter(self._seed).get_value()
 
     def _update(self, context, discrete_state):
         x = context.get_discrete_state(0).get_value().copy()
@@ -288,7 +309,8 @@ class Tracker(LeafSystem):
             x[-14:] = good[-1]
         tick = int(round(t * self._p.rate))
         X = self._X_in.Eval(context).GetAsMatrix4()
-        Xm = camera_samples(self._p, X[None], [tick])[0]
+        Xm = camera_samples(self._p, X[None], [tick],
+                            context.get_abstract_parameter(self._seed).get_value())[0]
         slot = int(x[14 * RING]) % RING
         good = 0.0 if self._p.missing(t)[0] else 1.0
         x[14 * slot:14 * slot + 14] = np.concatenate([[t, good], Xm[:3, 3], Xm[:3, :3].ravel()])

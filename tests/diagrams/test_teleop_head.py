@@ -9,7 +9,7 @@ from pydrake.systems.analysis import Simulator
 
 from implantplan.analyses.studies.head_motion import cylinder_cavity, measure, path_distance
 from implantplan.diagrams import feeding as S
-from implantplan.diagrams.teleop import X_ET, build_teleop, simulate
+from implantplan.diagrams.teleop import X_ET, build_teleop, final_pose, simulate
 from implantplan.systems.errors import InputError
 from implantplan.systems.teleop.head_guard import GuardSettings, guard_step, head_speed
 from implantplan.systems.teleop.head_motion import HeadMotion
@@ -185,3 +185,31 @@ def test_seeded_runs_repeat(setup):
     a = simulate(build_teleop(case, head_motion=hm, tracker=trk), 3.0, motion=m)
     b = simulate(build_teleop(case, head_motion=hm, tracker=trk), 3.0, motion=m)
     np.testing.assert_array_equal(a.q, b.q)
+
+
+def test_one_diagram_replays_other_heads_and_tracker_seeds(setup):
+    """The head's motion and the tracker's seed are parameters of a run's context: a diagram
+    built with a still head and seed 0, given a swallow and seed 9, runs exactly as the diagram
+    built with them; final_pose is simulate's last pose, also on a diagram that logs only the
+    joints (which simulate refuses)."""
+    case, inst, motions, stills, cavity = setup
+    m = motions[0]
+    hm = _head(case, "swallow", 2)
+    trk = dataclasses.replace(TrackerParams(), seed=9)
+    T = 1.5
+    built = simulate(build_teleop(case, head_motion=hm, tracker=trk), T, motion=m)
+    generic = build_teleop(case, head_motion=HeadMotion.make("still"), tracker=TrackerParams())
+    replayed = simulate(generic, T, motion=m, head_motion=hm, tracker_seed=9)
+    np.testing.assert_array_equal(replayed.q, built.q)
+    np.testing.assert_array_equal(replayed.X_CT, built.X_CT)
+    assert not np.array_equal(simulate(generic, T, motion=m).q, built.q)
+    lean = build_teleop(case, head_motion=HeadMotion.make("still"), tracker=TrackerParams(),
+                        logs=False)
+    for teleop in (generic, lean):
+        end = final_pose(teleop, T, motion=m, head_motion=hm, tracker_seed=9)
+        np.testing.assert_array_equal(end.X_CT, built.X_CT[-1])
+        assert end.t == built.t[-1] and end.sim_seconds == pytest.approx(T)
+    with pytest.raises(InputError, match="logs"):
+        simulate(lean, T, motion=m)
+    with pytest.raises(InputError, match="head_motion"):
+        final_pose(build_teleop(case), T, motion=m, head_motion=hm)

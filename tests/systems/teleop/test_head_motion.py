@@ -95,6 +95,26 @@ def test_source_outputs_the_moved_head_frame():
     np.testing.assert_allclose(V, m.velocity(t, X0[:3, 3])[0], atol=1e-12)
 
 
+def test_the_motion_is_a_parameter_of_the_context():
+    """One source replays another motion in a context (set_motion): the outputs are the other
+    motion's, the default context keeps the built one, and a non-motion is refused."""
+    built, other = (HeadMotion.make("swallow", seed=s, pivot=PIVOT) for s in (1, 2))
+    src = HeadMotionSource(built, np.eye(4))
+    ctx, default = src.CreateDefaultContext(), src.CreateDefaultContext()
+    src.set_motion(ctx, other)
+    assert src.motion_in(ctx).seed == 2 and src.motion_in(default).seed == 1
+    t = other.params["onset_s"] + 0.3
+    for c in (ctx, default):
+        c.SetTime(t)
+    np.testing.assert_array_equal(src.GetOutputPort("X_WHead").Eval(ctx).GetAsMatrix4(),
+                                  other.D(t)[0])
+    np.testing.assert_array_equal(src.GetOutputPort("D_W").Eval(default).GetAsMatrix4(),
+                                  built.D(t)[0])
+    assert not np.allclose(other.D(t), built.D(t))
+    with pytest.raises(InputError, match="head_motion"):
+        src.set_motion(ctx, "swallow")
+
+
 def test_a_turn_is_about_the_neck_at_its_drawn_rate():
     """The turn profile: points on the neck's axis stay put, the head turns by its drawn angle
     about that axis (either way over seeds), the peak angular rate is the drawn one."""

@@ -196,6 +196,33 @@ def test_the_system_alone_filters_and_integrates():
     np.testing.assert_allclose(xd3[:3] - pose(x0)[:3, 3], [0.04 * DT, 0, 0], atol=1e-15)
 
 
+def test_released_the_barrier_is_computed_only_when_asked():
+    """While released (the insertion) the update integrates without the barrier and leaves h
+    out of the state; the barrier port computes it at the desired pose when asked, and the
+    first update after the release computes it before filtering: the barrier then holds from
+    the pose the release left, as it did when every released update stored h."""
+    X_WC = transform(np.eye(3), [0.5, 0.2, 0.8])
+    X_WE = X_WC @ pose(x_at(0.004))
+    system = SafetySupervisor(CYL, X_WC, X_WE, TOOL, barrier=BAR, period=DT,
+                              release_input=True)
+    context = system.CreateDefaultContext()
+    system.GetInputPort("barrier_release").FixValue(context, [1.0])
+    system.GetInputPort("V_WE_corrected").FixValue(context, [0, 0, 0, 0.04, 0, 0])  # at the wall
+    for _ in range(20):  # 4 mm towards the wall: to 0.1 mm of it, unfiltered
+        context.SetDiscreteState(0, system.EvalUniquePeriodicDiscreteUpdate(context)
+                                 .get_vector(0).get_value().copy())
+    x = context.get_discrete_state(0).get_value()
+    assert np.isnan(x[18])
+    X_CT = np.eye(4)
+    X_CT[:3, :3], X_CT[:3, 3] = x[3:12].reshape(3, 3), x[:3]
+    h = system.GetOutputPort("barrier").Eval(context)[0]
+    assert h == clear().one(X_CT) and h < BAR.margin
+    system.GetInputPort("barrier_release").FixValue(context, [0.0])
+    xd = system.EvalUniquePeriodicDiscreteUpdate(context).get_vector(0).get_value()
+    # below the margin: no further approach (the discrete condition from the h computed)
+    assert xd[20] == 1.0 and xd[18] >= h - 1e-8 and np.isfinite(xd[18])
+
+
 def test_every_integrated_step_keeps_the_command_limits():
     """Whatever reaches it (the fixture's return, the guard's retreat, a supervisor used alone),
     the supervisor integrates at most the limits' speed, direction kept, and holds on a

@@ -55,6 +55,34 @@ def test_noise_is_seeded_and_has_the_stated_spread():
     assert np.mean(err > p.error_bound()) < 0.01
 
 
+def test_the_noise_seed_is_a_parameter_of_the_context():
+    """A tracker built with one seed and given another in its context (set_seed) samples
+    exactly what a tracker built with the other seed samples; the default context keeps its
+    own."""
+    motion = HeadMotion.make("breathing", seed=3, pivot=PIVOT)
+    X0 = np.eye(4)
+    X0[:3, 3] = PIVOT
+
+    def samples(params, seed=None, t_end=0.3):
+        builder = DiagramBuilder()
+        src = builder.AddSystem(HeadMotionSource(motion, X0))
+        trk = builder.AddSystem(Tracker(params, X0))
+        builder.Connect(src.GetOutputPort("X_WHead"), trk.GetInputPort("X_WHead"))
+        sim = Simulator(builder.Build())
+        ctx = sim.get_mutable_context()
+        if seed is not None:
+            trk.set_seed(ctx, seed)
+        assert trk.seed_in(ctx) == (params.seed if seed is None else seed)
+        sim.AdvanceTo(t_end)
+        return trk.GetMyContextFromRoot(ctx).get_discrete_state(0).get_value().copy()
+
+    reseeded = samples(TrackerParams(seed=1), seed=2)
+    np.testing.assert_array_equal(reseeded, samples(TrackerParams(seed=2)))
+    assert not np.array_equal(reseeded, samples(TrackerParams(seed=1)))
+    with pytest.raises(InputError, match="tracker.seed"):
+        Tracker(TrackerParams(), X0).set_seed(None, 1.5)
+
+
 @pytest.mark.parametrize("rate,latency", [(30.0, 0.02), (60.0, 0.05), (40.0, 0.03)])
 def test_estimate_lags_by_the_latency_at_the_camera_rate(rate, latency):
     motion = HeadMotion.make("startle", seed=1, pivot=PIVOT)
