@@ -7,6 +7,8 @@ Monogram notation: ``X_AB`` is the pose of frame B in frame A as a 4x4 homogeneo
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from implantplan.systems.errors import InputError
@@ -65,7 +67,10 @@ def rpy_to_rotation(rpy) -> np.ndarray:
 
 
 def rotations(w: np.ndarray) -> np.ndarray:
-    """Rotation matrices (n, 3, 3) of rotation vectors w (n, 3) (Rodrigues, vectorized)."""
+    """Rotation matrices (n, 3, 3) of rotation vectors w (n, 3) (Rodrigues, vectorized; one
+    vector in scalar arithmetic, the same formula: the control loop's case)."""
+    if w.shape == (1, 3):
+        return _rotation_one(float(w[0, 0]), float(w[0, 1]), float(w[0, 2]))[None]
     th = np.linalg.norm(w, axis=1)
     k = w / np.where(th > 0, th, 1.0)[:, None]
     K = np.zeros((len(w), 3, 3))
@@ -73,6 +78,19 @@ def rotations(w: np.ndarray) -> np.ndarray:
     K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
     s, c = np.sin(th)[:, None, None], np.cos(th)[:, None, None]
     return np.eye(3) + s * K + (1 - c) * (K @ K)
+
+
+def _rotation_one(x: float, y: float, z: float) -> np.ndarray:
+    """(3, 3) I + sin(th) K + (1 - cos(th)) K^2 of the rotation vector (x, y, z), K the unit
+    axis' cross-product matrix (:func:`rotations` for one vector, no array overhead)."""
+    th = math.sqrt(x * x + y * y + z * z)
+    if th == 0.0:
+        return np.eye(3)
+    x, y, z = x / th, y / th, z / th
+    s, c = math.sin(th), 1.0 - math.cos(th)
+    return np.array([[1.0 - c * (y * y + z * z), c * x * y - s * z, c * x * z + s * y],
+                     [c * x * y + s * z, 1.0 - c * (x * x + z * z), c * y * z - s * x],
+                     [c * x * z - s * y, c * y * z + s * x, 1.0 - c * (x * x + y * y)]])
 
 
 def rotation_angle(R: np.ndarray) -> np.ndarray:

@@ -330,8 +330,14 @@ class Tracker(LeafSystem):
         ring = x[:14 * RING].reshape(RING, 14)
         order = np.argsort(times, kind="stable")
         rows = ring[order][avail[order]]
-        entry = {"available": rows, "good": rows[rows[:, 1] > 0.5]}
-        self._memo = (key, entry)
+        # a sample taken but not yet available changes the state, not the answer: the fits
+        # are kept while the available samples are the same
+        rows_key = rows.tobytes()
+        if self._memo is not None and self._memo[2] == rows_key:
+            entry = self._memo[1]
+        else:
+            entry = {"available": rows, "good": rows[rows[:, 1] > 0.5]}
+        self._memo = (key, entry, rows_key)
         return entry
 
     def _available(self, context) -> np.ndarray:
@@ -366,7 +372,10 @@ class Tracker(LeafSystem):
             if "line" not in entry:
                 entry["line"] = _slopes(good[-k:])
             return predict_pose(good[-k:], t, self._gates, line=entry["line"])
-        X = self._smooth_predict(good, t)
+        if "smooth" not in entry:
+            entry["smooth"] = self._smooth_line(good)
+        rows, line, gates = entry["smooth"]
+        X = predict_pose(rows, t, gates, line=line)
         # the correction of the newest sample, blended in over one camera period
         t_a = good[-1, 0] + self._p.latency  # when the newest sample became available
         f = 1.0 - (t - t_a) * self._p.rate
@@ -374,7 +383,7 @@ class Tracker(LeafSystem):
             return X
         if "correction" not in entry:
             old = self._smooth_predict(good[:-1], t_a)
-            new = self._smooth_predict(good, t_a)
+            new = predict_pose(rows, t_a, gates, line=line)
             C = old @ invert(new)
             entry["correction"] = (rotation_vector(C[:3, :3]), C[:3, 3])
         w, u = entry["correction"]
@@ -387,19 +396,25 @@ class Tracker(LeafSystem):
         ``t``: the default (shortened ``predict_samples`` slope) for a head the
         ``VELOCITY_WINDOW`` fit calls still, the ``SMOOTH_SAMPLES`` slope times the share it
         moves by for a moving one (module notes)."""
+        rows, line, gates = self._smooth_line(good)
+        return predict_pose(rows, t, gates, line=line)
+
+    def _smooth_line(self, good: np.ndarray):
+        """(rows, line, gates) of :meth:`_smooth_predict`'s prediction from ``good``: what
+        :func:`predict_pose` evaluates at any time (the same between camera samples)."""
         k = self._p.predict_samples
         if good.shape[0] < max(VELOCITY_WINDOW, SMOOTH_SAMPLES):
-            return predict_pose(good[-k:], t, self._gates)
+            return good[-k:], _slopes(good[-k:]), self._gates
         v = _slopes(good[-VELOCITY_WINDOW:])[2]
         gp, gw = self._moving_gates
         share = np.array([_kept(v[:3], gw), _kept(v[3:], gp)])
         if not share.any():
-            return predict_pose(good[-k:], t, self._gates)
+            return good[-k:], _slopes(good[-k:]), self._gates
         line = _slopes(good[-SMOOTH_SAMPLES:])
         S = line[2].copy()
         S[:3] *= share[0]
         S[3:] *= share[1]
-        return predict_pose(good[-SMOOTH_SAMPLES:], t, (0.0, 0.0), line=(line[0], line[1], S))
+        return good[-SMOOTH_SAMPLES:], (line[0], line[1], S), (0.0, 0.0)
 
     def _calc_predicted(self, context, value):
         X = self.predicted(context)

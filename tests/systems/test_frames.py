@@ -116,3 +116,19 @@ def test_rotation_vector_inverts_rotations():
     got = np.array([rotation_vector(R) for R in rotations(w)])
     np.testing.assert_allclose(got, w, atol=1e-9)
     assert np.all(rotation_vector(np.eye(3)) == 0.0)
+
+
+def test_one_rotation_vector_is_the_batched_formula():
+    """rotations of one vector (scalar path) equals the batched Rodrigues to rounding, and is a
+    rotation; the zero vector gives the identity exactly."""
+    from implantplan.systems.frames import rotations
+
+    rng = np.random.default_rng(11)
+    w = rng.normal(size=(300, 3)) * rng.uniform(0.0, 3.1, (300, 1))
+    w[:20] *= 1e-9
+    batched = rotations(w)
+    one = np.array([rotations(v[None])[0] for v in w])
+    np.testing.assert_allclose(one, batched, atol=4e-16)
+    np.testing.assert_allclose(one @ np.swapaxes(one, 1, 2), np.broadcast_to(np.eye(3), one.shape),
+                               atol=1e-15)
+    assert np.array_equal(rotations(np.zeros((1, 3))), np.eye(3)[None])
