@@ -25,6 +25,7 @@ three places show the same numbers:
 
 from __future__ import annotations
 
+import dataclasses
 import re
 
 import numpy as np
@@ -104,6 +105,8 @@ def surgeon_card(plan: dict, k: int) -> dict:
         "registration": None if not reg else {
             "sigma_translation": reg["sigma_translation"],
             "sigma_rotation": reg["sigma_rotation"], "samples": reg["samples"]},
+        "expected_accuracy": None if not reg else registration_accuracy(
+            reg, X_MC[:3, :3].T @ (entry - X_MC[:3, 3]), p_C - depth * a_C),
         "feed_duration": max((r["sim_seconds"] for r in runs), default=None),
         "joint_headroom": head.get("min_rad"),
         "joint_headroom_limit": head.get("limit_rad"),
@@ -114,6 +117,34 @@ def surgeon_card(plan: dict, k: int) -> dict:
     }
     card.update(_verdict(checks + case_checks, tissue, card["arm_to_patient"], arm, room, card))
     return card
+
+
+def registration_accuracy(reg: dict, entry_C, apex_C) -> dict:
+    """The implant's expected deviation from the plan under registration error alone (the
+    dominant source of analyses.studies.accuracy's budget): the plan's own registration Monte
+    Carlo samples (its seed, sigmas and count: the same draws of E^-1), applied to the planned
+    entry and apex in Center (m) and to the axis; mean and 95th percentile of the entry and
+    apex deviation (m) and of the angle (rad)."""
+    from implantplan.systems.placement.exact_clearance import registration_errors
+    from implantplan.systems.safety import SafetySpec
+
+    spec = dataclasses.replace(SafetySpec(),
+                               registration_sigma_translation=reg["sigma_translation"],
+                               registration_sigma_rotation=reg["sigma_rotation"])
+    E = registration_errors(spec, np.random.default_rng(reg["seed"]), int(reg["samples"]))
+    entry, apex = np.asarray(entry_C, float), np.asarray(apex_C, float)
+    axis = (entry - apex) / np.linalg.norm(entry - apex)
+
+    def moved(p):
+        return np.linalg.norm(np.einsum("nij,j->ni", E[:, :3, :3], p) + E[:, :3, 3] - p, axis=1)
+
+    turned = np.einsum("nij,j->ni", E[:, :3, :3], axis)
+    angle = np.arctan2(np.linalg.norm(np.cross(turned, axis), axis=1), turned @ axis)
+    out = {"source": "registration error alone (the plan's registration Monte Carlo draws; "
+                     "the full budget: implantplan analyze accuracy)"}
+    for key, d in (("entry", moved(entry)), ("apex", moved(apex)), ("angle", angle)):
+        out[key] = {"mean": float(d.mean()), "p95": float(np.percentile(d, 95))}
+    return out
 
 
 ANATOMY_LABELS = {"anatomy.canal_distance": "implant to canal",
@@ -195,6 +226,7 @@ def card_lines(card: dict) -> list[tuple[str, str]]:
     tc, ac = card["instrument_to_tissue"], card["arm_to_patient"]
     reg = card["registration"]
     p = card["p_clear_under_registration"]
+    acc = card.get("expected_accuracy")
     room = card["joint_headroom"]
     reach = card["reach"]
     lines = [
@@ -215,6 +247,11 @@ def card_lines(card: dict) -> list[tuple[str, str]]:
          f"{100 * p:.1f} % (clearance > 0 under registration error, sigma "
          f"{1e3 * reg['sigma_translation']:.2g} mm / {np.rad2deg(reg['sigma_rotation']):.2g} "
          f"deg, {reg['samples']} samples)"),
+        ("expected accuracy", "not run" if acc is None else
+         f"entry {1e3 * acc['entry']['mean']:.2f} / apex {1e3 * acc['apex']['mean']:.2f} mm / "
+         f"angle {np.rad2deg(acc['angle']['mean']):.2f} deg mean (p95 "
+         f"{1e3 * acc['entry']['p95']:.2f} / {1e3 * acc['apex']['p95']:.2f} mm / "
+         f"{np.rad2deg(acc['angle']['p95']):.2f} deg) under registration error alone"),
         ("feed duration", "not simulated" if card["feed_duration"] is None else
          f"{card['feed_duration']:.1f} s (simulated feed)"),
         ("joint headroom", "not confirmed" if room is None else

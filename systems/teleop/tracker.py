@@ -87,7 +87,7 @@ class TrackerParams:
         predict_samples: good samples of the latency-compensating prediction (module notes);
             0 turns it off (the arm follows the delayed estimate).
         smooth: the prediction for a fast head (module notes, *Smoothing*): off by default
-            until the head-motion studies are re-measured with it.
+            (it loses clearance in a startle: docs/measurements.md, the awake patient).
     """
 
     rate: float = 60.0

@@ -160,3 +160,29 @@ def test_the_card_carries_the_anatomy_with_bounds_and_verdicts(plan):
     p["cards"][0]["anatomy"][0]["limit"] = None
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.Draft202012Validator(schema).validate(p)
+
+
+def test_the_expected_accuracy_is_the_registration_errors_effect_on_the_implant(plan):
+    """The card's expected accuracy is the plan's own registration draws applied to the
+    implant: for a translation error alone the entry and apex move by |t| (mean sigma
+    sqrt(8/pi), a chi distribution with 3 degrees of freedom) and the axis not at all; for a
+    rotation error alone the axis turns by the rotation vector's part across it (mean sigma
+    sqrt(pi/2), 2 degrees of freedom); both within the sampling error of the 1,000 draws; the
+    demo plan's figures are the ones the report shows."""
+    s = plan["sites"][0]
+    reg = dict(s["registration"])
+    entry, apex = np.array([0.01, 0.02, 0.05]), np.array([0.01, 0.012, 0.048])
+    got = cards.registration_accuracy({**reg, "sigma_rotation": 0.0}, entry, apex)
+    sigma = reg["sigma_translation"]
+    assert got["entry"]["mean"] == pytest.approx(sigma * np.sqrt(8 / np.pi), rel=0.05)
+    assert got["apex"]["mean"] == got["entry"]["mean"]  # a translation moves both alike
+    assert got["angle"]["mean"] == 0.0 and got["angle"]["p95"] == 0.0
+    got = cards.registration_accuracy({**reg, "sigma_translation": 0.0}, entry, apex)
+    assert got["angle"]["mean"] == pytest.approx(reg["sigma_rotation"] * np.sqrt(np.pi / 2),
+                                                 rel=0.05)
+    card = plan["cards"][0]
+    assert card["expected_accuracy"] == cards.surgeon_card(plan, 0)["expected_accuracy"]
+    acc = card["expected_accuracy"]
+    assert 0.5e-3 < acc["entry"]["mean"] < acc["entry"]["p95"] < 3e-3  # 0.5 mm, 0.5 deg sigmas
+    line = dict(cards.card_lines(card))["expected accuracy"]
+    assert f"entry {1e3 * acc['entry']['mean']:.2f}" in line and "registration" in line
