@@ -115,3 +115,18 @@ def small_plan(tmp_path_factory):
     it."""
     folder = once_per_run(tmp_path_factory, "small", _plan_small)
     return folder / "case.yaml", folder / "plan"
+
+
+def _file_rank(item) -> int:
+    """The order the files run in: the file whose first test plans the default case, then the
+    files that need no plan (systems, diagrams, layers), then the other command tests. Under
+    pytest-xdist (each file on one worker, handed out in this order) one worker plans while the
+    other runs the cores, so no worker waits on the plan's lock."""
+    path = Path(str(item.fspath))
+    if path.name == "test_plan.py":
+        return 0
+    return 2 if path.parent.name == "analyses" else 1
+
+
+def pytest_collection_modifyitems(config, items):
+    items.sort(key=_file_rank)  # stable: the order inside each file and rank is kept

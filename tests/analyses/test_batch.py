@@ -64,6 +64,7 @@ def cohort(tmp_path_factory):
     return files, out, code
 
 
+@pytest.mark.sweep  # two plans (11 s); the batch's bad input and figure run by default
 def test_a_cohort_of_two_in_this_process(tmp_path):
     """No cluster (--workers 1 plans in this process): one plan, one recorded planning failure,
     exit 3 (a batch's plan is the case planned alone: the cluster tests below)."""

@@ -129,12 +129,14 @@ SMALL = [pytest.param(H.Turn(0, np.deg2rad(15.0), np.deg2rad(60.0), 1.0, "mid"),
 
 # the default camera: its prediction lags a fast turn and corrects it by a jump at every camera
 # sample, which the arm makes in one or two control steps (docs/measurements.md, the awake
-# patient: the head-turn sweep); the smoothed camera (TrackerParams.smooth) is the fix. The
-# default camera's open failure is kept in the sweep group (CI), the default run checks the fix
+# patient: the head-turn sweep); the smoothed camera (TrackerParams.smooth) passes them but
+# loses clearance in a startle, so it is not the default. Both run in the sweep group (CI): the
+# default camera's open failure as a strict xfail, the smoothed camera's pass
 CAMERAS = [pytest.param(TrackerParams(), id="default-camera", marks=[pytest.mark.sweep,
                         pytest.mark.xfail(strict=True, reason="open: arm jumps at 45-60 deg/s "
                                           "with the default camera")]),
-           pytest.param(TrackerParams(smooth=True), id="smoothed-camera")]
+           pytest.param(TrackerParams(smooth=True), id="smoothed-camera",
+                        marks=pytest.mark.sweep)]  # not the default camera (it fails a startle)
 
 
 @pytest.mark.parametrize("camera", CAMERAS)

@@ -708,6 +708,7 @@ def _rerun_batch_on_a_missing_case(tmp_path: Path, out: Path) -> subprocess.Comp
                           preexec_fn=_limit_memory)
 
 
+@pytest.mark.sweep  # a kill of a worker pool or a server: CI; plan and run kills by default
 def test_the_batch_after_a_killed_batch_removes_its_leftovers(tmp_path):
     """``kill -KILL`` of a batch (``--workers 1``) while its case plans leaves the case's
     staging folder in the batch folder; the next batch into that folder removes it before its
@@ -797,6 +798,7 @@ def test_sigterm_stops_a_two_worker_capmap_build_within_2_s(tmp_path):
     assert _gone([c.pid for c in children], within=5.0)
 
 
+@pytest.mark.sweep  # a kill of a worker pool or a server: CI; plan and run kills by default
 def test_the_capmap_build_after_a_killed_one_removes_its_leftovers(tmp_path):
     """``kill -KILL`` of ``capmap build`` mid-build: its finished blocks stay (for
     ``--resume``), and a block being written when the kill came leaves its temporary file
@@ -845,6 +847,7 @@ def test_sigterm_stops_the_studio_while_it_plans_and_cleans_up(tmp_path):
     assert sorted(p.name for p in out.parent.iterdir()) == ["plan"]
 
 
+@pytest.mark.sweep  # a kill of a worker pool or a server: CI; plan and run kills by default
 def test_the_studio_after_a_killed_one_removes_its_leftovers(tmp_path):
     """``kill -KILL`` of the studio while it plans leaves the staging folder beside ``--out``;
     the next studio towards that folder removes it before reading its case (here a missing
@@ -863,6 +866,7 @@ def test_the_studio_after_a_killed_one_removes_its_leftovers(tmp_path):
     assert (out / "plan.json").read_bytes() == PREVIOUS
 
 
+@pytest.mark.sweep  # a kill of a worker pool or a server: CI; plan and run kills by default
 def test_sigterm_stops_the_studio_serving_a_plan_within_2_s(tmp_path, small_plan):
     """The studio serving a plan folder (``--plan``) stopped by SIGTERM: it closes its servers,
     exits 143 within 2 s, the plan folder as it was (every file, byte for byte)."""

@@ -107,7 +107,9 @@ def _case(tmp_path, *, small: bool = False, **edits) -> Path:
 _DELETE = object()
 
 
-@pytest.mark.parametrize("size", ["small", pytest.param("full", marks=pytest.mark.sweep)])
+# both sizes plan twice (11 s for the small case): CI runs them (sweep)
+@pytest.mark.sweep
+@pytest.mark.parametrize("size", ["small", "full"])
 def test_same_seed_same_plan(tmp_path, size, request):
     """Every stage with its feeds, twice from one seed: the same plan (the small case by
     default, its first plan the run's shared one (tests/conftest.py ``small_plan``, planned in

@@ -89,7 +89,7 @@ def test_out_of_reach_is_empty_with_reason(solver):
     assert not kinematics.ik(X).valid.any()
 
 
-@pytest.mark.parametrize("starts", [32, pytest.param(128, marks=pytest.mark.sweep)])
+@pytest.mark.parametrize("starts", [16, pytest.param(128, marks=pytest.mark.sweep)])
 def test_min_distance_keeps_only_collision_free_branches(starts):
     """Every solution the constrained solver returns keeps 5 mm and is a branch of the free
     solver's (128 starts); with 128 starts too (the sweep) they are exactly the free branches
