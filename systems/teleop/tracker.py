@@ -24,12 +24,11 @@ tracking, or with the newest good sample older than latency + two periods, the o
 held estimate.
 
 **Why 60 Hz and 20 ms by default.** The following error during a startle is the head's motion
-over the lag the prediction cannot remove; at the default case's site 36 the feed passes with
-about 2.4 mm of clearance. Over 50 seeded startles there (analyses.studies.head_motion, FCL against
-the
-moving scan) the minimum exact clearance was -0.61 mm with a 40 Hz, 30 ms camera and no
-prediction (one run in tissue), 0.20 mm with prediction, 0.57 mm at 60 Hz, 20 ms without and
-1.22 mm with it. The issue's range is 30-60 Hz and 20-50 ms; the default is its fast end, and
+over the lag the prediction cannot remove. Over 50 seeded startles at the default case's site 36
+(analyses.studies.head_motion, FCL against the moving scan) a 40 Hz, 30 ms camera without
+prediction put the tool in tissue, and each step towards 60 Hz, 20 ms with the 2-sample
+prediction kept more clearance (docs/measurements.md, the awake patient: the camera table).
+The issue's range is 30-60 Hz and 20-50 ms; the default is its fast end, and
 ``analyze head-motion --tracker-rate-hz --tracker-latency-ms --prediction-samples`` measures
 another camera against the same exact reference.
 
