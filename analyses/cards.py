@@ -125,25 +125,26 @@ def registration_accuracy(reg: dict, entry_C, apex_C) -> dict:
     Carlo samples (its seed, sigmas and count: the same draws of E^-1), applied to the planned
     entry and apex in Center (m) and to the axis; mean and 95th percentile of the entry and
     apex deviation (m) and of the angle (rad)."""
+    from implantplan.systems.frames import frame_from_z
     from implantplan.systems.placement.exact_clearance import registration_errors
     from implantplan.systems.safety import SafetySpec
+    from implantplan.systems.teleop.insertion import PlannedImplant, implant_deviation
 
     spec = dataclasses.replace(SafetySpec(),
                                registration_sigma_translation=reg["sigma_translation"],
                                registration_sigma_rotation=reg["sigma_rotation"])
     E = registration_errors(spec, np.random.default_rng(reg["seed"]), int(reg["samples"]))
     entry, apex = np.asarray(entry_C, float), np.asarray(apex_C, float)
-    axis = (entry - apex) / np.linalg.norm(entry - apex)
-
-    def moved(p):
-        return np.linalg.norm(np.einsum("nij,j->ni", E[:, :3, :3], p) + E[:, :3, 3] - p, axis=1)
-
-    turned = np.einsum("nij,j->ni", E[:, :3, :3], axis)
-    angle = np.arctan2(np.linalg.norm(np.cross(turned, axis), axis=1), turned @ axis)
+    # the implant as placed at a frame on its axis (origin the entry): E^-1 moves that frame
+    length = float(np.linalg.norm(entry - apex))
+    F = frame_from_z(entry, entry - apex)
+    dev = implant_deviation(E @ F, PlannedImplant(X_CT_target=F, depth=0.0,
+                                                  platform_T=np.zeros(3),
+                                                  apex_T=np.array([0.0, 0.0, -length])))
     out = {"source": "registration error alone (the plan's registration Monte Carlo draws; "
                      "the full budget: implantplan analyze accuracy)"}
-    for key, d in (("entry", moved(entry)), ("apex", moved(apex)), ("angle", angle)):
-        out[key] = {"mean": float(d.mean()), "p95": float(np.percentile(d, 95))}
+    for key in ("entry", "apex", "angle"):
+        out[key] = {"mean": float(dev[key].mean()), "p95": float(np.percentile(dev[key], 95))}
     return out
 
 

@@ -259,7 +259,7 @@ class Tracker(LeafSystem):
         self._p = params
         self._gates = params.gates()
         self._moving_gates = params.gates(VELOCITY_WINDOW)
-        self._memo = None  # (key, rows) of the last _rows call
+        self._memo = None  # (key, entry, the available rows' bytes) of the last _rows call
         X0 = np.asarray(X_WHead0, dtype=float)
         self._X0 = X0
         row = np.concatenate([[-np.inf, 1.0], X0[:3, 3], X0[:3, :3].ravel()])
