@@ -214,3 +214,35 @@ def test_confirmation_drops_a_colliding_candidate_and_takes_the_next():
     assert not conf["members_ok"][0] and conf["members_ok"][1]
     assert conf["clearance"][0] < 0 and conf["selection_dropped"] == [0]
     assert conf["selected"] == 1 and conf["feed"]["ok"]
+
+
+@pytest.mark.sweep
+def test_the_base_is_the_same_with_another_blas_kernel(tmp_path):
+    """The search's result does not depend on the machine's BLAS: OpenBLAS's generic SSE3 kernel
+    (OPENBLAS_CORETYPE=Prescott) changes the indices' last bits, and before the indices were
+    rounded the wrist-flip ties and re-evaluated bases took another path (another base, 41
+    instead of 60 generations)."""
+    import os
+    import subprocess
+    import sys
+
+    runs = {}
+    procs = {}
+    for name, kernel in (("default", None), ("prescott", "Prescott")):
+        env = dict(os.environ)
+        env.pop("OPENBLAS_CORETYPE", None)
+        if kernel:
+            env["OPENBLAS_CORETYPE"] = kernel
+        procs[name] = subprocess.Popen(
+            [sys.executable, "-m", "implantplan.analyses.cli", "robot", "place", "--scenario",
+             "lying", "--pop", "100", "--gen", "60", "--percentile-samples", "60", "--quiet",
+             "--out", str(tmp_path / name)], env=env, stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT)
+    for name, proc in procs.items():
+        printed, _ = proc.communicate(timeout=600)
+        assert proc.returncode == 0, printed.decode()
+        runs[name] = read_json(tmp_path / name / "placement.json", kind="robot_placement")
+    a, b = runs["default"], runs["prescott"]
+    assert a["generations"] == b["generations"]
+    assert a["selected"]["base_xyz"] == b["selected"]["base_xyz"]
+    assert [e["base_xyz"] for e in a["pareto"]] == [e["base_xyz"] for e in b["pareto"]]
