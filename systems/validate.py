@@ -23,10 +23,10 @@ from dataclasses import MISSING, field, fields
 from functools import partial
 from typing import Any
 
-import numba
 import numpy as np
 
 from implantplan.systems.errors import InputError
+from implantplan.systems.jit import numba
 
 
 def mapping(value: Any, field: str) -> dict:

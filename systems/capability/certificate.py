@@ -43,9 +43,9 @@ A cell is **certified no** only where no pose can be reached at all (outside the
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
+from implantplan.systems.jit import numba
 from implantplan.systems.robot.kinematics import DH_D4, DH_D6, X_JOINT_ORIGINS
 
 KAPPA = 2.0  # safety factor on the first-order joint displacement over a cell

@@ -85,7 +85,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import h5py
-import numba
 import numpy as np
 
 from implantplan.systems import validate
@@ -93,6 +92,7 @@ from implantplan.systems.capability import certificate
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import write_atomic, write_json
 from implantplan.systems.frames import invert
+from implantplan.systems.jit import numba
 from implantplan.systems.robot.kinematics import (
     DH_A2,
     DH_A3,

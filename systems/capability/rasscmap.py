@@ -43,7 +43,6 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 from scipy.optimize import brentq
 
@@ -54,6 +53,7 @@ from implantplan.systems.frames import (
     rot_x,
     rot_y,
 )
+from implantplan.systems.jit import numba
 
 # ---------------------------------------------------------------------------------------------
 # Unconstrained access (Sec. 3.1)

@@ -22,12 +22,12 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
 
-import numba
 import numpy as np
 
 from implantplan.systems import validate
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import read_json, write_json
+from implantplan.systems.jit import numba
 
 TWO_PI = 2.0 * np.pi
 

@@ -51,11 +51,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import igl
-import numba
 import numpy as np
 import trimesh
 
 from implantplan.systems.errors import InputError
+from implantplan.systems.jit import numba
 
 SPACING = 0.5e-3  # m, the grid spacing g
 BAND = 8e-3  # m, nodes nearer than this to the mesh hold their exact distance

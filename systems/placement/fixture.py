@@ -54,10 +54,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from implantplan.systems.errors import InputError
+from implantplan.systems.jit import numba
 from implantplan.systems.safety import DEFAULT as SAFETY
 
 # delta (m) and beta (rad): the fixture's admissible region, the safety spec's (one default each;

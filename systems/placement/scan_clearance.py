@@ -49,11 +49,11 @@ import functools
 import time
 from typing import TYPE_CHECKING
 
-import numba
 import numpy as np
 
 from implantplan.systems.errors import InputError
 from implantplan.systems.instrument import Instrument
+from implantplan.systems.jit import numba
 from implantplan.systems.placement.distance_grid import (
     DistanceGrid,
     distance_grid,

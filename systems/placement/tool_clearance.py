@@ -54,7 +54,6 @@ from __future__ import annotations
 import weakref
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from implantplan.systems import validate
@@ -62,6 +61,7 @@ from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm.model import SPLINE_BASIS, TWO_PI, Fpsm, point_d_safe
 from implantplan.systems.frames import rotations
 from implantplan.systems.instrument import Instrument
+from implantplan.systems.jit import numba
 
 METHODS = ("sound", "paper")
 OUTSIDE = -1.0  # the bound (m) outside the grid box at z <= z_top: a collision, not a distance

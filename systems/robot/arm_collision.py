@@ -50,12 +50,12 @@ from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
-import numba
 import numpy as np
 
 from implantplan import models
 from implantplan.systems.errors import InputError
 from implantplan.systems.frames import frame_from_z, invert, rot_z, rpy_to_rotation, transform
+from implantplan.systems.jit import numba
 from implantplan.systems.robot import kinematics as kin
 from implantplan.systems.robot.collision_primitives import point_box, seg_seg
 

@@ -16,10 +16,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from implantplan.systems.errors import InputError
+from implantplan.systems.jit import numba
 from implantplan.systems.robot.kinematics import joint_frames
 
 

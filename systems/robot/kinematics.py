@@ -34,12 +34,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from implantplan.systems import validate
 from implantplan.systems.errors import InputError
 from implantplan.systems.frames import invert, rpy_to_rotation, transform, wrap_angle
+from implantplan.systems.jit import numba
 
 PI = np.pi
 JOINT_NAMES = (

@@ -25,10 +25,10 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 
 from implantplan.systems.errors import InputError
+from implantplan.systems.jit import numba
 
 
 def dominates(F_a, F_b) -> np.ndarray:

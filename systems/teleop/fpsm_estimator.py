@@ -28,7 +28,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
@@ -39,6 +38,7 @@ from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm.model import Fpsm, line_kernel
 from implantplan.systems.frames import apply, invert
 from implantplan.systems.instrument import Instrument
+from implantplan.systems.jit import numba
 from implantplan.systems.placement.scan_clearance import capped_at
 from implantplan.systems.placement.tool_clearance import (
     ToolClearance,

@@ -49,7 +49,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-import numba
 import numpy as np
 from pydrake.common.eigen_geometry import AngleAxis
 from pydrake.common.value import AbstractValue
@@ -60,6 +59,7 @@ from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm.model import Fpsm
 from implantplan.systems.frames import invert
 from implantplan.systems.instrument import Instrument
+from implantplan.systems.jit import numba
 from implantplan.systems.placement.scan_clearance import capped_at
 from implantplan.systems.placement.tool_clearance import ToolClearance, fpsm_at
 from implantplan.systems.safety import DEFAULT as SAFETY
