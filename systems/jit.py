@@ -15,8 +15,22 @@ before. The cache's folder is chosen in ``implantplan/__init__.py``.
 import threading
 
 import numba
+import numpy as np
 
-__all__ = ["numba"]
+__all__ = ["kernel_array", "numba"]
+
+
+def kernel_array(a, shape=None, dtype=float) -> np.ndarray:
+    """``a`` as a kernel's array argument: ``dtype``, C-contiguous and writable, broadcast to
+    ``shape`` if given; copied only when it is not already so.
+
+    numba compiles one version of a kernel per argument type, and a read-only array (a
+    broadcast view, a frozen cache) is another type than a writable one: each such call
+    compiles the kernel again (seconds each on a fresh cache)."""
+    a = np.asarray(a, dtype=dtype)
+    if shape is not None:
+        a = np.broadcast_to(a, shape)
+    return np.require(a, dtype, ["C", "W"])
 
 
 def _one_compile_per_kernel() -> None:

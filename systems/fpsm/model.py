@@ -27,7 +27,7 @@ import numpy as np
 from implantplan.systems import validate
 from implantplan.systems.errors import InputError
 from implantplan.systems.files import read_json, write_json
-from implantplan.systems.jit import numba
+from implantplan.systems.jit import kernel_array, numba
 
 TWO_PI = 2.0 * np.pi
 
@@ -202,7 +202,7 @@ def point_d_safe(rho, slice_z, shrink, x, y, z, r):
     m = slice_z.size
     theta = np.arctan2(y + 0.0, x + 0.0)  # + 0.0 turns -0.0 into 0.0: angle 0 on the axis
     if m == 1:
-        radius = _rho_on_slice(rho, 0, theta)
+        radius = _rho_on_slice(rho, np.int64(0), theta)  # an int64, not the literal 0
     else:
         j = np.searchsorted(slice_z, z, side="right") - 1
         j = min(max(j, 0), m - 2)
@@ -579,8 +579,8 @@ class Fpsm:
         K = p0.shape[0]
         p0 = np.ascontiguousarray(p0, dtype=float)
         u = np.ascontiguousarray(u, dtype=float)
-        L = np.ascontiguousarray(np.broadcast_to(L, (K,)), dtype=float)
-        radius = np.ascontiguousarray(np.broadcast_to(radius, (K,)), dtype=float)
+        L = kernel_array(L, (K,))
+        radius = kernel_array(radius, (K,))
         f = np.empty(K)
         d_min = np.empty(K)
         mean = np.empty(K)

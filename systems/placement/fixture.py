@@ -362,6 +362,9 @@ def _lateral_safeguard(p, v, a1, dt, origin, D, pr_lat, ps_lat, s_entry, crossin
     return v_par + t * v_perp
 
 
+_NO_CAP = np.bool_(False)  # a bool, not the literal False: one compiled _point_signed
+
+
 @numba.njit(cache=True)
 def _body_law(p, R, V, origin, D, e1, ps, pr, cap, ps_lat, pr_lat, s_entry, R_ref, has_ref,
               beta, dt, gain, k, b, tol, out):
@@ -397,7 +400,7 @@ def _body_law(p, R, V, origin, D, e1, ps, pr, cap, ps_lat, pr_lat, s_entry, R_re
     viol = max(_point_signed(p, origin, D, e1, ps, pr, cap, nrm), 0.0)
     F = np.zeros(3)
     d_now = np.zeros(3)
-    d_now[0] = _point_signed(p, origin, D, e1, ps_lat, pr_lat, False, nrm)
+    d_now[0] = _point_signed(p, origin, D, e1, ps_lat, pr_lat, _NO_CAP, nrm)
     n[0] = nrm
     s0 = (p[0] - origin[0]) * D[0] + (p[1] - origin[1]) * D[1] + (p[2] - origin[2]) * D[2]
     d_now[1] = -s0 if cap else -np.inf
@@ -444,7 +447,7 @@ def _body_law(p, R, V, origin, D, e1, ps, pr, cap, ps_lat, pr_lat, s_entry, R_re
             v = v_cmd.copy()
             for _ in range(2):
                 pp = p + v_lin * dt
-                d_pred = _point_signed(pp, origin, D, e1, ps_lat, pr_lat, False, nrm)
+                d_pred = _point_signed(pp, origin, D, e1, ps_lat, pr_lat, _NO_CAP, nrm)
                 n[0] = nrm
                 c[0] = (target[0] - d_pred) / dt + _dot3(nrm, v_lin)
                 c[1] = (target[1] + s0) / dt if cap else np.inf  # -D . v <= (target + s0) / dt

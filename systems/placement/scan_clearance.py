@@ -53,7 +53,7 @@ import numpy as np
 
 from implantplan.systems.errors import InputError
 from implantplan.systems.instrument import Instrument
-from implantplan.systems.jit import numba
+from implantplan.systems.jit import kernel_array, numba
 from implantplan.systems.placement.distance_grid import (
     DistanceGrid,
     distance_grid,
@@ -311,8 +311,7 @@ class ScanClearance:
         from implantplan.systems.placement.tool_clearance import rigid_poses
 
         X = np.ascontiguousarray(rigid_poses(X_CTool))
-        t = np.ascontiguousarray(np.broadcast_to(np.asarray(target, dtype=float),
-                                                 (X.shape[0],)))
+        t = kernel_array(target, (X.shape[0],))
         if not np.all(np.isfinite(t)):
             raise InputError("clearance", "expected a finite claimed clearance (m)")
         lower, upper = np.empty(X.shape[0]), np.empty(X.shape[0])
@@ -438,8 +437,9 @@ def capped_at(args, X) -> float:
     """min(scan bound, cap) (m) at one pose X (4, 4); ``args`` is :attr:`CappedScanClearance.
     at_args`. The loops' hook (the supervisor's slow path takes it as a compiled function)."""
     G, lo, hi, ox, oy, oz, g, band, kind, A, B, r, cap, res, s2, s6 = args
+    # np.bool_: a bool, not the literal False (numba would compile pose_bound once more for it)
     v = pose_bound(G, lo, hi, ox, oy, oz, g, band, X, kind, A, B, r, cap, res, s2, s6,
-                   False)[0]
+                   np.bool_(False))[0]
     return v if v < cap else cap
 
 

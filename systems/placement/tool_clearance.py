@@ -465,14 +465,18 @@ def _grid_bound(V, ox, oy, oz, g, x, y, z, refine):
     return best
 
 
+# refine or not, as np.bool_ (a bool, not a literal: one compiled version of the bounds)
+_REFINE, _COARSE = np.bool_(True), np.bool_(False)
+
+
 @numba.njit(cache=True)
-def _point_bound(V, ox, oy, oz, g, z_top, x, y, z, refine=True):
+def _point_bound(V, ox, oy, oz, g, z_top, x, y, z, refine):
     """Lower bound of the signed distance f at any point (module notes)."""
     b = _grid_bound(V, ox, oy, oz, g, x, y, z, refine)
     if not np.isnan(b):
         return b
     if z > z_top:
-        b0 = _grid_bound(V, ox, oy, oz, g, x, y, z_top, True)
+        b0 = _grid_bound(V, ox, oy, oz, g, x, y, z_top, _REFINE)
         if np.isnan(b0) or b0 < 0.0:
             b0 = 0.0
         return np.sqrt((z - z_top) * (z - z_top) + b0 * b0)
@@ -491,7 +495,7 @@ def _segment_min(V, ox, oy, oz, g, z_top, cap, step, rho, slice_z, level, ax, ay
     dy = by - ay
     dz = bz - az
     length = np.sqrt(dx * dx + dy * dy + dz * dz)
-    b_prev = _point_bound(V, ox, oy, oz, g, z_top, ax, ay, az)
+    b_prev = _point_bound(V, ox, oy, oz, g, z_top, ax, ay, az, _REFINE)
     if b_prev <= OUTSIDE:
         return OUTSIDE
     if az <= z_top:
@@ -514,9 +518,9 @@ def _segment_min(V, ox, oy, oz, g, z_top, cap, step, rho, slice_z, level, ax, ay
             t = length - s
         s += t
         x, y, z = ax + s * ux, ay + s * uy, az + s * uz
-        b = _point_bound(V, ox, oy, oz, g, z_top, x, y, z, False)
+        b = _point_bound(V, ox, oy, oz, g, z_top, x, y, z, _COARSE)
         if 0.5 * (b_prev + b - t) < m or b < m:  # this sample may lower the minimum: refine
-            b = _point_bound(V, ox, oy, oz, g, z_top, x, y, z, True)
+            b = _point_bound(V, ox, oy, oz, g, z_top, x, y, z, _REFINE)
         if b <= OUTSIDE:  # outside the model's box below the opening: a collision, stop
             return OUTSIDE
         lo = 0.5 * (b_prev + b - t)

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from implantplan.systems.errors import InputError
-from implantplan.systems.jit import numba
+from implantplan.systems.jit import kernel_array, numba
 from implantplan.systems.robot.kinematics import joint_frames
 
 
@@ -312,10 +312,8 @@ def min_box_clearance(seg, r, R_box, p_box, half_size) -> np.ndarray:
     Returns:
         (N,) min over capsules and boxes of (segment-box distance - r) in m (+inf if none).
     """
-    S = np.ascontiguousarray(seg, dtype=float)
-    P = np.ascontiguousarray(np.broadcast_to(p_box, (S.shape[0],) + np.shape(p_box)[-2:]),
-                             dtype=float)
+    S = kernel_array(seg)
+    P = kernel_array(p_box, (S.shape[0],) + np.shape(p_box)[-2:])
     out = np.empty(S.shape[0])
-    _min_boxes(S, np.ascontiguousarray(r, dtype=float), np.ascontiguousarray(R_box, dtype=float),
-               P, np.ascontiguousarray(half_size, dtype=float), out)
+    _min_boxes(S, kernel_array(r), kernel_array(R_box), P, kernel_array(half_size), out)
     return out
