@@ -50,6 +50,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from implantplan.systems import seeds
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm.model import Fpsm
 from implantplan.systems.frames import rot_z, transform, unit, wrap_angle
@@ -245,7 +246,11 @@ def pso(
     Initial positions uniform in the box, initial velocities uniform in +-(upper - lower)/2.
     Positions are clipped to the box and the clipped velocity components zeroed. Stops after
     ``stall_iterations`` iterations without a strict improvement of the global best, or after
-    ``max_iterations``. Same seed, same result bit for bit.
+    ``max_iterations``. Same seed, same result bit for bit, on every machine: the values of
+    ``func`` are compared rounded to 27 bits (:func:`seeds.rounded`), so an "improvement" of a
+    last bit (BLAS differs there between machines) neither resets the stall count nor moves
+    the best (the optimum is found to that step, 2^-27 |F|; ``F`` and ``history`` are the
+    values themselves).
     """
     t0 = time.perf_counter()
     lo = np.asarray(lower, dtype=float)
@@ -260,11 +265,12 @@ def pso(
     span = hi - lo
     x = lo + rng.random((particles, lo.size)) * span
     v = (rng.random((particles, lo.size)) - 0.5) * span
-    f = np.asarray(func(x), dtype=float)
-    p_best, f_best = x.copy(), f.copy()
+    value = np.asarray(func(x), dtype=float)
+    f = seeds.rounded(value)  # compared rounded: the same on every machine
+    p_best, f_best, value_best = x.copy(), f.copy(), value.copy()
     g = int(np.argmin(f_best))
-    g_best, g_f = p_best[g].copy(), float(f_best[g])
-    history = [g_f]
+    g_best, g_f, g_value = p_best[g].copy(), float(f_best[g]), float(value_best[g])
+    history = [g_value]
     evaluations, stall, it = particles, 0, 0
     while it < max_iterations and stall < stall_iterations:
         it += 1
@@ -275,19 +281,21 @@ def pso(
         out = (x < lo) | (x > hi)
         x = np.clip(x, lo, hi)
         v = np.where(out, 0.0, v)
-        f = np.asarray(func(x), dtype=float)
+        value = np.asarray(func(x), dtype=float)
+        f = seeds.rounded(value)
         evaluations += particles
         better = f < f_best
-        p_best[better], f_best[better] = x[better], f[better]
+        p_best[better], f_best[better], value_best[better] = x[better], f[better], value[better]
         g = int(np.argmin(f_best))
         if f_best[g] < g_f:
-            g_best, g_f, stall = p_best[g].copy(), float(f_best[g]), 0
+            g_best, g_f, g_value, stall = p_best[g].copy(), float(f_best[g]), \
+                float(value_best[g]), 0
         else:
             stall += 1
-        history.append(g_f)
+        history.append(g_value)
     return PsoResult(
         x=g_best,
-        F=g_f,
+        F=g_value,
         history=np.array(history),
         iterations=it,
         evaluations=evaluations,

@@ -174,22 +174,6 @@ def indices(q, q_path, *, eps: float, X_FT) -> dict[str, np.ndarray]:
     }
 
 
-# bits kept of each index's mantissa (a relative step of 2^-27 = 7.5e-9)
-INDEX_BITS = 27
-
-
-def rounded(values, bits: int = INDEX_BITS) -> np.ndarray:
-    """``values`` rounded to ``bits`` bits of mantissa (inf and 0 unchanged).
-
-    The indices come through BLAS and LAPACK, whose kernels differ between machines and between
-    batch sizes on one machine in the last bits: the wrist-flip branches, equal in exact
-    arithmetic, and one base evaluated in two generations, would be ordered by those bits, and
-    the search would end at a different base on another machine. Rounded, they tie exactly
-    (unless a value falls within ~1e-15 of a rounding step)."""
-    m, e = np.frexp(np.asarray(values, dtype=float))
-    return np.ldexp(np.round(m * 2.0**bits) / 2.0**bits, e)
-
-
 # --------------------------------------------------------------------------------------------
 # Score-based selection (paper Fig. 4)
 # --------------------------------------------------------------------------------------------
@@ -483,7 +467,7 @@ def evaluate_bases(
     pb, bb = np.nonzero(alive)
     if pb.size:
         ind = indices(q[pb, bb, -1], q[pb, bb], eps=sc.eps, X_FT=sc.X_FT)
-        cand[pb, bb] = rounded(np.stack([ind[n] for n in INDEX_NAMES], axis=-1))
+        cand[pb, bb] = seeds.rounded(np.stack([ind[n] for n in INDEX_NAMES], axis=-1))
         ang[pb, bb] = ind["angular_error_range"]
         finite = np.all(np.isfinite(cand[pb, bb]), axis=-1)
         alive[pb[~finite], bb[~finite]] = False  # exactly singular: not a usable candidate

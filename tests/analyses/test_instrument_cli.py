@@ -50,8 +50,9 @@ def test_cylinder_case_writes_the_plan(cyl_file, tmp_path, capsys):
     # hand-derived in tests/test_placement.py: rod radius 6 mm -> d_T = 62.5 mm, theta_T = 0
     assert data["d_T"] == pytest.approx(0.0625, abs=1e-5)
     assert data["theta_T"] == pytest.approx(0.0, abs=1e-3)
-    assert data["f_safe_line1"] == pytest.approx(0.0315, abs=1e-6)
-    assert data["f_safe_line2"] == pytest.approx(0.0315, abs=1e-6)
+    # to 10 um: the PSO compares F rounded (seeds.rounded), F is flat to second order here
+    assert data["f_safe_line1"] == pytest.approx(0.0315, abs=1e-5)
+    assert data["f_safe_line2"] == pytest.approx(0.0315, abs=1e-5)
     assert data["valid"] is True
     for key in ("F_safe", "iterations", "evaluations", "seconds", "history", "X_CT", "seed"):
         assert key in data

@@ -6,6 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from implantplan.systems import seeds
 from implantplan.systems.errors import InputError
 from implantplan.systems.fpsm.model import Fpsm
 from implantplan.systems.placement.planner import (
@@ -111,13 +112,17 @@ def test_cylinder_eq14_optimum(cyl, rod_mm, d_T_mm, F_expected):
     assert p.valid and p.reason == ""
     assert p.d_T == pytest.approx(d_T_mm * MM, abs=0.01 * MM)
     assert p.theta_T == pytest.approx(0.0, abs=np.deg2rad(0.01))
-    assert p.F_safe == pytest.approx(F_expected, rel=1e-9)
-    # d1 = d2 at the optimum (both lines equally far from the walls)
-    assert p.f_safe_line1 == pytest.approx(p.f_safe_line2, abs=1e-6)
+    # the PSO compares F rounded to seeds.OBJECTIVE_BITS (the same path on every machine): it
+    # finds the optimum to that step
+    step = abs(F_expected) * 2.0 ** (1 - seeds.OBJECTIVE_BITS)
+    assert p.F_safe == pytest.approx(F_expected, abs=step)
+    # d1 = d2 at the optimum (both lines equally far from the walls), to 10 um: F is flat to
+    # second order there, so its rounding step leaves the balance a few um
+    assert p.f_safe_line1 == pytest.approx(p.f_safe_line2, abs=1e-5)
     # PSO within 0.1 mm / 0.1 deg of the exhaustive grid optimum
     assert p.grid["distance_d_T"] <= 0.1 * MM
     assert p.grid["distance_theta_T"] <= np.deg2rad(0.1)
-    assert p.grid["F_pso_minus_grid"] <= 1e-12
+    assert p.grid["F_pso_minus_grid"] <= step
     assert p.iterations >= 40 and p.evaluations == 30 * (p.iterations + 1)
     assert np.all(np.diff(p.history) <= 0)  # the global best never gets worse
 
@@ -135,7 +140,7 @@ def test_cylinder_eq21_is_flat_on_50_81(cyl, rod_mm, flat_F):
         cyl, HOLE, AXIS, rod_radius=rod_mm * MM, implant_length=D12, objective="eq21", verify=False
     )
     assert 50 * MM - 1e-9 <= p.d_T <= 81 * MM + 1e-9
-    assert p.F_safe == pytest.approx(flat_F, abs=1e-12)
+    assert p.F_safe == pytest.approx(flat_F, abs=abs(flat_F) * 2.0 ** (1 - seeds.OBJECTIVE_BITS))
 
 
 def test_cylinder_eq22(cyl):
