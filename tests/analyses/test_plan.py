@@ -127,6 +127,48 @@ def test_same_seed_same_plan(tmp_path, size, request):
     assert without_volatile(plans[0]) == without_volatile(plans[1])
 
 
+def _same_to_rounding(a, b, path="plan"):
+    """The paths where two plans differ beyond rounding: 1e-9 relative, or 1e-10 absolute (m;
+    the exact distances' GJK stops at its tolerance, ~1e-11 m, at other last bits of its
+    inputs)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        if a.keys() != b.keys():
+            return [f"{path}: keys {sorted(a.keys() ^ b.keys())}"]
+        return [d for k in a for d in _same_to_rounding(a[k], b[k], f"{path}.{k}")]
+    if isinstance(a, list) and isinstance(b, list):
+        if len(a) != len(b):
+            return [f"{path}: {len(a)} vs {len(b)} items"]
+        return [d for i, (x, y) in enumerate(zip(a, b, strict=True)) for d in
+                _same_to_rounding(x, y, f"{path}[{i}]")]
+    if isinstance(a, float) and isinstance(b, float):
+        return [] if a == pytest.approx(b, rel=1e-9, abs=1e-10) else [f"{path}: {a} vs {b}"]
+    return [] if a == b else [f"{path}: {a!r} vs {b!r}"]
+
+
+@pytest.mark.sweep
+def test_same_seed_same_plan_with_another_blas_kernel(tmp_path, small_plan):
+    """The small case planned with OpenBLAS's generic kernel (OPENBLAS_CORETYPE=Prescott: other
+    last bits in every BLAS and LAPACK result, as on another machine) is the same plan to
+    rounding: the same placements, PSO iterations, base, branches and checks (before the
+    searches compared rounded values, the base and the PSO's iterations moved)."""
+    import os
+    import subprocess
+    import sys
+
+    case, first = small_plan
+    env = dict(os.environ, OPENBLAS_CORETYPE="Prescott")
+    done = subprocess.run([sys.executable, "-m", "implantplan.analyses.cli", "plan", str(case),
+                           "--out", str(tmp_path / "b"), *SMALL_PLAN_FLAGS], env=env,
+                          capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stdout + done.stderr
+    plans = [without_volatile(json.loads((folder / "plan.json").read_text()))
+             for folder in (first, tmp_path / "b")]
+    for plan in plans:
+        plan.pop("provenance", None)
+    differences = _same_to_rounding(*plans)
+    assert differences == [], "\n".join(differences)
+
+
 def _nan_mesh(tmp_path) -> Path:
     path = tmp_path / "nan.obj"
     path.write_text("v 0 0 0\nv 1 0 0\nv nan 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 2 3 4\nf 1 3 4\n")
