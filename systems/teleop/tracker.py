@@ -17,11 +17,28 @@ position noise plus the lever ``reach`` times four of the angle noise.
 line through the newest ``predict_samples`` good samples, evaluated at the newest sample and
 carried to the present over the sample's age (latency plus up to one camera period) by the
 line's slope, shortened by a dead zone of four standard deviations of the slope's noise
-(:meth:`TrackerParams.gates`; 34 mm/s at 60 Hz with two samples). A still, breathing or
-swallowing head (<= 16 mm/s) stays in the dead zone, so the prediction adds no noise there; a
-startle (5-10 mm in 0.2 s, up to 94 mm/s) is extrapolated. Never across a dropout: on lost
+(:meth:`TrackerParams.gates`; 34 mm/s and 0.6 rad/s at 60 Hz with two samples), while the
+``VELOCITY_WINDOW`` fit calls the head still (inside its own dead zones, 4 standard deviations
+of its slope: 5.7 mm/s and 0.1 rad/s at 60 Hz): a still, breathing or drifting head (<= 2 mm/s)
+stays there (its noise crosses those 4-sigma gates at about 0.2% of the samples, and then
+only just), so the prediction adds no noise to it. Never across a dropout: on lost
 tracking, or with the newest good sample older than latency + two periods, the output is the
 held estimate.
+
+**Moving head.** The two-sample dead zone lags a moving head by its width: a startle's
+rotation (2-4 deg in 0.2 s, at most 0.66 rad/s) hardly leaves its 0.6 rad/s and the
+translation is carried 34 mm/s short, so in the worst of the 50 seeded startles the tool
+trailed the true mouth by up to 2.4 mm and kept 0.72 mm at site 36, below the acceptance's
+margin - 0.2 mm (analyses.studies.head_motion, run 13: 8.1 mm and 2.7 deg). No earlier stop
+of the feed helps there: the guard forced to stop it 20 ms after the onset (before the camera
+can see the motion) kept 0.78 mm; the clearance is lost to the tracking lag. When the fit says
+the head moves, the slope is that of the newest ``max(MOVING_SAMPLES, predict_samples)``
+samples (three: about half the noise of two), its own dead zones scaled by 1 - the share the
+fit says the head moves by (:func:`_kept`: 0 at the fit's dead zone, 1 at twice it; rotation
+and translation each), so a head at twice the fit's dead zones is carried at its full rate
+(a swallow, up to 16 mm/s, partly). The same 50 startles then keep 0.83 mm at site 36 and
+1.13 mm at site 46 (1.14 mm before; ``analyze head-motion --runs 50 --profiles startle`` on the
+default plan, 2026-12-06).
 
 **Why 60 Hz and 20 ms by default.** The following error during a startle is the head's motion
 over the lag the prediction cannot remove. Over 50 seeded startles at the default case's site 36
@@ -32,10 +49,12 @@ The issue's range is 30-60 Hz and 20-50 ms; the default is its fast end, and
 ``analyze head-motion --tracker-rate-hz --tracker-latency-ms --prediction-samples`` measures
 another camera against the same exact reference.
 
-**Smoothing** (``smooth``, off by default). A head turning at 30-60 deg/s (0.5-1 rad/s) is
-cut by the dead zone's 0.6 rad/s (two samples at 60 Hz) to a fraction of its rate, so the
-prediction lags and every new sample corrects it by a jump (1-2 mm at the tool), which the arm
-then has to make in one control step. With ``smooth``:
+**Smoothing** (``smooth``, off by default). Even at its full rate (*Moving head*), a head
+turning at 30-60 deg/s (0.5-1 rad/s) is corrected by every new sample (the slope's noise and
+the turn's acceleration over the samples' age: up to 2.2-2.5 mm per control step at points
+4-14 cm ahead of the neck, tracker alone, 15 deg at 60 deg/s, tests/systems/teleop/test_tracker.py),
+which the arm has to make in one control step (before the moving-head rule, with the turn cut
+by the two-sample dead zone's 0.6 rad/s: 3.9-4.6 mm). With ``smooth``:
 
 - the ``VELOCITY_WINDOW``-sample fit (its own dead zones, 4 standard deviations of its slope:
   0.1 rad/s and 5.7 mm/s at 60 Hz, against 0.6 rad/s and 34 mm/s of the two-sample slope)
@@ -69,6 +88,7 @@ from implantplan.systems.frames import invert, rotation_vector, rotations
 RING = 12  # samples kept: more than latency * rate + VELOCITY_WINDOW for every setting
 VELOCITY_WINDOW = 6  # good samples in the velocity fit (0.1-0.2 s at 30-60 Hz)
 SMOOTH_SAMPLES = 3  # good samples of the moving head's slope under ``smooth``
+MOVING_SAMPLES = 3  # good samples (at least) of the moving head's slope by default
 
 
 @dataclass(frozen=True)
@@ -178,8 +198,11 @@ def _shrink(v: np.ndarray, gate: float) -> np.ndarray:
 
 def _kept(v: np.ndarray, gate: float) -> float:
     """How much a slope ``v`` says the head moves: 0 inside its dead zone ``gate``, rising
-    linearly to 1 at twice the gate."""
-    return float(np.clip(np.linalg.norm(v) / gate - 1.0, 0.0, 1.0))
+    linearly to 1 at twice the gate (a noise-free camera's zero gate: 1 for any motion)."""
+    n = float(np.linalg.norm(v))
+    if gate <= 0.0:
+        return 1.0 if n > 0.0 else 0.0
+    return float(np.clip(n / gate - 1.0, 0.0, 1.0))
 
 
 def predict_pose(rows: np.ndarray, t: float, gates: tuple[float, float], *,
@@ -369,8 +392,9 @@ class Tracker(LeafSystem):
             return self.estimate(context)
         if not self._p.smooth:
             if "line" not in entry:
-                entry["line"] = _slopes(good[-k:])
-            return predict_pose(good[-k:], t, self._gates, line=entry["line"])
+                entry["line"] = self._default_line(good)
+            rows, line, gates = entry["line"]
+            return predict_pose(rows, t, gates, line=line)
         if "smooth" not in entry:
             entry["smooth"] = self._smooth_line(good)
         rows, line, gates = entry["smooth"]
@@ -389,6 +413,26 @@ class Tracker(LeafSystem):
         C = np.eye(4)
         C[:3, :3], C[:3, 3] = rotations((f * w)[None])[0], f * u
         return C @ X
+
+    def _default_line(self, good: np.ndarray):
+        """(rows, line, gates) of the default prediction from the good samples ``good``
+        (oldest first; module notes, *Moving head*): the ``predict_samples`` slope shortened by
+        its dead zones while the ``VELOCITY_WINDOW`` fit calls the head still; for a moving
+        head the slope of the newest ``max(MOVING_SAMPLES, predict_samples)`` samples, its own
+        dead zones scaled by 1 - the share the fit says the head moves by (rotation and
+        translation each)."""
+        k = self._p.predict_samples
+        still = good[-k:], _slopes(good[-k:]), self._gates
+        if good.shape[0] < VELOCITY_WINDOW:
+            return still
+        v = _slopes(good[-VELOCITY_WINDOW:])[2]
+        gp, gw = self._moving_gates
+        share = np.array([_kept(v[:3], gw), _kept(v[3:], gp)])
+        if not share.any():
+            return still
+        rows = good[-max(MOVING_SAMPLES, k):]
+        gp, gw = self._p.gates(rows.shape[0])
+        return rows, _slopes(rows), (gp * (1.0 - share[1]), gw * (1.0 - share[0]))
 
     def _smooth_predict(self, good: np.ndarray, t: float) -> np.ndarray:
         """The prediction under ``smooth`` from the good samples ``good`` (oldest first) at

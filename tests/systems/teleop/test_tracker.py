@@ -8,6 +8,7 @@ from implantplan.systems.errors import InputError
 from implantplan.systems.frames import rotation_angle
 from implantplan.systems.teleop.head_motion import HeadMotion, HeadMotionSource
 from implantplan.systems.teleop.tracker import (
+    VELOCITY_WINDOW,
     Tracker,
     TrackerParams,
     camera_noise,
@@ -179,6 +180,35 @@ def test_prediction_adds_no_noise_to_a_still_head_and_follows_a_startle():
     np.testing.assert_array_equal(pred, est)
 
 
+def test_a_moving_head_is_predicted_at_its_full_rate():
+    """A head at a constant twist beyond twice the VELOCITY_WINDOW fit's dead zones (55 mm/s
+    and 0.5 rad/s against 5.7 mm/s and 0.1 rad/s at 60 Hz) is carried to the present at its
+    full rate: noise-free, exactly (the rotation to first order); with the camera's noise,
+    within less than half the error of the still head's rule (the 2-sample slope shortened
+    by 34 mm/s and 0.6 rad/s, which lags such a head by about 1 mm)."""
+    w, v = np.array([0.0, 0.0, 0.5]), np.array([0.05, -0.02, 0.01])
+    rec = np.array([[0.0, *np.zeros(6)], [10.0, *(10.0 * v), *(10.0 * w)]])
+    motion = HeadMotion(profile="csv", pivot=PIVOT, samples=rec)
+    exact = TrackerParams(noise_position=0.0, noise_angle=0.0)
+    t, lost, V, est, X0, pred = _run(exact, motion, 0.4)
+    true = motion.D(t) @ X0
+    full = t >= (VELOCITY_WINDOW - 1) / exact.rate + exact.latency  # the fit has its samples
+    assert np.abs(pred[full, :3, 3] - true[full, :3, 3]).max() < 1e-9
+    assert rotation_angle(pred[full, :3, :3] @ np.swapaxes(true[full, :3, :3], 1, 2)).max() < 1e-5
+    p = TrackerParams(seed=2)
+    t, lost, V, est, X0, pred = _run(p, motion, 1.0)
+    true = motion.D(t) @ X0
+    ticks = np.arange(int(round(t[-1] * p.rate)) + 1)
+    rows = _samples(ticks / p.rate, camera_samples(p, motion.D(ticks / p.rate) @ X0, ticks))
+    keep = t > 0.2
+    n = np.searchsorted(rows[:, 0] + p.latency, t[keep] + 1e-9, side="right")
+    old = np.array([predict_pose(rows[k - 2:k], ti, p.gates())
+                    for k, ti in zip(n, t[keep], strict=True)])
+    e_new = np.linalg.norm(pred[keep, :3, 3] - true[keep, :3, 3], axis=1)
+    e_old = np.linalg.norm(old[:, :3, 3] - true[keep, :3, 3], axis=1)
+    assert e_old.mean() > 0.0008 and e_new.mean() < 0.5 * e_old.mean()
+
+
 def test_prediction_never_extrapolates_across_a_dropout():
     motion = HeadMotion.make("breathing", seed=2, pivot=PIVOT)
     p = TrackerParams(rate=40.0, latency=0.03, dropouts=((1.0, 1.5),), seed=3)
@@ -214,16 +244,18 @@ def _error_at_the_tool(params, motion, t_end):
 
 @pytest.mark.parametrize("seed", range(2))
 def test_smoothing_follows_a_fast_turn_without_jumps_and_leaves_a_still_head_alone(seed):
-    """With ``smooth``: a 15 deg turn at 60 deg/s about the neck is predicted within 0.7x the
-    default prediction's error, and the error changes by at most 0.3x as much per control step
-    (the arm's desired pose no longer jumps at every camera sample); a still head's error is no
-    larger, and changes less per step (the noise of a new sample is blended in)."""
+    """With ``smooth``: during a 15 deg turn at 60 deg/s about the neck the prediction's error
+    changes by at most 0.45x as much per control step as the default's (the arm's desired pose
+    no longer jumps at every camera sample; measured 0.32-0.36x), for an error within 1.15x of
+    the default's (which carries a fast turn at its full rate too: module notes, *Moving head*;
+    measured 1.06-1.07x); a still head's error is no larger, and changes less per step (the
+    noise of a new sample is blended in)."""
     neck = (PIVOT - np.array([0.0, 0.0, 0.04]), np.array([0.0, 1.0, 0.0]))
     turn = HeadMotion.turn(angle=np.deg2rad(15.0), peak_rate=np.deg2rad(60.0), sign=1.0,
                            onset=1.0, pivot=PIVOT, neck=neck)
     e0, s0 = _error_at_the_tool(TrackerParams(seed=seed), turn, 2.0)
     e1, s1 = _error_at_the_tool(TrackerParams(seed=seed, smooth=True), turn, 2.0)
-    assert e1.max() < 0.7 * e0.max() and s1.max() < 0.3 * s0.max()
+    assert e1.max() < 1.15 * e0.max() and s1.max() < 0.45 * s0.max()
     still = HeadMotion("still")
     e0, s0 = _error_at_the_tool(TrackerParams(seed=seed), still, 2.0)
     e1, s1 = _error_at_the_tool(TrackerParams(seed=seed, smooth=True), still, 2.0)
