@@ -129,12 +129,13 @@ def test_from_placement_and_round_trip():
     )
     vf = p.vf
     # the axis is line1 through the Tool origin (0, 12.5, 50) mm, straight up; the mouth
-    # opening is at z = 100 mm, so the entry is 50 mm along the axis.
+    # opening is at z = 100 mm, so the entry is 50 mm along the axis. The PSO compares F rounded
+    # (seeds.rounded) and F is flat to second order at theta_T = 0: the axis to 1e-4 rad
     np.testing.assert_allclose(vf.origin, [0, 0.0125, 0.05], atol=1e-6)
-    np.testing.assert_allclose(vf.direction, [0, 0, 1], atol=1e-6)
+    np.testing.assert_allclose(vf.direction, [0, 0, 1], atol=1e-4)
     assert vf.entry_distance == pytest.approx(0.05, abs=1e-6)
     assert vf.cylinder_radius == 0.006
-    np.testing.assert_allclose(vf.entry_point, [0, 0.0125, 0.1], atol=1e-6)
+    np.testing.assert_allclose(vf.entry_point, [0, 0.0125, 0.1], atol=1e-5)
     back = VirtualFixture.from_dict(vf.to_dict())
     pts = np.random.default_rng(0).uniform(-0.05, 0.15, (100, 3))
     np.testing.assert_array_equal(back.distance(pts), vf.distance(pts))
