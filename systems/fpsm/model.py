@@ -577,8 +577,8 @@ class Fpsm:
         """:meth:`line_safety` without input checks (compiled kernel); ``u`` unit (K, 3),
         ``L`` (K,), ``radius`` a scalar or (K,) (rods and lines mix in one call)."""
         K = p0.shape[0]
-        p0 = np.ascontiguousarray(p0, dtype=float)
-        u = np.ascontiguousarray(u, dtype=float)
+        p0 = kernel_array(p0)
+        u = kernel_array(u)
         L = kernel_array(L, (K,))
         radius = kernel_array(radius, (K,))
         f = np.empty(K)
