@@ -27,10 +27,16 @@ def modules() -> dict[str, Path]:
     return out
 
 
+@functools.cache
+def tree(path: Path) -> ast.Module:
+    """The parsed file, once per test run (the tests below walk each file several times)."""
+    return ast.parse(path.read_text(), filename=str(path))
+
+
 def imported(path: Path) -> set[str]:
     """implantplan modules a file imports (``from implantplan.x import y`` gives x and x.y)."""
     names = set()
-    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+    for node in ast.walk(tree(path)):
         if isinstance(node, ast.Import):
             targets = [a.name for a in node.names]
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
@@ -46,6 +52,7 @@ def imported(path: Path) -> set[str]:
 MODULES = modules()
 
 
+@functools.cache
 def is_command(name: str) -> bool:
     """A command module: reachable from the CLI (``register``) or run as a program (``main``,
     benchmarks)."""
@@ -53,9 +60,8 @@ def is_command(name: str) -> bool:
         return False
     if name.split(".")[-1].startswith("bench_"):
         return True
-    tree = ast.parse(MODULES[name].read_text())
     return any(isinstance(n, ast.FunctionDef) and n.name in ("register", "main")
-               for n in tree.body)
+               for n in tree(MODULES[name]).body)
 
 
 def resolve(target: str) -> str | None:
@@ -164,9 +170,9 @@ def test_no_import_cycle_inside_systems():
 def private_uses(path: Path) -> list[str]:
     """Private names a file takes from implantplan modules: ``from implantplan.x import _y`` and
     ``alias._y`` where ``alias`` is an imported implantplan module (dunders are not private)."""
-    tree = ast.parse(path.read_text(), filename=str(path))
+    parsed = tree(path)
     aliases, out = set(), []
-    for node in ast.walk(tree):
+    for node in ast.walk(parsed):
         if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module \
                 and node.module.startswith("implantplan"):
             for a in node.names:
@@ -176,7 +182,7 @@ def private_uses(path: Path) -> list[str]:
         elif isinstance(node, ast.Import):
             aliases |= {a.asname for a in node.names
                         if a.name.startswith("implantplan") and a.asname}
-    for node in ast.walk(tree):
+    for node in ast.walk(parsed):
         if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) \
                 and node.value.id in aliases and node.attr.startswith("_") \
                 and not node.attr.startswith("__"):

@@ -1205,6 +1205,11 @@ def exact_reachable(params: MapParams, poses: np.ndarray) -> np.ndarray:
     return _collision_filter(params, res).any(-1)
 
 
+BOUNDARY_ROUND = 100_000  # pairs per round of boundary_poses (memory: 13 MB of poses each)
+BOUNDARY_RATE_FLOOR = 10_000
+BOUNDARY_GIVE_UP = 2_000_000  # pairs drawn without one on the boundary: there is none
+
+
 def boundary_poses(
     params: MapParams,
     n: int,
@@ -1226,10 +1231,17 @@ def boundary_poses(
 
     rng = np.random.default_rng(seed)
     step = params.voxel if step is None else float(step)
-    out, have = [], 0
+    radius = reach_radius(params) if radius is None else radius
+    out, have, drawn, kept = [], 0, 0, 0
     while have < n:
-        m = max(8 * (n - have), 2000)
-        radius = reach_radius(params) if radius is None else radius
+        if have == 0 and drawn >= BOUNDARY_GIVE_UP:
+            raise InputError("center", f"no reachability boundary found in the ball of radius "
+                             f"{radius} m about {np.round(center, 4).tolist()} "
+                             f"({drawn:,} pairs drawn)")
+        # pairs for the poses still missing at the share of pairs kept so far (at most one in
+        # BOUNDARY_RATE_FLOOR assumed before any is kept), in rounds of at most BOUNDARY_ROUND
+        rate = max(kept / drawn, 1.0 / BOUNDARY_RATE_FLOOR) if drawn else 1.0 / 8
+        m = int(min(max(1.2 * (n - have) / (2 * rate), 2000), BOUNDARY_ROUND))
         A = random_poses(m, seed=int(rng.integers(2**31)), radius=radius, center=center)
         axis = rng.normal(size=(m, 3))
         w = axis / np.linalg.norm(axis, axis=1, keepdims=True) * angle * rng.random((m, 1))
@@ -1244,6 +1256,7 @@ def boundary_poses(
         ra = exact_reachable(params, A)
         keep = ra != exact_reachable(params, at(np.ones(m)))
         A, w, dp, ra = A[keep], w[keep], dp[keep], ra[keep]
+        drawn, kept = drawn + m, kept + len(A)
         lo, hi = np.zeros(len(A)), np.ones(len(A))
         for _ in range(24):
             mid = 0.5 * (lo + hi)
