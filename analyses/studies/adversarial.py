@@ -25,8 +25,8 @@ At every logged pose (200 Hz) of every run:
   analyses.studies.scan_reference; measured by FCL at every 8th pose and at every pose whose
   1-Lipschitz bound from its measured neighbours could be the run's smallest
   (:func:`~implantplan.analyses.studies.scan_reference.screened`: the smallest is FCL's, the
-  others are proven above it): 15% of the poses of a feed or a cheek push measured, the same
-  smallest and bound, 4-8x faster (2026-12-06);
+  others are proven above it; docs/measurements.md gives the share of poses measured and the
+  time saved);
   and **between the logged poses**: the arm's joint-linear motion from one logged configuration
   to the next, sampled where it could come closer than the logged poses, with a certified lower
   bound over the whole swept motion (analyses.studies.scan_reference.swept_clearance);
