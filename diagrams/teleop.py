@@ -47,7 +47,9 @@ moves the patient body (all of the scenario's patient and chair geometry, rigidl
 in the scene; a Tracker estimates the head pose; TrackedHeadFrame gives the fixture, the
 estimator and the master the measured tool pose in the tracked head (X_WCenter0 X_WHead^-1
 X_WE: the constant X_WCenter composed with the tracked head displacement) and sends DiffIK the
-supervisor's desired pose carried with the tracked head, so the arm follows the mouth; a
+supervisor's desired pose carried with the tracked head, so the arm follows the mouth (the
+tracked displacement stepped no faster than DiffIK's joints can follow, from DiffIK's joints:
+systems.teleop.tracked_frame, so the arm makes every step of its command in that frame); a
 HeadGuard between the fixture and the supervisor grows the supervisor's margin with the tracked
 head speed and backs the tool out on lost tracking or a head too fast to follow. With
 ``follow=False`` the head moves but the arm ignores it (the comparison run). In dynamic mode the
@@ -69,7 +71,7 @@ HeadMotion --X_WHead--> Tracker --X_WHead_est, V, lost--> TrackedHeadFrame, Head
 HeadMotion --D_W--> MovePatient (plant's geometry poses, patient body displaced) --> SceneGraph
 tool_pose --X_WE--> TrackedHeadFrame --X_WE_head--> fixture, estimator, master
 fixture --> HeadGuard --V, margin_extra--> supervisor --X_WE_desired_head--> TrackedHeadFrame
-TrackedHeadFrame --X_WE_desired--> DiffIK
+TrackedHeadFrame --X_WE_desired--> DiffIK --q--> TrackedHeadFrame
 ```
 
 The scene (arm, actuator, cart, chair and patient) is diagrams.plant's: build_plant returns a
@@ -98,6 +100,7 @@ from pydrake.multibody.inverse_kinematics import (
     DifferentialInverseKinematicsParameters,
 )
 from pydrake.multibody.plant import AddMultibodyPlantSceneGraph, MultibodyPlant
+from pydrake.multibody.tree import JacobianWrtVariable
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.controllers import InverseDynamicsController
 from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem, ValueProducer
@@ -297,27 +300,28 @@ class TrackedHeadFrame(LeafSystem):
 
     H, the tracked displacement of the head, is X_WHead_estimated X_WHead0^-1 stepped to no
     faster than the arm can follow (systems.teleop.tracked_frame.frame_step, from the last
-    control step's H, at the joints ``q`` (6) of differential IK, against their velocity limits
-    ``qdot_max``): ``X_WE_head`` = H^-1 X_WE_measured, the measured tool pose in the head-fixed
-    World (where the constant X_WCenter holds: the fixture, the estimator and the master work
-    there), and ``X_WE_desired`` = H X_WE_desired_head, the supervisor's desired pose carried
-    with the head, for DiffIK. All abstract RigidTransforms. ``H`` (12): H itself, [p (3), R
-    row-major (9)], for the logger (the frame the arm's command lives in,
-    :attr:`FeedRun.X_CT_tracked`). State: H of the last control step (updated every
-    ``period``, the control period).
+    control step's H, at the joints ``q`` (6) of differential IK, with the plant's Jacobian of
+    DiffIK's frame, against the joints' velocity limits ``qdot_max``): ``X_WE_head`` = H^-1
+    X_WE_measured, the measured tool pose in the head-fixed World (where the constant X_WCenter
+    holds: the fixture, the estimator and the master work there), and ``X_WE_desired`` = H
+    X_WE_desired_head, the supervisor's desired pose carried with the head, for DiffIK. All
+    abstract RigidTransforms. ``H`` (12): H itself, [p (3), R row-major (9)], for the logger
+    (the frame the arm's command lives in, :attr:`FeedRun.X_CT_tracked`). State: H of the last
+    control step (updated every ``period``, the control period).
 
     Args:
         X_WHead0: (4, 4) the head's pose at the start (H = identity there).
-        X_WBase, X_FE: the arm's base in World and its TCP (End) in the flange frame.
+        plant, frame: the arm's plant (6 positions) and DiffIK's end-effector frame on it (a
+            private context of the plant computes its pose and Jacobian, as in ToolPose).
         qdot_max: (6,) the joints' velocity limits (rad/s), differential IK's.
         period: the control period (s).
     """
 
-    def __init__(self, X_WHead0, *, X_WBase, X_FE, qdot_max, period: float):
+    def __init__(self, X_WHead0, *, plant: MultibodyPlant, frame, qdot_max, period: float):
         super().__init__()
         self._X0_inv = invert(np.asarray(X_WHead0, dtype=float))
-        self._X_WB = np.asarray(X_WBase, dtype=float)
-        self._X_FE = np.asarray(X_FE, dtype=float)
+        self._plant, self._frame = plant, frame
+        self._plant_context = plant.CreateDefaultContext()
         self._qdot_max = np.asarray(qdot_max, dtype=float).reshape(6)
         self._dt = float(period)
         make = lambda: AbstractValue.Make(RigidTransform())  # noqa: E731
@@ -345,11 +349,11 @@ class TrackedHeadFrame(LeafSystem):
         H_prev = np.eye(4)
         H_prev[:3, 3], H_prev[:3, :3] = x[:3], x[3:].reshape(3, 3)
         goal = self._head.Eval(context).GetAsMatrix4() @ self._X0_inv
-        q = self._q.Eval(context)
-        X_now = self._X_WB @ kin.fk(q, self._X_FE)
-        J = kin.jacobian_space(q, self._X_FE)
-        R = self._X_WB[:3, :3]
-        J_W = np.concatenate([R @ J[:3], R @ J[3:]])
+        plant, pc, E = self._plant, self._plant_context, self._frame
+        plant.SetPositions(pc, self._q.Eval(context))
+        X_now = E.CalcPoseInWorld(pc).GetAsMatrix4()
+        J_W = plant.CalcJacobianSpatialVelocity(pc, JacobianWrtVariable.kV, E, np.zeros(3),
+                                                plant.world_frame(), plant.world_frame())
         H, _ = frame_step(H_prev, goal, self._des.Eval(context).GetAsMatrix4(), X_now, J_W,
                           self._qdot_max, self._dt)
         value.set_value(H)
@@ -623,7 +627,7 @@ def build_teleop(
         trk.set_name("tracker")
         builder.Connect(head.GetOutputPort("X_WHead"), trk.GetInputPort("X_WHead"))
         frame = builder.AddSystem(TrackedHeadFrame(
-            case.X_WCenter, X_WBase=case.X_WBase, X_FE=case.X_FE, period=period,
+            case.X_WCenter, plant=plant, frame=tcp, period=period,
             qdot_max=np.minimum(-plant.GetVelocityLowerLimits(),
                                 plant.GetVelocityUpperLimits())))
         frame.set_name("tracked_head_frame")

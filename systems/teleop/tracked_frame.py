@@ -3,14 +3,14 @@
 The arm holds the tool in the *tracked* head frame H (diagrams.teleop.TrackedHeadFrame: the
 tracker's predicted head displacement): differential IK is sent H X_des, the supervisor's
 desired pose carried with the frame. The supervisor keeps every step of X_des within the command
-limits, but nothing bounds the frame's own step between two control steps. At a camera sample
-the prediction corrects itself by a jump (a new sample's noise, extrapolated over the sample's
-age when the head moves: up to about 0.9 deg, 1.7 mm at the tool, in one 5 ms control step, i.e.
-180 deg/s), and differential IK, bound by the joints' velocity limits, then reaches only part of
-H X_des: it scales its whole step down (the direction kept) and catches up at the next control
-step. The tool then moves other than its command in the frame the supervisor, the fixture and
-the guard hold it in (two steps above the command limits: an *arm jump* of the head-turn sweep,
-analyses.studies.head_turn).
+limits, but nothing else bounds the frame's own step between two control steps. At a camera
+sample the prediction corrects itself by a jump (a new sample's noise, extrapolated over the
+sample's age when the head moves; measured in docs/measurements.md, the head-turn sweep), and
+where that jump asks a joint for more than its velocity limit within one control step,
+differential IK reaches only part of H X_des: it scales its whole step down (the direction
+kept) and catches up at the next control step. The tool then moves other than its command in
+the frame the supervisor, the fixture and the guard hold it in (two steps above the command
+limits: an *arm jump* of the head-turn sweep, analyses.studies.head_turn).
 
 :func:`frame_step` moves the frame from its last value towards the tracker's pose along the
 screw between them (rotation about the desired TCP, translation of that point, one share s of
@@ -18,29 +18,36 @@ both) by the largest share s in [0, 1] for which differential IK's step to H_s X
 rates within ``headroom`` x the joints' limits: its own linearization (the joint rates J^-1 V of
 the pose difference V per period, J the TCP's Jacobian in World at the arm's joints), so
 differential IK makes the step whole and the arm moves in the frame as the supervisor commanded.
-The frame is the tracker's pose whenever the arm can follow it in one step (s = 1, the common
-case: every step of a still, breathing or turning head but for some camera samples); otherwise
-it reaches the tracker's pose over the next steps, as fast as the arm can, where before the arm
-lagged its command by the same amount. If the arm cannot even make the command's own step with
-the frame held (s = 0 infeasible: near a singularity or with the arm still catching up), the
-frame holds (s = 0) and differential IK scales as before.
+Where the arm can follow the tracker's pose in one step (s = 1) the frame is that pose;
+otherwise the frame reaches it over the next steps, as fast as the joints allow (without the
+bound the arm would lag its command instead, by about as much). If the arm cannot make even the
+command's own step with the frame held (s = 0 infeasible: near a singularity, or with the arm
+still catching up), the frame holds and differential IK scales its step as it would anyway.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
 from implantplan.systems.frames import invert, rotation_vector, rotations
 
-HEADROOM = 0.95  # share of the joints' velocity limits a frame step may ask for (the rest: the
-# linearization between the share's bound and differential IK's own step, a few percent)
+HEADROOM = 0.95  # share of the joints' velocity limits a frame step may ask for (the rest: what
+# the joint rates of the step differential IK takes at its next update may differ by from these)
 
 
 def pose_difference(X_a: np.ndarray, X_b: np.ndarray) -> np.ndarray:
     """(6,) [rotation vector of R_b R_a^T; p_b - p_a] in the poses' common frame: differential
     IK's error of X_a against the desired X_b (Drake's ComputePoseDiffInCommonFrame)."""
-    return np.concatenate([rotation_vector(X_b[:3, :3] @ X_a[:3, :3].T),
-                           X_b[:3, 3] - X_a[:3, 3]])
+    R = X_b[:3, :3] @ X_a[:3, :3].T
+    out = np.empty(6)
+    out[:3] = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    sin = math.sqrt(out[0] ** 2 + out[1] ** 2 + out[2] ** 2)  # sin(angle) x axis above
+    if sin > 0.0:  # the steps here are far below pi (frames.rotation_vector's case, scalar)
+        out[:3] *= math.atan2(sin, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)) / sin
+    out[3:] = X_b[:3, 3] - X_a[:3, 3]
+    return out
 
 
 def screw_share(H_prev: np.ndarray, H_goal: np.ndarray, p: np.ndarray, s: float) -> np.ndarray:

@@ -111,3 +111,17 @@ def test_screw_share_ends_at_the_goal_and_rotates_about_the_point():
     D = goal @ invert(H_prev)
     assert rotation_angle((half @ invert(H_prev))[:3, :3][None])[0] == pytest.approx(
         0.5 * rotation_angle(D[:3, :3][None])[0])
+
+
+def test_pose_difference_is_the_rotation_vector_and_the_translation():
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        a, b = np.eye(4), np.eye(4)
+        a[:3, :3] = rotations(rng.normal(size=(1, 3)))[0]
+        w = rng.normal(size=3) * rng.uniform(0.0, 3.0) / np.sqrt(3.0)
+        b[:3, :3] = rotations(w[None])[0] @ a[:3, :3]
+        a[:3, 3], b[:3, 3] = rng.normal(size=3), rng.normal(size=3)
+        d = pose_difference(a, b)
+        np.testing.assert_allclose(d[:3], rotation_vector(b[:3, :3] @ a[:3, :3].T), atol=1e-9)
+        np.testing.assert_allclose(d[3:], b[:3, 3] - a[:3, 3])
+    assert np.array_equal(pose_difference(a, a), np.zeros(6))
