@@ -47,7 +47,9 @@ moves the patient body (all of the scenario's patient and chair geometry, rigidl
 in the scene; a Tracker estimates the head pose; TrackedHeadFrame gives the fixture, the
 estimator and the master the measured tool pose in the tracked head (X_WCenter0 X_WHead^-1
 X_WE: the constant X_WCenter composed with the tracked head displacement) and sends DiffIK the
-supervisor's desired pose carried with the tracked head, so the arm follows the mouth; a
+supervisor's desired pose carried with the tracked head, so the arm follows the mouth (the
+tracked displacement stepped no faster than DiffIK's joints can follow, from DiffIK's joints:
+systems.teleop.tracked_frame, so the arm makes every step of its command in that frame); a
 HeadGuard between the fixture and the supervisor grows the supervisor's margin with the tracked
 head speed and backs the tool out on lost tracking or a head too fast to follow. With
 ``follow=False`` the head moves but the arm ignores it (the comparison run). In dynamic mode the
@@ -69,7 +71,7 @@ HeadMotion --X_WHead--> Tracker --X_WHead_est, V, lost--> TrackedHeadFrame, Head
 HeadMotion --D_W--> MovePatient (plant's geometry poses, patient body displaced) --> SceneGraph
 tool_pose --X_WE--> TrackedHeadFrame --X_WE_head--> fixture, estimator, master
 fixture --> HeadGuard --V, margin_extra--> supervisor --X_WE_desired_head--> TrackedHeadFrame
-TrackedHeadFrame --X_WE_desired--> DiffIK
+TrackedHeadFrame --X_WE_desired--> DiffIK --q--> TrackedHeadFrame
 ```
 
 The scene (arm, actuator, cart, chair and patient) is diagrams.plant's: build_plant returns a
@@ -98,9 +100,10 @@ from pydrake.multibody.inverse_kinematics import (
     DifferentialInverseKinematicsParameters,
 )
 from pydrake.multibody.plant import AddMultibodyPlantSceneGraph, MultibodyPlant
+from pydrake.multibody.tree import JacobianWrtVariable
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.controllers import InverseDynamicsController
-from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem
+from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem, ValueProducer
 from pydrake.systems.primitives import LogVectorOutput, StateInterpolatorWithDiscreteDerivative
 from pydrake.systems.rendering import MultibodyPositionToGeometryPose
 
@@ -123,6 +126,7 @@ from implantplan.systems.teleop.head_motion import HeadMotion, HeadMotionSource
 from implantplan.systems.teleop.insertion import R_INSERT, InsertionPhase
 from implantplan.systems.teleop.master_device import IncrementalMapping, MasterDevice, MasterMotion
 from implantplan.systems.teleop.supervisor import Barrier, SafetySupervisor
+from implantplan.systems.teleop.tracked_frame import frame_step
 from implantplan.systems.teleop.tracker import Tracker, TrackerParams
 
 MODES = ("kinematic", "dynamic")
@@ -288,42 +292,91 @@ class TrackedHeadFrame(LeafSystem):
         - X_WHead_estimated
         - X_WE_measured
         - X_WE_desired_head
+        - q
         output_ports:
         - X_WE_head
         - X_WE_desired
         - H
 
-    With H = X_WHead_estimated X_WHead0^-1 (the tracked displacement of the head):
-    ``X_WE_head`` = H^-1 X_WE_measured, the measured tool pose in the head-fixed World (where the
-    constant X_WCenter holds: the fixture, the estimator and the master work there), and
-    ``X_WE_desired`` = H X_WE_desired_head, the supervisor's desired pose carried with the head,
-    for DiffIK. All abstract RigidTransforms. ``H`` (12): H itself, [p (3), R row-major (9)],
-    for the logger (the frame the arm's command lives in, :attr:`FeedRun.X_CT_tracked`).
+    H, the tracked displacement of the head, is X_WHead_estimated X_WHead0^-1 stepped to no
+    faster than the arm can follow (systems.teleop.tracked_frame.frame_step, from the last
+    control step's H, at the joints ``q`` (6) of differential IK, with the plant's Jacobian of
+    DiffIK's frame, against the joints' velocity limits ``qdot_max``): ``X_WE_head`` = H^-1
+    X_WE_measured, the measured tool pose in the head-fixed World (where the constant X_WCenter
+    holds: the fixture, the estimator and the master work there), and ``X_WE_desired`` = H
+    X_WE_desired_head, the supervisor's desired pose carried with the head, for DiffIK. All
+    abstract RigidTransforms. ``H`` (12): H itself, [p (3), R row-major (9)], for the logger
+    (the frame the arm's command lives in, :attr:`FeedRun.X_CT_tracked`). State: H of the last
+    control step (updated every ``period``, the control period).
+
+    Args:
+        X_WHead0: (4, 4) the head's pose at the start (H = identity there).
+        plant, frame: the arm's plant (6 positions) and DiffIK's end-effector frame on it (a
+            private context of the plant computes its pose and Jacobian, as in ToolPose).
+        qdot_max: (6,) the joints' velocity limits (rad/s), differential IK's.
+        period: the control period (s).
     """
 
-    def __init__(self, X_WHead0):
+    def __init__(self, X_WHead0, *, plant: MultibodyPlant, frame, qdot_max, period: float):
         super().__init__()
         self._X0_inv = invert(np.asarray(X_WHead0, dtype=float))
+        self._plant, self._frame = plant, frame
+        self._plant_context = plant.CreateDefaultContext()
+        self._qdot_max = np.asarray(qdot_max, dtype=float).reshape(6)
+        self._dt = float(period)
         make = lambda: AbstractValue.Make(RigidTransform())  # noqa: E731
         self._head = self.DeclareAbstractInputPort("X_WHead_estimated", make())
         self._meas = self.DeclareAbstractInputPort("X_WE_measured", make())
         self._des = self.DeclareAbstractInputPort("X_WE_desired_head", make())
-        self.DeclareAbstractOutputPort("X_WE_head", make, self._calc_head)
-        self.DeclareAbstractOutputPort("X_WE_desired", make, self._calc_desired)
-        self.DeclareVectorOutputPort("H", 12, self._calc_H_vector)
+        self._q = self.DeclareVectorInputPort("q", 6)
+        self.DeclareDiscreteState(_h_vector(np.eye(4)))
+        self.DeclarePeriodicDiscreteUpdateEvent(self._dt, 0.0, self._update)
+        self._H_entry = self.DeclareCacheEntry(
+            description="H", value_producer=ValueProducer(
+                allocate=AbstractValue.Make(np.eye(4)).Clone, calc=self._calc_H),
+            prerequisites_of_calc={self.xd_ticket(), self.time_ticket(),
+                                   self._head.ticket(), self._des.ticket(), self._q.ticket()})
+        H_ticket = {self._H_entry.ticket()}
+        self.DeclareAbstractOutputPort("X_WE_head", make, self._calc_head,
+                                       prerequisites_of_calc=H_ticket | {self._meas.ticket()})
+        self.DeclareAbstractOutputPort("X_WE_desired", make, self._calc_desired,
+                                       prerequisites_of_calc=H_ticket | {self._des.ticket()})
+        self.DeclareVectorOutputPort("H", 12, self._calc_H_vector,
+                                     prerequisites_of_calc=H_ticket)
 
-    def _calc_H_vector(self, context, output: BasicVector):
-        H = self._H(context)
-        output.SetFromVector(np.concatenate([H[:3, 3], H[:3, :3].ravel()]))
+    def _calc_H(self, context, value):
+        x = context.get_discrete_state(0).get_value()
+        H_prev = np.eye(4)
+        H_prev[:3, 3], H_prev[:3, :3] = x[:3], x[3:].reshape(3, 3)
+        goal = self._head.Eval(context).GetAsMatrix4() @ self._X0_inv
+        plant, pc, E = self._plant, self._plant_context, self._frame
+        plant.SetPositions(pc, self._q.Eval(context))
+        X_now = E.CalcPoseInWorld(pc).GetAsMatrix4()
+        J_W = plant.CalcJacobianSpatialVelocity(pc, JacobianWrtVariable.kV, E, np.zeros(3),
+                                                plant.world_frame(), plant.world_frame())
+        H, _ = frame_step(H_prev, goal, self._des.Eval(context).GetAsMatrix4(), X_now, J_W,
+                          self._qdot_max, self._dt)
+        value.set_value(H)
 
     def _H(self, context) -> np.ndarray:
-        return self._head.Eval(context).GetAsMatrix4() @ self._X0_inv
+        return self._H_entry.Eval(context)
+
+    def _update(self, context, discrete_state):
+        discrete_state.get_mutable_vector(0).SetFromVector(_h_vector(self._H(context)))
+
+    def _calc_H_vector(self, context, output: BasicVector):
+        output.SetFromVector(_h_vector(self._H(context)))
 
     def _calc_head(self, context, value):
         value.set_value(_rt(invert(self._H(context)) @ self._meas.Eval(context).GetAsMatrix4()))
 
     def _calc_desired(self, context, value):
         value.set_value(_rt(self._H(context) @ self._des.Eval(context).GetAsMatrix4()))
+
+
+def _h_vector(H) -> np.ndarray:
+    """(12,) [p (3), R row-major (9)] of a pose (4, 4)."""
+    return np.concatenate([H[:3, 3], H[:3, :3].ravel()])
 
 
 class MovePatient(LeafSystem):
@@ -573,7 +626,10 @@ def build_teleop(
         trk = builder.AddSystem(Tracker(params, case.X_WCenter))
         trk.set_name("tracker")
         builder.Connect(head.GetOutputPort("X_WHead"), trk.GetInputPort("X_WHead"))
-        frame = builder.AddSystem(TrackedHeadFrame(case.X_WCenter))
+        frame = builder.AddSystem(TrackedHeadFrame(
+            case.X_WCenter, plant=plant, frame=tcp, period=period,
+            qdot_max=np.minimum(-plant.GetVelocityLowerLimits(),
+                                plant.GetVelocityUpperLimits())))
         frame.set_name("tracked_head_frame")
         builder.Connect(trk.GetOutputPort("X_WHead_predicted"),
                         frame.GetInputPort("X_WHead_estimated"))
@@ -581,6 +637,7 @@ def build_teleop(
         builder.Connect(supervisor.GetOutputPort("X_WE_desired"),
                         frame.GetInputPort("X_WE_desired_head"))
         builder.Connect(frame.GetOutputPort("X_WE_desired"), diffik.GetInputPort("X_AE_desired"))
+        builder.Connect(diffik.GetOutputPort("joint_positions"), frame.GetInputPort("q"))
         measured = frame.GetOutputPort("X_WE_head")
         axis_W = case.X_WCenter[:3, :3] @ case.vf.direction
         head_guard = builder.AddSystem(HeadGuard(

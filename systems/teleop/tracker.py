@@ -38,7 +38,11 @@ fit says the head moves by (:func:`_kept`: 0 at the fit's dead zone, 1 at twice 
 and translation each), so a head at twice the fit's dead zones is carried at its full rate
 (a swallow, up to 16 mm/s, partly). The same 50 startles then keep 0.83 mm at site 36 and
 1.13 mm at site 46 (1.14 mm before; ``analyze head-motion --runs 50 --profiles startle`` on the
-default plan, 2026-12-06).
+default plan, 2026-12-06). The moving head's slope, unshortened, carries a new sample's noise
+over the sample's age: a correction can then turn the predicted head faster than the arm's
+joints can follow in one control step; the tracked head frame the arm holds the tool in steps
+towards this prediction no faster than they can (systems.teleop.tracked_frame), so the arm
+never lags its command there.
 
 **Why 60 Hz and 20 ms by default.** The following error during a startle is the head's motion
 over the lag the prediction cannot remove. Over 50 seeded startles at the default case's site 36
