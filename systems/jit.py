@@ -32,7 +32,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
-__all__ = ["kernel_array", "numba", "source_stamp"]
+__all__ = ["imported_modules", "kernel_array", "numba", "source_stamp"]
 
 SYSTEMS = Path(__file__).resolve().parent  # the folder of implantplan.systems
 _IMPORTS = re.compile(r"implantplan\.systems((?:\.\w+)*)"
@@ -101,7 +101,7 @@ def _module_file(dotted: str) -> Path | None:
 
 
 @functools.cache
-def _imports(path: Path) -> frozenset[Path]:
+def imported_modules(path: Path) -> frozenset[Path]:
     """The files of the implantplan.systems modules ``path`` names in its imports (module-level
     or inside functions; ``from implantplan.systems.x import y`` names x and, if a module, x.y)."""
     out = set()
@@ -120,7 +120,7 @@ def source_stamp(path: Path) -> str:
     transitively (sorted by path relative to the package)."""
     seen, todo = {path}, [path]
     while todo:
-        for f in _imports(todo.pop()):
+        for f in imported_modules(todo.pop()):
             if f not in seen:
                 seen.add(f)
                 todo.append(f)

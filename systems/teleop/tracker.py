@@ -27,18 +27,15 @@ held estimate.
 
 **Moving head.** The two-sample dead zone lags a moving head by its width: a startle's
 rotation (2-4 deg in 0.2 s, at most 0.66 rad/s) hardly leaves its 0.6 rad/s and the
-translation is carried 34 mm/s short, so in the worst of the 50 seeded startles the tool
-trailed the true mouth by up to 2.4 mm and kept 0.72 mm at site 36, below the acceptance's
-margin - 0.2 mm (analyses.studies.head_motion, run 13: 8.1 mm and 2.7 deg). No earlier stop
-of the feed helps there: the guard forced to stop it 20 ms after the onset (before the camera
-can see the motion) kept 0.78 mm; the clearance is lost to the tracking lag. When the fit says
+translation is carried 34 mm/s short: in the seeded startles of analyses.studies.head_motion
+the tool trailed the true mouth by millimetres and the clearance was lost to that lag, not to
+a late stop of the feed (docs/measurements.md, the awake patient). When the fit says
 the head moves, the slope is that of the newest ``max(MOVING_SAMPLES, predict_samples)``
 samples (three: about half the noise of two), its own dead zones scaled by 1 - the share the
 fit says the head moves by (:func:`_kept`: 0 at the fit's dead zone, 1 at twice it; rotation
 and translation each), so a head at twice the fit's dead zones is carried at its full rate
-(a swallow, up to 16 mm/s, partly). The same 50 startles then keep 0.83 mm at site 36 and
-1.13 mm at site 46 (1.14 mm before; ``analyze head-motion --runs 50 --profiles startle`` on the
-default plan, 2026-12-06). The moving head's slope, unshortened, carries a new sample's noise
+(a swallow, up to 16 mm/s, partly; the startles' clearance with and without it:
+docs/measurements.md). The moving head's slope, unshortened, carries a new sample's noise
 over the sample's age: a correction can then turn the predicted head faster than the arm's
 joints can follow in one control step; the tracked head frame the arm holds the tool in steps
 towards this prediction no faster than they can (systems.teleop.tracked_frame), so the arm

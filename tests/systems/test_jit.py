@@ -76,10 +76,10 @@ def test_a_kernel_module_is_stamped_with_every_module_it_imports(tmp_path, monke
 
     def stamp():
         jit.source_stamp.cache_clear()
-        jit._imports.cache_clear()
+        jit.imported_modules.cache_clear()
         return jit.source_stamp(root / "a.py")
 
-    names = {f.relative_to(root).as_posix() for f in jit._imports(root / "a.py")}
+    names = {f.relative_to(root).as_posix() for f in jit.imported_modules(root / "a.py")}
     assert names == {"b.py", "pkg/__init__.py", "pkg/c.py", "__init__.py", "lazy.py"}
     before = stamp()
     (root / "other.py").write_text("Z = 2\n")
@@ -90,7 +90,7 @@ def test_a_kernel_module_is_stamped_with_every_module_it_imports(tmp_path, monke
         assert after != before, name
         before = after
     jit.source_stamp.cache_clear()
-    jit._imports.cache_clear()
+    jit.imported_modules.cache_clear()
 
 
 def test_the_project_kernels_are_cached_under_the_package_path():
@@ -100,10 +100,10 @@ def test_the_project_kernels_are_cached_under_the_package_path():
     from pathlib import Path
 
     from implantplan.systems import jit
-    from implantplan.systems.robot import kinematics
+    from implantplan.systems.robot import collision_primitives
 
-    cache = kinematics._ik_kernel._cache
+    cache = collision_primitives.seg_seg._cache
     assert Path(cache._cache_path) == Path(os.environ["NUMBA_CACHE_DIR"], "implantplan",
-                                           "systems", "robot", "kinematics")
+                                           "systems", "robot", "collision_primitives")
     assert cache._impl.locator.get_source_stamp() == jit.source_stamp(
-        Path(kinematics.__file__).resolve())
+        Path(collision_primitives.__file__).resolve())
