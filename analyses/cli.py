@@ -101,8 +101,29 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM, raised where Ctrl-C would be (so the same cleanup runs)."""
 
 
+TERMINATE_RETRY_S = 0.01  # a SIGTERM swallowed by a finalizer is raised again this much later
+_STOPPING = {"caught": False}
+
+
 def _terminate(signum, frame):
-    raise Terminated()
+    if not _STOPPING["caught"]:
+        raise Terminated()
+
+
+def _unraisable_hook(previous):
+    """A ``sys.unraisablehook`` for a command's run: Python ignores an exception raised in a
+    finalizer (``__del__``, a weakref callback: "Exception ignored in ..."), so a SIGTERM that
+    lands there (llvmlite disposes of its objects so while numba compiles) would be lost and the
+    command would run on. Such a Terminated is raised again ``TERMINATE_RETRY_S`` later from
+    SIGALRM, until it reaches the command; every other one goes to ``previous``."""
+
+    def hook(unraisable):
+        if isinstance(unraisable.exc_value, Terminated):
+            signal.setitimer(signal.ITIMER_REAL, TERMINATE_RETRY_S)
+            return
+        previous(unraisable)
+
+    return hook
 
 
 def _requested_command(argv: list[str]) -> str | None:
@@ -145,9 +166,13 @@ def main(argv: list[str] | None = None) -> int:
     noise.reset()
     parser = build_parser(argv)
     args = parser.parse_args(argv)
-    previous = None
+    previous = previous_alarm = None
+    previous_hook = sys.unraisablehook
+    _STOPPING["caught"] = False
     try:
         previous = signal.signal(signal.SIGTERM, _terminate)
+        previous_alarm = signal.signal(signal.SIGALRM, _terminate)
+        sys.unraisablehook = _unraisable_hook(previous_hook)
     except ValueError:  # not the main thread (main() called from a worker thread)
         pass
     try:
@@ -163,6 +188,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"implantplan: planning failed: {exc.reason}", file=sys.stderr)
         return 3
     except Terminated:
+        _STOPPING["caught"] = True  # a retry still armed (see _unraisable_hook) does nothing
         print("implantplan: terminated (SIGTERM)", file=sys.stderr)
         return 143
     except KeyboardInterrupt:
@@ -177,7 +203,10 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     finally:
         if previous is not None:
+            signal.setitimer(signal.ITIMER_REAL, 0.0)
             signal.signal(signal.SIGTERM, previous)
+            signal.signal(signal.SIGALRM, previous_alarm)
+            sys.unraisablehook = previous_hook
         for line in noise.summary():
             print(f"implantplan: {line}", file=sys.stderr)
     return int(code or 0)

@@ -84,3 +84,45 @@ def test_every_command_prints_its_help(capsys):
             main([*path, "--help"])
         assert e.value.code == 0, path
         assert "usage: implantplan" in capsys.readouterr().out, path
+
+
+SIGTERM_IN_A_FINALIZER = """
+import argparse, os, signal, sys, time
+from implantplan.analyses import cli
+
+class Finalizer:
+    def __del__(self):  # the SIGTERM's handler runs in here, where Python ignores exceptions
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.001)
+
+def work(args):
+    Finalizer()
+    start = time.monotonic()
+    while time.monotonic() - start < 5.0:
+        pass
+    print("ran on")
+    return 0
+
+def parser(argv=None):
+    p = argparse.ArgumentParser()
+    p.set_defaults(func=work)
+    return p
+
+cli.build_parser = parser
+t = time.monotonic()
+code = cli.main([])
+print(f"seconds {time.monotonic() - t:.3f}")
+sys.exit(code)
+"""
+
+
+def test_a_sigterm_landing_in_a_finalizer_still_stops_the_command():
+    """A SIGTERM whose handler runs inside a finalizer (as in llvmlite's while numba compiles:
+    Python prints "Exception ignored in ..." and goes on) is raised again until it reaches the
+    command: exit 143 at once, the one line, no traceback, the work not run to its end."""
+    proc = subprocess.run([sys.executable, "-c", SIGTERM_IN_A_FINALIZER], capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 143, (proc.stdout, proc.stderr)
+    assert "ran on" not in proc.stdout
+    assert proc.stderr.strip() == "implantplan: terminated (SIGTERM)", proc.stderr
+    assert float(proc.stdout.split()[-1]) < 1.0, proc.stdout
