@@ -101,8 +101,8 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM, raised where Ctrl-C would be (so the same cleanup runs)."""
 
 
-TERMINATE_RETRY_S = 0.01  # a SIGTERM swallowed by a finalizer is raised again this much later
-_STOPPING = {"caught": False}
+STOP_RETRY_S = 0.01  # a SIGTERM or Ctrl-C swallowed by a finalizer is raised again this later
+_STOPPING = {"caught": False, "pending": Terminated}
 
 
 def _terminate(signum, frame):
@@ -110,16 +110,23 @@ def _terminate(signum, frame):
         raise Terminated()
 
 
+def _raise_pending(signum, frame):
+    if not _STOPPING["caught"]:
+        raise _STOPPING["pending"]()
+
+
 def _unraisable_hook(previous):
     """A ``sys.unraisablehook`` for a command's run: Python ignores an exception raised in a
-    finalizer (``__del__``, a weakref callback: "Exception ignored in ..."), so a SIGTERM that
-    lands there (llvmlite disposes of its objects so while numba compiles) would be lost and the
-    command would run on. Such a Terminated is raised again ``TERMINATE_RETRY_S`` later from
-    SIGALRM, until it reaches the command; every other one goes to ``previous``."""
+    finalizer (``__del__``, a weakref callback: "Exception ignored in ..."), so a SIGTERM or a
+    Ctrl-C that lands there (llvmlite disposes of its objects so while numba compiles) would be
+    lost and the command would run on. Such a Terminated or KeyboardInterrupt is raised again
+    ``STOP_RETRY_S`` later from SIGALRM, until it reaches the command; every other one goes to
+    ``previous``."""
 
     def hook(unraisable):
-        if isinstance(unraisable.exc_value, Terminated):
-            signal.setitimer(signal.ITIMER_REAL, TERMINATE_RETRY_S)
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            _STOPPING["pending"] = type(unraisable.exc_value)
+            signal.setitimer(signal.ITIMER_REAL, STOP_RETRY_S)
             return
         previous(unraisable)
 
@@ -171,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
     _STOPPING["caught"] = False
     try:
         previous = signal.signal(signal.SIGTERM, _terminate)
-        previous_alarm = signal.signal(signal.SIGALRM, _terminate)
+        previous_alarm = signal.signal(signal.SIGALRM, _raise_pending)
         sys.unraisablehook = _unraisable_hook(previous_hook)
     except ValueError:  # not the main thread (main() called from a worker thread)
         pass
@@ -192,6 +199,7 @@ def main(argv: list[str] | None = None) -> int:
         print("implantplan: terminated (SIGTERM)", file=sys.stderr)
         return 143
     except KeyboardInterrupt:
+        _STOPPING["caught"] = True
         print("implantplan: interrupted", file=sys.stderr)
         return 130
     except Exception as exc:  # a bug: one line here, the traceback in the log

@@ -86,13 +86,13 @@ def test_every_command_prints_its_help(capsys):
         assert "usage: implantplan" in capsys.readouterr().out, path
 
 
-SIGTERM_IN_A_FINALIZER = """
+SIGNAL_IN_A_FINALIZER = """
 import argparse, os, signal, sys, time
 from implantplan.analyses import cli
 
 class Finalizer:
-    def __del__(self):  # the SIGTERM's handler runs in here, where Python ignores exceptions
-        os.kill(os.getpid(), signal.SIGTERM)
+    def __del__(self):  # the signal's handler runs in here, where Python ignores exceptions
+        os.kill(os.getpid(), getattr(signal, sys.argv[1]))
         time.sleep(0.001)
 
 def work(args):
@@ -116,13 +116,17 @@ sys.exit(code)
 """
 
 
-def test_a_sigterm_landing_in_a_finalizer_still_stops_the_command():
-    """A SIGTERM whose handler runs inside a finalizer (as in llvmlite's while numba compiles:
-    Python prints "Exception ignored in ..." and goes on) is raised again until it reaches the
-    command: exit 143 at once, the one line, no traceback, the work not run to its end."""
-    proc = subprocess.run([sys.executable, "-c", SIGTERM_IN_A_FINALIZER], capture_output=True,
-                          text=True, timeout=60)
-    assert proc.returncode == 143, (proc.stdout, proc.stderr)
+@pytest.mark.parametrize("name, code, line", [
+    ("SIGTERM", 143, "implantplan: terminated (SIGTERM)"),
+    ("SIGINT", 130, "implantplan: interrupted")])
+def test_a_stop_landing_in_a_finalizer_still_stops_the_command(name, code, line):
+    """A SIGTERM or Ctrl-C whose handler runs inside a finalizer (as in llvmlite's while numba
+    compiles: Python prints "Exception ignored in ..." and goes on) is raised again until it
+    reaches the command: its exit code at once, the one line, no traceback, the work not run to
+    its end."""
+    proc = subprocess.run([sys.executable, "-c", SIGNAL_IN_A_FINALIZER, name],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == code, (proc.stdout, proc.stderr)
     assert "ran on" not in proc.stdout
-    assert proc.stderr.strip() == "implantplan: terminated (SIGTERM)", proc.stderr
+    assert proc.stderr.strip() == line, proc.stderr
     assert float(proc.stdout.split()[-1]) < 1.0, proc.stdout
