@@ -25,7 +25,11 @@ mesh,
   the tool transformed into the moving head's Center frame at every logged step (2 000 steps of
   a 10 s run); on the bundled default case (``--case scan``, the default) the opened scan per
   site (analyses.studies.scan_reference.exact_for), on ``--case cylinder`` the cylinder of its FPSM;
-- the feed's completion: final distance to the target in the head frame <= 1 mm;
+- the feed's completion: final distance to the target in the head frame <= 1 mm; a
+  following feed the safety layer held short of it (a swallow grows the guard's margin
+  past the clearance at the narrowest part of the feed, so the barrier holds the tool until
+  the head slows; no guard stop) is run again with ``WAIT_SECONDS`` more of the operator's
+  finish by eye, as a surgeon waits a swallow out (``waited`` in its row);
 - after a startle: the time from its onset to the guard's stop (detection) and to the end of
   the back-out (the tool moved 90% of the back-out distance along the fixture's axis out of
   the deepest point it reached since the onset, measured on the tool itself in the true head
@@ -56,6 +60,9 @@ from implantplan.systems.teleop.tracker import TrackerParams
 from implantplan.systems.validate import names
 
 STUDY_PROFILES = PROFILES[1:]  # breathing, swallow, startle, drift, turn
+WAIT_SECONDS = 4.0  # a following feed the safety layer held short of the target (no guard
+# stop) when the operator's finish ends: the surgeon waits the hold out and finishes by eye this
+# much longer (the run simulated again, same seeds; ``waited`` in its row)
 BACKED_OUT_SHARE = 0.9  # the back-out counts as done when the tool moved 90% of the distance
 
 
@@ -217,13 +224,13 @@ def head_study(case: TeleopCase, inst, *, profiles=STUDY_PROFILES, runs: int = 5
         rows = []
         for i, m in enumerate(motions):
             hm = HeadMotion.make(prof, seed=seeds.seed(seed, i, 0), pivot=pivot, neck=neck)
-            T = m.duration + F.FINISH_SECONDS
             trk = dataclasses.replace(base, seed=seeds.seed(seed, i, 1))
-            fol = simulate(build_teleop(case, head_motion=hm, tracker=trk), T, motion=m)
-            ign = simulate(build_teleop(case, head_motion=hm, follow=False), T, motion=m)
             on = hm.params.get("onset_s") if prof in ("startle", "turn") else None
-            a = measure(fol, stills[i], case, cavity, event_time=on)
-            b = measure(ign, stills[i], case, cavity)
+            fol, a, still = following_run(case, m, hm, trk, cavity, still=stills[i],
+                                          still_teleop=still_tel, event_time=on)
+            ign = simulate(build_teleop(case, head_motion=hm, follow=False), fol.sim_seconds,
+                           motion=m)
+            b = measure(ign, still, case, cavity)
             row = {"head": {k: (v.tolist() if isinstance(v, np.ndarray) else v)
                             for k, v in hm.params.items()},
                    "following": _public(a), "ignoring": _public(b)}
@@ -265,6 +272,26 @@ def head_study(case: TeleopCase, inst, *, profiles=STUDY_PROFILES, runs: int = 5
     return out
 
 
+def following_run(case: TeleopCase, motion, head_motion: HeadMotion, tracker: TrackerParams,
+                  cavity, *, still, still_teleop, event_time: float | None = None):
+    """One feed with the arm following the moving head, measured against the ``still`` run
+    (simulated on ``still_teleop``): ``(run, figures, still)``. A feed the safety layer held
+    short of the target with no guard stop is run again with the operator finishing by eye
+    ``WAIT_SECONDS`` longer (module notes; the figures' ``waited``), measured against the still
+    run of the same length."""
+    T = motion.duration + F.FINISH_SECONDS
+    teleop = build_teleop(case, head_motion=head_motion, tracker=tracker)
+    run = simulate(teleop, T, motion=motion)
+    m = measure(run, still, case, cavity, event_time=event_time)
+    m["waited"] = not m["reached_target"] and m["trigger_time"] < 0
+    if m["waited"]:  # the same run again (the same seeds, deterministic), a longer finish
+        T += WAIT_SECONDS
+        still = simulate(still_teleop, T, motion=motion)
+        run = simulate(teleop, T, motion=motion)
+        m = measure(run, still, case, cavity, event_time=event_time) | {"waited": True}
+    return run, m, still
+
+
 def summarize(rows: list, prof: str, margin: float) -> dict:
     fol = [r["following"] for r in rows]
     ign = [r["ignoring"] for r in rows]
@@ -285,6 +312,7 @@ def summarize(rows: list, prof: str, margin: float) -> dict:
             r.get("exact_clearance_min_outside_event", r["exact_clearance_min"])
             < margin - 0.0002 for r in fol)),
         "reached_target_following": int(sum(r["reached_target"] for r in fol)),
+        "waited_following": int(sum(r.get("waited", False) for r in fol)),
         "guard_triggered_following": int(sum(r["trigger_time"] >= 0 for r in fol)),
         "realtime_factor_min_following": float(min(r["realtime_factor"] for r in fol)),
     }
@@ -327,7 +355,8 @@ def _print_summary(result: dict, prefix: str = "") -> None:
                 f"exact clearance min "
                 f"{mm['exact_clearance_min_following']:.2f} mm "
                 f"({s['runs_below_zero_following']} runs < 0); reached "
-                f"{s['reached_target_following']}; guard {s['guard_triggered_following']}")
+                f"{s['reached_target_following']} ({s['waited_following']} after a wait); "
+                f"guard {s['guard_triggered_following']}")
         if prof in ("startle", "turn") and s["stop_after_onset_max_s"] is not None:
             back = s["backed_out_after_onset_max_s"]
             line += (f"; stop <= {s['stop_after_onset_max_s']:.3f} s after onset, backed out "

@@ -73,6 +73,7 @@ from implantplan.systems.fpsm.model import Fpsm
 from implantplan.systems.frames import invert
 from implantplan.systems.instrument import Instrument
 from implantplan.systems.jit import numba
+from implantplan.systems.placement.scan_clearance import TOLERANCE as SPLIT_TOLERANCE
 from implantplan.systems.placement.scan_clearance import capped_at
 from implantplan.systems.placement.tool_clearance import ToolClearance, fpsm_at
 from implantplan.systems.safety import DEFAULT as SAFETY
@@ -84,8 +85,8 @@ AIM = 0.9  # the projection aims at this share of the allowed approach rate
 SCALES = np.array([1.0, 0.75, 0.5, 0.25])  # tried on h itself after the projection
 GRADIENT_REUSE = 4  # consecutive steps at the wall that share one finite-difference gradient
 TOLERANCE = 1e-8  # m: rounding allowed in the discrete barrier condition per step
-JUMP = 0.05e-3  # m: how much further than the rate the projected command's check lets h fall
-# above the margin, never below it (module docstring, step 3: the scan bound's own steps)
+JUMP = SPLIT_TOLERANCE  # m: how much further than the rate the projected command's check lets
+# h fall above the margin, never below it (module docstring, step 3: the scan bound's own steps)
 FAR = 1.0e3  # stand-in for +inf (the tool wholly outside the mouth) on the output ports (m)
 _IDENTITY = np.eye(3)  # the rotation of a step without angular velocity (read only)
 _IDENTITY.flags.writeable = False

@@ -69,6 +69,36 @@ def test_head_motion_study_on_the_scan(demo_plan, tmp_path, capsys):
     assert "deviation following" in page
 
 
+@pytest.mark.sweep
+def test_a_feed_held_through_a_swallow_waits_and_reaches_the_target(demo_plan):
+    """Site 36, swallow, run 35 of 50 (seed 0): the swallow grows the guard's margin past the
+    clearance at the narrowest part of the feed, the barrier holds the tool there for about a
+    second (no guard stop), and the operator's script plus its 2 s finish ends 8.5 mm short;
+    the study runs it again with the longer finish and the feed reaches the target, clear."""
+    from implantplan.analyses.studies import head_motion as S
+    from implantplan.diagrams import feeding as F
+    from implantplan.diagrams.teleop import build_teleop, simulate
+    from implantplan.systems import seeds
+    from implantplan.systems.teleop.head_motion import HeadMotion, neck_of
+    from implantplan.systems.teleop.master_device import feeding_runs
+    from implantplan.systems.teleop.tracker import TrackerParams
+
+    case, cavity = S.scan_cases(plan=demo_plan)[0]
+    i = 35
+    m = feeding_runs(case.X_WE(case.q_start)[:3, 3], case.X_WTarget[:3, 3], runs=50, seed=0)[i]
+    hm = HeadMotion.make("swallow", seed=seeds.seed(0, i, 0), pivot=case.X_WCenter[:3, 3],
+                         neck=neck_of(case.X_WCenter))
+    trk = TrackerParams(seed=seeds.seed(0, i, 1))
+    still_teleop = build_teleop(case)
+    still = simulate(still_teleop, m.duration + F.FINISH_SECONDS, motion=m)
+    run, fig, still_long = S.following_run(case, m, hm, trk, cavity, still=still,
+                                           still_teleop=still_teleop)
+    assert fig["waited"] and fig["reached_target"] and fig["trigger_time"] < 0
+    assert run.sim_seconds == pytest.approx(m.duration + F.FINISH_SECONDS + S.WAIT_SECONDS)
+    assert len(still_long.t) == len(run.t)
+    assert fig["exact_clearance_min"] >= 1e-3  # the margin, on the opened scan (FCL)
+
+
 def test_tracker_flags_are_checked_and_named(tmp_path, capsys):
     for flags, name in ((["--tracker-rate-hz", "90"], "--tracker-rate-hz"),
                         (["--tracker-latency-ms", "-5"], "--tracker-latency-ms"),
