@@ -17,7 +17,8 @@ kinematic >= 20x real time, dynamic >= 5x):
 - the full diagram (master, fixture, supervisor, estimator, DiffIK 200 Hz, tool pose, loggers) on
   the case (``default``: site 36 of models/cases/default.yaml planned as ``implantplan plan``
   does; ``cylinder``: seed 000's cylinder check in the lying scenario), one scripted feed per
-  run, in kinematic mode and in dynamic mode (plant at 1 ms under inverse dynamics control);
+  run, in kinematic mode and in dynamic mode (plant at 1 ms under inverse dynamics control),
+  after 0.5 s of one untimed feed on the same diagram (first calls, not the steady loop);
 - the bare-loop reference: the same scene and DiffIK at 200 Hz with two trivial Python systems
   (a constant desired pose and a pass-through), no fixture, no estimator, no loggers;
 - the cost share of each Python system in the kinematic run (exclusive time in its callbacks,
@@ -255,6 +256,9 @@ def main(argv=None) -> int:
     for mode in ("kinematic", "dynamic"):
         sim = wall = 0.0
         teleop = diagrams[mode] = T.build_teleop(case, mode=mode)
+        # one untimed feed first: the kernels' first calls (loaded from numba's cache) and
+        # Drake's first allocations are not the loop's steady cost
+        T.simulate(teleop, 0.5, motion=motions[0])
         for m in motions:
             run = T.simulate(teleop, m.duration + S.FINISH_SECONDS, motion=m)
             sim += run.sim_seconds
