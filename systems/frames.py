@@ -107,14 +107,17 @@ def rotation_angle(R: np.ndarray) -> np.ndarray:
 
 def rotation_vector(R: np.ndarray) -> np.ndarray:
     """The rotation vector (3,) of a rotation matrix (3, 3) whose angle is below pi - 1e-6 (the
-    inverse of :func:`rotations` there): axis x angle, from the skew part sin(angle) axis."""
+    inverse of :func:`rotations` there): axis x angle, from the skew part sin(angle) axis and
+    the angle atan2(sin, cos) of :func:`rotation_angle` (scalar arithmetic: one matrix is asked
+    at every control step)."""
     R = np.asarray(R, dtype=float)
-    s = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    angle = float(rotation_angle(R[None])[0])
+    s0, s1, s2 = 0.5 * (R[2, 1] - R[1, 2]), 0.5 * (R[0, 2] - R[2, 0]), 0.5 * (R[1, 0] - R[0, 1])
+    sin = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+    angle = math.atan2(sin, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0))
     if angle > np.pi - 1e-6:
         raise ValueError(f"rotation_vector: angle {angle} too close to pi")
-    n = float(np.linalg.norm(s))
-    return s if n == 0.0 else s * (angle / n)
+    k = angle / sin if sin > 0.0 else 1.0
+    return np.array([k * s0, k * s1, k * s2])
 
 
 def wrap_angle(a) -> np.ndarray:

@@ -27,8 +27,6 @@ still catching up), the frame holds and differential IK scales its step as it wo
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from implantplan.systems.frames import invert, rotation_vector, rotations
@@ -40,12 +38,8 @@ HEADROOM = 0.95  # share of the joints' velocity limits a frame step may ask for
 def pose_difference(X_a: np.ndarray, X_b: np.ndarray) -> np.ndarray:
     """(6,) [rotation vector of R_b R_a^T; p_b - p_a] in the poses' common frame: differential
     IK's error of X_a against the desired X_b (Drake's ComputePoseDiffInCommonFrame)."""
-    R = X_b[:3, :3] @ X_a[:3, :3].T
     out = np.empty(6)
-    out[:3] = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    sin = math.sqrt(out[0] ** 2 + out[1] ** 2 + out[2] ** 2)  # sin(angle) x axis above
-    if sin > 0.0:  # the steps here are far below pi (frames.rotation_vector's case, scalar)
-        out[:3] *= math.atan2(sin, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)) / sin
+    out[:3] = rotation_vector(X_b[:3, :3] @ X_a[:3, :3].T)
     out[3:] = X_b[:3, 3] - X_a[:3, 3]
     return out
 
