@@ -3,9 +3,9 @@
 Run: ``python -m implantplan.analyses.bench_fpsm [--quick]``. Prints, side by side in one run:
 
 1. ``paper`` vs ``exact`` fit time with 15 slices x 15 control points x 150 samples (the paper's
-   C++ solver: 33.6 s) and their ratio; ``exact`` with 1 and 2 threads; and the paper's method
-   as written (every F_aim evaluation tests its sample points against the pre-assigned triangles,
-   here by casting them with Embree), measured over a few iterations and scaled to 1000.
+   C++ solver: 33.6 s) and their ratio (``exact`` solves its slices one at a time); the paper's
+   method as written (every F_aim evaluation tests its sample points against the pre-assigned
+   triangles, here by casting them with Embree), measured over a few iterations and scaled to 1000.
 2. Ray casting: Embree vs trimesh's pure-numpy engine (rays/s), whole mesh vs one slab's
    pre-assigned triangles.
 3. Coverage per method for N = 6..20 (mean over slices; the paper's Table 1: 88-93 % at N = 15-20
@@ -117,12 +117,7 @@ def main(argv=None) -> int:
     fit_fpsm(mesh, X_WC, check_factor=0, **kw)  # warm caches / imports
 
     print("== 1. Fit time, default mesh, 15 slices x 15 control points x 150 samples ==")
-    t_exact, exact = _median_time(
-        lambda: fit_fpsm(mesh, X_WC, check_factor=0, workers=1, **kw), repeats
-    )
-    t_exact2, _ = _median_time(
-        lambda: fit_fpsm(mesh, X_WC, check_factor=0, workers=2, **kw), repeats
-    )
+    t_exact, exact = _median_time(lambda: fit_fpsm(mesh, X_WC, check_factor=0, **kw), repeats)
     t_paper, paper = _median_time(
         lambda: fit_fpsm(mesh, X_WC, check_factor=0, method="paper", **kw), repeats
     )
@@ -130,8 +125,7 @@ def main(argv=None) -> int:
     t_literal = paper_literal_seconds(closed, X_WC, exact, iters)
     print(f"{'method':<44} {'total_s':>9} {'cast_s':>8} {'solve_s':>8} {'paper_cpp/this':>14}")
     for name, t, f in (
-        ("exact (LP + linearized-area LPs), 1 thread", t_exact, exact),
-        ("exact, 2 threads", t_exact2, None),
+        ("exact (LP + linearized-area LPs)", t_exact, exact),
         ("paper (Eq. 7-9, vectorized over slices)", t_paper, paper),
     ):
         s = f.diagnostics["seconds"] if f is not None else {"cast": np.nan, "solve": np.nan}

@@ -53,9 +53,7 @@ rays that met no real wall (capped by ``cap_radius``). Lengths in metres through
 
 from __future__ import annotations
 
-import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import trimesh
@@ -393,7 +391,6 @@ def fit_fpsm(
     check_factor: int = 8,
     engine: str = "auto",
     pre_assign: bool | None = None,
-    workers: int | None = None,
     progress=None,
 ):
     """Fit the FPSM (stage 1) to an oral mesh.
@@ -419,9 +416,6 @@ def fit_fpsm(
         engine: ray engine, see :func:`ray_engine`.
         pre_assign: bucket triangles by slab (see :func:`cast_walls`; default: only without
             Embree).
-        workers: threads for the per-slice ``exact`` solves (HiGHS releases the GIL); default
-            the number of CPUs. On the default case with 2 busy cores 2 threads cut the solve
-            from ~0.16-0.19 s to ~0.10-0.15 s; the result does not depend on it.
         progress: optional :class:`analyses.progress.Progress`-like object with ``say``.
 
     Returns:
@@ -523,12 +517,10 @@ def fit_fpsm(
             r, info = fit_slice_exact(B, wall[j] * scale)
             return r / scale, info, time.perf_counter() - ts
 
-        workers = (os.cpu_count() or 1) if workers is None else int(workers)
-        if workers > 1:
-            with ThreadPoolExecutor(max_workers=int(workers)) as pool:
-                results = list(pool.map(one, range(M)))
-        else:
-            results = [one(j) for j in range(M)]
+        # one slice at a time: two HiGHS solves in two threads of one process can abort it
+        # (HiGHS's scheduler is shared by its instances; a fatal abort was seen in the test
+        # run of 2026-12-07), and threads saved about 0.1 s of a 0.8 s fit
+        results = [one(j) for j in range(M)]
         rho = np.stack([r for r, _, _ in results])
         slice_seconds[:] = [s for _, _, s in results]
         solver_info = {"lp_rounds": [i["lp_rounds"] for _, i, _ in results]}
