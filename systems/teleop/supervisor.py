@@ -48,7 +48,7 @@ and the scale tries:
    side of such a step: every move, however short, then falls by the step, which dt alpha
    (h - margin) does not allow until h - margin >= 10 x the step (0.2-0.34 mm). Under a moving
    head, whose margin the head guard grows by 1.1-1.8 mm, that froze the feed for a second at
-   the narrowest part of site 46 (issue 22: the feeds that ended short). The raw command keeps
+   the narrowest part of site 46 (feeds that ended short of the target). The raw command keeps
    the strict condition (step 1) and the projection still aims at 0.9 b; the relaxation only
    lets the shaped command across the bound's steps. The safe set is unchanged: every step
    ends at h >= margin (or no lower than it started, below the margin).

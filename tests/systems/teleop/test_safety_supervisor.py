@@ -175,7 +175,7 @@ def test_a_step_of_the_scan_bound_does_not_freeze_the_tool_above_the_margin():
     1 um of travel. A tool on the upper side of such a step, 0.05 mm above the margin, may fall
     dt alpha (h - margin) = 5 um a step under the strict condition: every move towards the
     wall, however short, falls by the step, and the strict check stopped the tool for good
-    (issue 22: feeds frozen for a second at site 46's narrow section, the margin grown by a
+    (feeds frozen for a second at site 46's narrow section, the margin grown by a
     moving head). It moves on now, slower than commanded, never below the margin."""
     sc = scan_bound()
     x = np.arange(0.018, 0.0235, 1e-6)  # the TCP towards the wall at +x, 2.7-3.9 mm from it
