@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import heapq
 import time
 from typing import TYPE_CHECKING
 
@@ -545,39 +546,37 @@ def region_branch_and_bound(scan: ScanClearance, P: np.ndarray, lower: np.ndarra
     Q = float(solid.origin_reach_T()[0])
     n = P.shape[0]
     weight = np.array([1.0, 1.0, 1.0, Q, Q, Q])
-    index = np.arange(n)
-    centre = np.zeros((n, 6))
-    half = np.tile([half_step, lateral, lateral, angle, angle, angle], (n, 1))
-    lb = lower.astype(float).copy()
+    cells = CellLog(n)
     queries = 0
     first = True
     last_said = time.perf_counter()
     what = solid.shapes[0].name if len(solid.shapes) == 1 else solid.name
     while True:
-        if progress is not None and time.perf_counter() - last_said >= REGION_PROGRESS_EVERY:
+        if (progress is not None and not first
+                and time.perf_counter() - last_said >= REGION_PROGRESS_EVERY):
             last_said = time.perf_counter()
             progress.say(f"fixture region of the {what}: {queries:,} of {budget:,} FCL "
-                         f"queries, {int((lb < claim).sum()):,} cells below the claimed "
-                         f"{claim * 1e3:.3f} mm, bound {lb.min() * 1e3:.3f} mm so far")
+                         f"queries, {len(cells.open):,} cells below the claimed "
+                         f"{claim * 1e3:.3f} mm, bound {cells.least() * 1e3:.3f} mm so far")
         if first:  # the feed poses themselves (centres of the root cells, in the region)
-            pick = np.arange(n)
-            c, h, i, parent = centre, half, index, lb
+            c = np.zeros((n, 6))
+            h = np.tile([half_step, lateral, lateral, angle, angle, angle], (n, 1))
+            i, parent = np.arange(n), lower.astype(float)
         else:
-            open_ = np.flatnonzero(lb < claim)
-            if open_.size == 0:
+            if not cells.open:
                 break
             if queries >= budget:
-                return _cell_minimum(index, lb, n), queries, False
-            pick = open_[np.argsort(lb[open_], kind="stable")[:REGION_BATCH]]
-            d = np.argmax(half[pick] * weight, axis=1)
+                return cells.minimum(), queries, False
+            pick = cells.pop_least(REGION_BATCH)
+            hk = cells.half[pick]
+            d = np.argmax(hk * weight, axis=1)
             rows = np.arange(pick.size)
-            hk = half[pick].copy()
             hk[rows, d] *= 0.5
-            low_c, high_c = centre[pick].copy(), centre[pick].copy()
+            low_c, high_c = cells.centre[pick], cells.centre[pick]
             low_c[rows, d] -= hk[rows, d]
             high_c[rows, d] += hk[rows, d]
             c, h = np.concatenate([low_c, high_c]), np.concatenate([hk, hk])
-            i, parent = np.tile(index[pick], 2), np.tile(lb[pick], 2)
+            i, parent = np.tile(cells.index[pick], 2), np.tile(cells.lb[pick], 2)
             gap_t = np.linalg.norm(np.maximum(np.abs(c[:, 1:3]) - h[:, 1:3], 0.0), axis=1)
             gap_w = np.linalg.norm(np.maximum(np.abs(c[:, 3:]) - h[:, 3:], 0.0), axis=1)
             keep = (gap_t <= lateral) & (gap_w <= angle)
@@ -590,21 +589,63 @@ def region_branch_and_bound(scan: ScanClearance, P: np.ndarray, lower: np.ndarra
             v[ask] = np.maximum(v[ask], exact.tool_clearance(X[ask], solid))
             up[ask] = np.minimum(up[ask], v[ask])
             queries += int(ask.sum())
-        child = np.maximum(parent, v - rho)
-        if first:
-            lb, first = child, False
-        else:
-            rest = np.ones(lb.size, dtype=bool)
-            rest[pick] = False
-            centre = np.concatenate([centre[rest], c])
-            half = np.concatenate([half[rest], h])
-            index = np.concatenate([index[rest], i])
-            lb = np.concatenate([lb[rest], child])
+        cells.append(c, h, i, np.maximum(parent, v - rho), claim)
+        first = False
         inside = (np.linalg.norm(c[:, 1:3], axis=1) <= lateral) & (
             np.linalg.norm(c[:, 3:], axis=1) <= angle) & (np.abs(c[:, 0]) <= half_step)
         if (up[inside] < claim).any():
-            return _cell_minimum(index, lb, n), queries, True
-    return _cell_minimum(index, lb, n), queries, True
+            return cells.minimum(), queries, True
+    return cells.minimum(), queries, True
+
+
+class CellLog:
+    """The cells of :func:`region_branch_and_bound`: an append-only log (centre, half-widths,
+    feed pose index, lower bound) where a split cell is marked dead and its children appended,
+    and a heap of the open cells (bound below the claim) keyed by (bound, position in the log).
+    The live cells keep their order of creation, so the heap gives the cells a stable sort of
+    the live bounds would (the least first, ties in creation order), in O(log N) a cell instead
+    of a sort and a copy of every cell in every round."""
+
+    def __init__(self, n: int):
+        cap = max(8 * n, 1024)
+        self.centre, self.half = np.empty((cap, 6)), np.empty((cap, 6))
+        self.index, self.lb = np.empty(cap, dtype=np.int64), np.empty(cap)
+        self.live = np.zeros(cap, dtype=bool)
+        self.n, self.size = n, 0
+        self.open: list[tuple[float, int]] = []
+
+    def append(self, c, h, i, lb, claim: float) -> None:
+        m, k = c.shape[0], self.size
+        if k + m > self.lb.size:
+            cap = max(2 * self.lb.size, k + m)
+            for name in ("centre", "half", "index", "lb", "live"):
+                old = getattr(self, name)
+                new = np.zeros((cap,) + old.shape[1:], dtype=old.dtype)
+                new[:k] = old[:k]
+                setattr(self, name, new)
+        self.centre[k:k + m], self.half[k:k + m] = c, h
+        self.index[k:k + m], self.lb[k:k + m] = i, lb
+        self.live[k:k + m] = True
+        self.size = k + m
+        for j in np.flatnonzero(lb < claim):
+            heapq.heappush(self.open, (float(lb[j]), k + int(j)))
+
+    def pop_least(self, count: int) -> np.ndarray:
+        """The positions of the ``count`` least open cells (in that order), marked dead."""
+        pick = np.array([heapq.heappop(self.open)[1]
+                         for _ in range(min(count, len(self.open)))], dtype=np.int64)
+        self.live[pick] = False
+        return pick
+
+    def least(self) -> float:
+        """The least bound of the live cells (an open one's while any is open)."""
+        if self.open:
+            return self.open[0][0]
+        return float(self.lb[:self.size][self.live[:self.size]].min())
+
+    def minimum(self) -> np.ndarray:
+        alive = self.live[:self.size]
+        return _cell_minimum(self.index[:self.size][alive], self.lb[:self.size][alive], self.n)
 
 
 def _cell_minimum(index: np.ndarray, lb: np.ndarray, n: int) -> np.ndarray:

@@ -383,3 +383,38 @@ def test_the_region_search_reports_its_progress_without_changing_its_result(cavi
         assert queries == sorted(queries) and bound == sorted(bound), lines.said
     assert max(int(m[2].replace(",", "")) for m in parsed) <= quiet["region"]["fcl_queries"]
     assert {m[4] for m in parsed} == {f"{args['clearance'] * 1e3:.3f}"}
+
+
+def test_the_cell_log_splits_the_cells_a_stable_sort_of_the_live_bounds_would():
+    """The branch and bound's cells (scan_clearance.CellLog): each round takes the least open
+    bounds, ties in order of creation, exactly as a stable sort of the live cells' bounds in a
+    list that drops the split cells and appends their children; the minimum per feed pose is
+    over the live cells. Bounds on a coarse grid, so that ties are common."""
+    from implantplan.systems.placement.scan_clearance import CellLog
+
+    rng = np.random.default_rng(5)
+    n, claim, batch = 7, 0.5, 9
+    log = CellLog(n)
+    lb = np.round(rng.uniform(0, 1, n), 1)
+    log.append(np.zeros((n, 6)), np.ones((n, 6)), np.arange(n), lb, claim)
+    index, bound = list(range(n)), list(lb)  # the reference: the compacted list
+    for _ in range(60):
+        if not log.open:
+            break
+        open_ = np.flatnonzero(np.array(bound) < claim)
+        ref = open_[np.argsort(np.array(bound)[open_], kind="stable")[:batch]]
+        pick = log.pop_least(batch)
+        assert np.array_equal(log.lb[pick], np.array(bound)[ref])
+        assert np.array_equal(log.index[pick], np.array(index)[ref])
+        children = np.concatenate([np.array(bound)[ref], np.array(bound)[ref]])
+        children = np.round(children + rng.choice([0.0, 0.1, 0.2], children.size), 1)
+        kids = np.tile(np.array(index)[ref], 2)
+        keep = [k for k in range(len(bound)) if k not in set(ref.tolist())]
+        index = [index[k] for k in keep] + kids.tolist()
+        bound = [bound[k] for k in keep] + children.tolist()
+        log.append(np.zeros((kids.size, 6)), np.ones((kids.size, 6)), kids, children, claim)
+        expect = np.full(n, np.inf)
+        np.minimum.at(expect, np.array(index), np.array(bound))
+        assert np.array_equal(log.minimum(), expect)
+        assert log.least() == min(bound)
+    assert not log.open and log.size > 20 * n  # every cell closed, after many rounds and growths
