@@ -200,11 +200,12 @@ class ExactCavity:
         tissue = self.start_in_tissue(A) if check_start else np.zeros(len(A), dtype=bool)
         out = np.empty(len(A))
         axes = self._segment_objects(A, B, 0.0)
+        solids = self._segment_objects(A, B, r, solid="cylinder")  # frames for all rows at once
         for k, axis in enumerate(axes):
             if tissue[k] or self._collides(axis):
                 out[k] = -r[k]
                 continue
-            obj = self._segment_objects(A[k], B[k], r[k], solid="cylinder")[0]
+            obj = solids[k]
             # free: the cylinder's own distance; touching: its axis capsule's (deeper or equal)
             out[k] = self._distance(axis) - r[k] if self._collides(obj) else self._distance(obj)
         return out
