@@ -12,6 +12,7 @@ folders of analyses.out_folder), exit 143 (130 for Ctrl-C).
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import importlib
 import os
 import signal
@@ -180,6 +181,9 @@ def main(argv: list[str] | None = None) -> int:
         previous = signal.signal(signal.SIGTERM, _terminate)
         previous_alarm = signal.signal(signal.SIGALRM, _raise_pending)
         sys.unraisablehook = _unraisable_hook(previous_hook)
+        # `kill -USR1 PID`: every thread's Python stack on stderr, the command runs on (where a
+        # long or stuck command is, without a debugger)
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
     except ValueError:  # not the main thread (main() called from a worker thread)
         pass
     try:
@@ -212,6 +216,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if previous is not None:
             signal.setitimer(signal.ITIMER_REAL, 0.0)
+            faulthandler.unregister(signal.SIGUSR1)
             signal.signal(signal.SIGTERM, previous)
             signal.signal(signal.SIGALRM, previous_alarm)
             sys.unraisablehook = previous_hook

@@ -130,3 +130,31 @@ def test_a_stop_landing_in_a_finalizer_still_stops_the_command(name, code, line)
     assert "ran on" not in proc.stdout
     assert proc.stderr.strip() == line, proc.stderr
     assert float(proc.stdout.split()[-1]) < 1.0, proc.stdout
+
+
+STACKS_ON_USR1 = """
+import argparse, os, signal, sys, time
+from implantplan.analyses import cli
+
+def somewhere_in_the_work():
+    os.kill(os.getpid(), signal.SIGUSR1)
+    time.sleep(0.2)
+    return 0
+
+def parser(argv=None):
+    p = argparse.ArgumentParser()
+    p.set_defaults(func=lambda args: somewhere_in_the_work())
+    return p
+
+cli.build_parser = parser
+sys.exit(cli.main([]))
+"""
+
+
+def test_usr1_prints_where_the_command_is_and_it_runs_on():
+    """``kill -USR1`` on a command prints every thread's stack on stderr (the function it is
+    in named) and the command goes on to its own exit code."""
+    proc = subprocess.run([sys.executable, "-c", STACKS_ON_USR1], capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert "Current thread" in proc.stderr and "somewhere_in_the_work" in proc.stderr

@@ -336,7 +336,15 @@ def _serve(c: Command, cwd: Path) -> None:
                 printed.append(lines.get(timeout=1))
         time.sleep(2.0)  # the keys line comes just before the loop that Ctrl-C closes
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=120) == 0, f"{c.where}:\n{''.join(printed)}"
+        try:
+            code = proc.wait(timeout=120)
+        except subprocess.TimeoutExpired:  # where it is stuck (the CLI dumps its stacks on USR1)
+            proc.send_signal(signal.SIGUSR1)
+            time.sleep(2.0)
+            while not lines.empty():
+                printed.append(lines.get())
+            code = None
+        assert code == 0, f"{c.where} (exit {code}):\n{''.join(printed)}"
     finally:
         if proc.poll() is None:
             proc.kill()
