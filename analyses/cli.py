@@ -174,11 +174,15 @@ def main(argv: list[str] | None = None) -> int:
     noise.reset()
     parser = build_parser(argv)
     args = parser.parse_args(argv)
-    previous = previous_alarm = None
+    previous = previous_alarm = previous_int = None
     previous_hook = sys.unraisablehook
     _STOPPING["caught"] = False
     try:
         previous = signal.signal(signal.SIGTERM, _terminate)
+        # Ctrl-C is KeyboardInterrupt even when the command was started with SIGINT ignored (a
+        # shell's background job, a pytest-xdist worker): Python leaves an inherited SIG_IGN in
+        # place, and the studio, which quits on Ctrl-C, then served on
+        previous_int = signal.signal(signal.SIGINT, signal.default_int_handler)
         previous_alarm = signal.signal(signal.SIGALRM, _raise_pending)
         sys.unraisablehook = _unraisable_hook(previous_hook)
         # `kill -USR1 PID`: every thread's Python stack on stderr, the command runs on (where a
@@ -218,6 +222,8 @@ def main(argv: list[str] | None = None) -> int:
             signal.setitimer(signal.ITIMER_REAL, 0.0)
             faulthandler.unregister(signal.SIGUSR1)
             signal.signal(signal.SIGTERM, previous)
+            if previous_int is not None:  # None: a handler set outside Python, left as ours
+                signal.signal(signal.SIGINT, previous_int)
             signal.signal(signal.SIGALRM, previous_alarm)
             sys.unraisablehook = previous_hook
         for line in noise.summary():

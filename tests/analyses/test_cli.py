@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import signal
 import subprocess
 import sys
 
@@ -158,3 +159,39 @@ def test_usr1_prints_where_the_command_is_and_it_runs_on():
                           text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
     assert "Current thread" in proc.stderr and "somewhere_in_the_work" in proc.stderr
+
+
+WORKS_FIVE_SECONDS = """
+import argparse, sys, time
+from implantplan.analyses import cli
+
+def work(args):
+    print("working", flush=True)
+    start = time.monotonic()
+    while time.monotonic() - start < 5.0:
+        time.sleep(0.01)
+    print("ran on")
+    return 0
+
+def parser(argv=None):
+    p = argparse.ArgumentParser()
+    p.set_defaults(func=work)
+    return p
+
+cli.build_parser = parser
+sys.exit(cli.main([]))
+"""
+
+
+def test_ctrl_c_stops_a_command_started_with_sigint_ignored():
+    """A command started with SIGINT ignored (a shell's background job, a pytest-xdist worker's
+    child: Python keeps the inherited SIG_IGN) still stops on Ctrl-C, exit 130: the studio, which
+    quits on Ctrl-C, served on in that case."""
+    proc = subprocess.Popen([sys.executable, "-c", WORKS_FIVE_SECONDS], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    assert proc.stdout.readline().strip() == "working"
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, (out, err)
+    assert "ran on" not in out and err.strip() == "implantplan: interrupted", err
