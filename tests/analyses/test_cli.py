@@ -87,10 +87,27 @@ def test_every_command_prints_its_help(capsys):
         assert "usage: implantplan" in capsys.readouterr().out, path
 
 
-SIGNAL_IN_A_FINALIZER = """
+COMMAND_HEAD = """
 import argparse, os, signal, sys, time
 from implantplan.analyses import cli
+"""
+COMMAND_TAIL = """
+def parser(argv=None):
+    p = argparse.ArgumentParser()
+    p.set_defaults(func=work)
+    return p
 
+cli.build_parser = parser
+"""
+
+
+def command_script(work: str, end: str = "sys.exit(cli.main([]))\n") -> str:
+    """A Python script that runs ``cli.main`` on a command whose function is ``work`` (defined
+    in the text ``work``), then ``end``."""
+    return COMMAND_HEAD + work + COMMAND_TAIL + end
+
+
+SIGNAL_IN_A_FINALIZER = command_script("""
 class Finalizer:
     def __del__(self):  # the signal's handler runs in here, where Python ignores exceptions
         os.kill(os.getpid(), getattr(signal, sys.argv[1]))
@@ -103,18 +120,11 @@ def work(args):
         pass
     print("ran on")
     return 0
-
-def parser(argv=None):
-    p = argparse.ArgumentParser()
-    p.set_defaults(func=work)
-    return p
-
-cli.build_parser = parser
-t = time.monotonic()
+""", """t = time.monotonic()
 code = cli.main([])
 print(f"seconds {time.monotonic() - t:.3f}")
 sys.exit(code)
-"""
+""")
 
 
 @pytest.mark.parametrize("name, code, line", [
@@ -133,23 +143,15 @@ def test_a_stop_landing_in_a_finalizer_still_stops_the_command(name, code, line)
     assert float(proc.stdout.split()[-1]) < 1.0, proc.stdout
 
 
-STACKS_ON_USR1 = """
-import argparse, os, signal, sys, time
-from implantplan.analyses import cli
-
+STACKS_ON_USR1 = command_script("""
 def somewhere_in_the_work():
     os.kill(os.getpid(), signal.SIGUSR1)
     time.sleep(0.2)
     return 0
 
-def parser(argv=None):
-    p = argparse.ArgumentParser()
-    p.set_defaults(func=lambda args: somewhere_in_the_work())
-    return p
-
-cli.build_parser = parser
-sys.exit(cli.main([]))
-"""
+def work(args):
+    return somewhere_in_the_work()
+""")
 
 
 def test_usr1_prints_where_the_command_is_and_it_runs_on():
@@ -161,10 +163,7 @@ def test_usr1_prints_where_the_command_is_and_it_runs_on():
     assert "Current thread" in proc.stderr and "somewhere_in_the_work" in proc.stderr
 
 
-WORKS_FIVE_SECONDS = """
-import argparse, sys, time
-from implantplan.analyses import cli
-
+WORKS_FIVE_SECONDS = command_script("""
 def work(args):
     print("working", flush=True)
     start = time.monotonic()
@@ -172,15 +171,7 @@ def work(args):
         time.sleep(0.01)
     print("ran on")
     return 0
-
-def parser(argv=None):
-    p = argparse.ArgumentParser()
-    p.set_defaults(func=work)
-    return p
-
-cli.build_parser = parser
-sys.exit(cli.main([]))
-"""
+""")
 
 
 def test_ctrl_c_stops_a_command_started_with_sigint_ignored():
