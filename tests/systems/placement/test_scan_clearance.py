@@ -409,7 +409,8 @@ def test_the_cell_log_splits_the_cells_a_stable_sort_of_the_live_bounds_would():
         children = np.concatenate([np.array(bound)[ref], np.array(bound)[ref]])
         children = np.round(children + rng.choice([0.0, 0.1, 0.2], children.size), 1)
         kids = np.tile(np.array(index)[ref], 2)
-        keep = [k for k in range(len(bound)) if k not in set(ref.tolist())]
+        split = set(ref.tolist())
+        keep = [k for k in range(len(bound)) if k not in split]
         index = [index[k] for k in keep] + kids.tolist()
         bound = [bound[k] for k in keep] + children.tolist()
         log.append(np.zeros((kids.size, 6)), np.ones((kids.size, 6)), kids, children, claim)
